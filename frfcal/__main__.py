@@ -1,0 +1,5 @@
+import sys
+
+from frfcal.cli import main
+
+sys.exit(main())

@@ -1,0 +1,1 @@
+"""One module per ``frfcal`` sub-command (see :mod:`frfcal.cli`)."""

@@ -1,0 +1,1 @@
+"""identification layer (see ARCHITECTURE.md)."""

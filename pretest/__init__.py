@@ -1,0 +1,1 @@
+"""pretest layer (see ARCHITECTURE.md)."""
