@@ -1,0 +1,49 @@
+"""Shared test configuration.
+
+* ``shared_reference`` locates ``../shared/reference`` beside the repository and
+  skips the test (with the reason) when it is absent.
+* ``--hardware`` enables tests marked ``hardware``; without it they are skipped,
+  and real hardware is never used as a silent fallback.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_REFERENCE = REPO.parent / "shared" / "reference"
+
+
+def pytest_addoption(parser):
+    parser.addoption(
+        "--hardware",
+        action="store_true",
+        default=False,
+        help="run tests marked 'hardware' against real lab hardware",
+    )
+
+
+def pytest_collection_modifyitems(config, items):
+    if config.getoption("--hardware"):
+        return
+    skip = pytest.mark.skip(reason="needs real lab hardware: run with --hardware")
+    for item in items:
+        if "hardware" in item.keywords:
+            item.add_marker(skip)
+
+
+def reference_path(*parts: str) -> Path:
+    """Path under ../shared/reference, or skip the calling test with a clear reason."""
+    path = SHARED_REFERENCE.joinpath(*parts)
+    if not path.exists():
+        pytest.skip(f"reference data not found at {path} (../shared beside the repo is absent)")
+    return path
+
+
+@pytest.fixture
+def shared_reference() -> Path:
+    if not SHARED_REFERENCE.is_dir():
+        pytest.skip(f"reference data not found at {SHARED_REFERENCE} (../shared beside the repo is absent)")
+    return SHARED_REFERENCE
