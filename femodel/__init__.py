@@ -4,5 +4,7 @@ Public API is re-exported here; each concept lives in its own private module.
 """
 
 from femodel._affine import AffineMatrix
+from femodel._elements_shell import ElementGeometryError, shell_mass, shell_stiffness
+from femodel._elements_solid import solid_mass, solid_stiffness
 
-__all__ = ["AffineMatrix"]
+__all__ = ["AffineMatrix", "ElementGeometryError", "shell_stiffness", "shell_mass", "solid_stiffness", "solid_mass"]

@@ -1,0 +1,379 @@
+"""Vectorized CQUAD4 / CTRIA3 shell element kernels (stiffness and mass).
+
+Formulation (chosen to behave like Nastran's QUAD4/TRIA3, never copied from it):
+
+* **Element frame.** Nodes are projected onto the mean plane through the
+  centroid; the normal of a quad is the cross product of its diagonals
+  (``G1->G3 x G2->G4``), of a triangle ``G1G2 x G1G3``.  The element x axis is
+  the side G1->G2 projected onto that plane (Nastran's THETA = 0 material
+  axis), y = z x x.  ``dm``, ``db`` and ``ds`` are given in this frame.
+* **Warping.** Each projected point is tied to its grid by a rigid offset
+  ``-h n`` (``h`` the signed distance of the grid from the mean plane), the
+  usual rigid-link warping correction; rigid-body motion stays exactly
+  stress-free.
+* **Membrane.** Quad: bilinear isoparametric, 2x2 Gauss for the normal
+  strains and the in-plane shear strain sampled at the centroid (selective
+  reduced integration written as a B-bar, so a full anisotropic ``dm`` is
+  honoured).  Triangle: constant strain.
+* **Bending / transverse shear.** Reissner-Mindlin plate with independent
+  rotations; quad: bilinear rotations, 2x2 Gauss bending, MITC4 assumed
+  transverse shear strains (Bathe & Dvorkin 1985); triangle: constant
+  curvature, MITC3 assumed shear (Lee & Bathe 2004).
+* **Drilling.** Penalty ``1e-6 K6ROT dm[2,2] * integral (theta_z - omega)^2 dA``
+  with ``omega = (dv/dx - du/dy)/2`` the in-plane rotation of the membrane
+  field (the K6ROT definition of the Nastran manuals); 2x2 Gauss (quad) /
+  3-point (triangle) so that no spurious drilling mechanism remains.
+* **Mass.** Lumped: ``mu * area / nn`` on each node's translations, no rotary
+  inertia (Nastran's default); coupled (PARAM,COUPMASS): consistent
+  translational mass from the bilinear/linear shape functions.
+
+Sign conventions for plate rotations follow Nastran: the through-thickness
+displacement is ``u = z theta_y``, ``v = -z theta_x``; curvatures
+``kx = d theta_y/dx``, ``ky = -d theta_x/dy``, ``kxy = d theta_y/dy - d theta_x/dx``;
+transverse shear ``gxz = dw/dx + theta_y``, ``gyz = dw/dy - theta_x``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["ElementGeometryError", "shell_stiffness", "shell_mass", "shell_frames"]
+
+_G = 1.0 / np.sqrt(3.0)
+_QUAD_XI = np.array([-1.0, 1.0, 1.0, -1.0])
+_QUAD_ETA = np.array([-1.0, -1.0, 1.0, 1.0])
+_QUAD_GAUSS = [(-_G, -_G), (_G, -_G), (_G, _G), (-_G, _G)]  # weights 1
+_TRI_GAUSS = [(1.0 / 6.0, 1.0 / 6.0), (2.0 / 3.0, 1.0 / 6.0), (1.0 / 6.0, 2.0 / 3.0)]  # weights 1/6
+
+
+class ElementGeometryError(ValueError):
+    """Degenerate, inverted or badly shaped elements (lists the offending elements)."""
+
+
+def _describe(bad: np.ndarray, ids, what: str, kind: str) -> str:
+    bad = np.flatnonzero(bad)
+    if ids is not None:
+        labels = [str(np.asarray(ids)[i]) for i in bad[:20]]
+        who = "element ids"
+    else:
+        labels = [str(i) for i in bad[:20]]
+        who = "element indices"
+    more = "" if bad.size <= 20 else f" (and {bad.size - 20} more)"
+    return f"{kind}: {bad.size} element(s) {what}; {who} {', '.join(labels)}{more}"
+
+
+def _check_xyz(xyz: np.ndarray, nn_allowed: tuple[int, ...], kind: str) -> np.ndarray:
+    xyz = np.asarray(xyz, dtype=float)
+    if xyz.ndim != 3 or xyz.shape[2] != 3 or xyz.shape[1] not in nn_allowed:
+        raise ValueError(
+            f"{kind}: xyz must have shape (n, nn, 3) with nn in {nn_allowed}, got {xyz.shape}"
+        )
+    if not np.all(np.isfinite(xyz)):
+        raise ElementGeometryError(_describe(~np.isfinite(xyz).all(axis=(1, 2)), None,
+                                             "have non-finite coordinates", kind))
+    return xyz
+
+
+def shell_frames(xyz: np.ndarray, ids=None):
+    """Element frames, projected in-plane coordinates and warp offsets.
+
+    Parameters
+    ----------
+    xyz : ndarray, shape (n, nn, 3)
+        Node coordinates in basic [m]; nn = 3 (CTRIA3) or 4 (CQUAD4).
+    ids : array_like of int, optional
+        Element ids used in error messages.
+
+    Returns
+    -------
+    rot : ndarray, shape (n, 3, 3)
+        Rows are the element x, y, z (normal) axes in basic.
+    xy : ndarray, shape (n, nn, 2)
+        Projected node coordinates in the element frame, origin at the centroid [m].
+    h : ndarray, shape (n, nn)
+        Signed distance of each grid from the mean plane along the normal [m].
+    """
+    nn = xyz.shape[1]
+    kind = "CQUAD4" if nn == 4 else "CTRIA3"
+    c = xyz.mean(axis=1)
+    if nn == 4:
+        nrm = np.cross(xyz[:, 2] - xyz[:, 0], xyz[:, 3] - xyz[:, 1])
+    else:
+        nrm = np.cross(xyz[:, 1] - xyz[:, 0], xyz[:, 2] - xyz[:, 0])
+    nlen = np.linalg.norm(nrm, axis=1)
+    scale = np.max(np.linalg.norm(xyz - c[:, None, :], axis=2), axis=1)
+    bad = ~(nlen > 1e-12 * np.maximum(scale, 1e-300) ** 2)
+    if bad.any():
+        raise ElementGeometryError(_describe(bad, ids, "have zero area (coincident or collinear grids)", kind))
+    ez = nrm / nlen[:, None]
+    side = xyz[:, 1] - xyz[:, 0]
+    side = side - np.sum(side * ez, axis=1)[:, None] * ez
+    slen = np.linalg.norm(side, axis=1)
+    bad = ~(slen > 1e-12 * scale)
+    if bad.any():
+        raise ElementGeometryError(_describe(bad, ids, "have coincident grids G1 and G2", kind))
+    ex = side / slen[:, None]
+    ey = np.cross(ez, ex)
+    rot = np.stack([ex, ey, ez], axis=1)
+    rel = xyz - c[:, None, :]
+    local = np.einsum("nij,nkj->nki", rot, rel)
+    return rot, local[:, :, :2].copy(), local[:, :, 2].copy()
+
+
+def _quad_derivs(xi: float, eta: float):
+    """Shape functions and natural derivatives of the bilinear quad at one point."""
+    n = 0.25 * (1 + _QUAD_XI * xi) * (1 + _QUAD_ETA * eta)
+    dxi = 0.25 * _QUAD_XI * (1 + _QUAD_ETA * eta)
+    deta = 0.25 * _QUAD_ETA * (1 + _QUAD_XI * xi)
+    return n, np.stack([dxi, deta])  # (4,), (2, 4)
+
+
+def _jacobian(dnat: np.ndarray, xy: np.ndarray):
+    """Batched 2-D Jacobian J[a, b] = d x_b / d nat_a, its determinant and inverse."""
+    jac = np.einsum("ak,nkb->nab", dnat, xy)
+    det = jac[:, 0, 0] * jac[:, 1, 1] - jac[:, 0, 1] * jac[:, 1, 0]
+    inv = np.empty_like(jac)
+    inv[:, 0, 0] = jac[:, 1, 1]
+    inv[:, 1, 1] = jac[:, 0, 0]
+    inv[:, 0, 1] = -jac[:, 0, 1]
+    inv[:, 1, 0] = -jac[:, 1, 0]
+    inv /= det[:, None, None]
+    return jac, det, inv
+
+
+def _membrane_b(dxy: np.ndarray, nn: int) -> np.ndarray:
+    """(n, 3, 6nn) membrane strain-displacement matrix from Cartesian derivatives (n, 2, nn)."""
+    b = np.zeros((dxy.shape[0], 3, 6 * nn))
+    b[:, 0, 0::6] = dxy[:, 0]
+    b[:, 1, 1::6] = dxy[:, 1]
+    b[:, 2, 0::6] = dxy[:, 1]
+    b[:, 2, 1::6] = dxy[:, 0]
+    return b
+
+
+def _bending_b(dxy: np.ndarray, nn: int) -> np.ndarray:
+    """(n, 3, 6nn) curvature-displacement matrix (Nastran rotation signs)."""
+    b = np.zeros((dxy.shape[0], 3, 6 * nn))
+    b[:, 0, 4::6] = dxy[:, 0]
+    b[:, 1, 3::6] = -dxy[:, 1]
+    b[:, 2, 4::6] = dxy[:, 1]
+    b[:, 2, 3::6] = -dxy[:, 0]
+    return b
+
+
+def _drill_b(n_shape: np.ndarray, dxy: np.ndarray, nn: int) -> np.ndarray:
+    """(n, 6nn) row giving theta_z - (dv/dx - du/dy)/2 at a point."""
+    b = np.zeros((dxy.shape[0], 6 * nn))
+    b[:, 5::6] = n_shape
+    b[:, 1::6] = -0.5 * dxy[:, 0]
+    b[:, 0::6] = 0.5 * dxy[:, 1]
+    return b
+
+
+def _covariant_shear(n_shape, dnat_row, xnat, nn):
+    """(n, 6nn) covariant transverse shear w_a + beta . x_a at a point.
+
+    ``n_shape`` (nn,), ``dnat_row`` (nn,) derivative along natural direction a,
+    ``xnat`` (n, 2) = d(x, y)/da at the point; beta = (theta_y, -theta_x).
+    """
+    b = np.zeros((xnat.shape[0], 6 * nn))
+    b[:, 2::6] = dnat_row[None, :]
+    b[:, 4::6] = n_shape[None, :] * xnat[:, 0:1]
+    b[:, 3::6] = -n_shape[None, :] * xnat[:, 1:2]
+    return b
+
+
+def _btdb(b: np.ndarray, d: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """sum_n w * B^T D B, batched: b (n, r, m), d (n, r, r), w (n,) -> (n, m, m)."""
+    db = np.matmul(d, b)
+    return np.matmul(np.swapaxes(b, 1, 2), db * w[:, None, None])
+
+
+def _quad_local(xy, dm, db, ds, kdrill, ids):
+    n = xy.shape[0]
+    km = np.zeros((n, 24, 24))
+    kb = np.zeros((n, 24, 24))
+    ks = np.zeros((n, 24, 24))
+    kd = np.zeros((n, 24, 24))
+    # centroid membrane shear row (B-bar) and detJ
+    _, d0 = _quad_derivs(0.0, 0.0)
+    _, _, inv0 = _jacobian(d0, xy)
+    bm0 = _membrane_b(np.einsum("nab,bk->nak", inv0, d0), 4)
+    # MITC4 tying points: gamma_xi at (0, -1) and (0, +1); gamma_eta at (-1, 0), (+1, 0)
+    tying = {}
+    for key, (xi, eta, a) in {"A": (0.0, -1.0, 0), "C": (0.0, 1.0, 0), "D": (-1.0, 0.0, 1), "B": (1.0, 0.0, 1)}.items():
+        nsh, dn = _quad_derivs(xi, eta)
+        jac, _, _ = _jacobian(dn, xy)
+        tying[key] = _covariant_shear(nsh, dn[a], jac[:, a, :], 4)
+    for xi, eta in _QUAD_GAUSS:
+        nsh, dn = _quad_derivs(xi, eta)
+        _, det, inv = _jacobian(dn, xy)
+        if np.any(det <= 0):
+            raise ElementGeometryError(_describe(det <= 0, ids,
+                                                 "are inverted, concave or have a re-entrant corner "
+                                                 "(non-positive Jacobian; check grid order)", "CQUAD4"))
+        dxy = np.einsum("nab,bk->nak", inv, dn)
+        bm = _membrane_b(dxy, 4)
+        bm[:, 2, :] = bm0[:, 2, :]
+        km += _btdb(bm, dm, det)
+        kb += _btdb(_bending_b(dxy, 4), db, det)
+        g_xi = 0.5 * (1 - eta) * tying["A"] + 0.5 * (1 + eta) * tying["C"]
+        g_eta = 0.5 * (1 - xi) * tying["D"] + 0.5 * (1 + xi) * tying["B"]
+        bs = np.einsum("nab,nbm->nam", inv, np.stack([g_xi, g_eta], axis=1))
+        ks += _btdb(bs, ds, det)
+        bd = _drill_b(nsh, dxy, 4)
+        kd += np.einsum("ni,nj->nij", bd, bd * (kdrill * det)[:, None])
+    return km, kb, ks, kd
+
+
+def _tri_local(xy, dm, db, ds, kdrill, ids):
+    n = xy.shape[0]
+    dn = np.array([[-1.0, 1.0, 0.0], [-1.0, 0.0, 1.0]])
+    _, det, inv = _jacobian(dn, xy)
+    if np.any(det <= 0):
+        raise ElementGeometryError(_describe(det <= 0, ids, "have non-positive area", "CTRIA3"))
+    area = 0.5 * det
+    dxy = np.einsum("nab,bk->nak", inv, dn)
+    km = _btdb(_membrane_b(dxy, 3), dm, area)
+    kb = _btdb(_bending_b(dxy, 3), db, area)
+    jac = np.einsum("ak,nkb->nab", dn, xy)
+
+    def shape(r, s):
+        return np.array([1.0 - r - s, r, s])
+
+    def cov(r, s, a):
+        return _covariant_shear(shape(r, s), dn[a], jac[:, a, :], 3)
+
+    e1 = cov(0.5, 0.0, 0)
+    e2 = cov(0.0, 0.5, 1)
+    c = e2 - e1 - cov(0.5, 0.5, 1) + cov(0.5, 0.5, 0)
+    ks = np.zeros((n, 18, 18))
+    kd = np.zeros((n, 18, 18))
+    for r, s in _TRI_GAUSS:
+        g = np.stack([e1 + c * s, e2 - c * r], axis=1)
+        bs = np.einsum("nab,nbm->nam", inv, g)
+        ks += _btdb(bs, ds, det / 6.0)
+        bd = _drill_b(shape(r, s), dxy, 3)
+        kd += np.einsum("ni,nj->nij", bd, bd * (kdrill * det / 6.0)[:, None])
+    return km, kb, ks, kd
+
+
+def _to_basic(rot: np.ndarray, h: np.ndarray) -> np.ndarray:
+    """(n, 6nn, 6nn) map from basic grid DOF to local DOF of the projected points.
+
+    Local translation of a projected point = R u + h * (n x theta) in the
+    element frame, i.e. u_p = u - h theta_y, v_p = v + h theta_x.
+    """
+    n, nn = h.shape
+    t = np.zeros((n, 6 * nn, 6 * nn))
+    for i in range(nn):
+        t[:, 6 * i:6 * i + 3, 6 * i:6 * i + 3] = rot
+        t[:, 6 * i + 3:6 * i + 6, 6 * i + 3:6 * i + 6] = rot
+        # warp offset in local coordinates acting on local rotations (= rot @ theta_basic)
+        t[:, 6 * i, 6 * i + 3:6 * i + 6] = -h[:, i, None] * rot[:, 1, :]
+        t[:, 6 * i + 1, 6 * i + 3:6 * i + 6] = h[:, i, None] * rot[:, 0, :]
+    return t
+
+
+def shell_stiffness(xyz, dm, db, ds, k6rot, ids=None) -> dict[str, np.ndarray]:
+    """Stiffness of CQUAD4 / CTRIA3 shells, split by constitutive term.
+
+    Parameters
+    ----------
+    xyz : array_like, shape (n, nn, 3)
+        Grid coordinates in basic [m]; nn = 4 (CQUAD4) or 3 (CTRIA3), in
+        connectivity order.
+    dm : array_like, shape (n, 3, 3)
+        Membrane stiffness (material matrix times thickness) [N/m], in the
+        element frame (x along G1->G2 projected on the mean plane).
+    db : array_like, shape (n, 3, 3)
+        Bending stiffness D (12 I / t^3 already applied) [N m].
+    ds : array_like, shape (n, 2, 2)
+        Transverse shear stiffness (G * TS/T * t) [N/m]; zeros for a
+        shear-rigid plate are not allowed by this formulation (use a large
+        value instead).
+    k6rot : float
+        Nastran PARAM,K6ROT (dimensionless); 0 gives no drilling stiffness.
+    ids : array_like of int, shape (n,), optional
+        Element ids used in error messages.
+
+    Returns
+    -------
+    dict of str to ndarray, each shape (n, 6nn, 6nn)
+        ``membrane`` (linear in dm), ``bending`` (db), ``shear`` (ds) and
+        ``drill`` (dm[2,2] times K6ROT), in basic coordinates, DOF per grid
+        T1 T2 T3 R1 R2 R3.  Their sum is the element stiffness.
+
+    Raises
+    ------
+    ElementGeometryError
+        Zero-area, inverted or re-entrant elements (listed by id or index).
+    """
+    xyz = _check_xyz(xyz, (3, 4), "shell")
+    n, nn = xyz.shape[:2]
+    dm = np.broadcast_to(np.asarray(dm, dtype=float), (n, 3, 3))
+    db = np.broadcast_to(np.asarray(db, dtype=float), (n, 3, 3))
+    ds = np.broadcast_to(np.asarray(ds, dtype=float), (n, 2, 2))
+    k6rot = float(k6rot)
+    if k6rot < 0:
+        raise ValueError(f"PARAM,K6ROT must be >= 0, got {k6rot}")
+    rot, xy, h = shell_frames(xyz, ids)
+    kdrill = 1e-6 * k6rot * dm[:, 2, 2]
+    local = (_quad_local if nn == 4 else _tri_local)(xy, dm, db, ds, kdrill, ids)
+    t = _to_basic(rot, h)
+    tt = np.swapaxes(t, 1, 2)
+    out = {}
+    for name, k in zip(("membrane", "bending", "shear", "drill"), local):
+        kb = tt @ k @ t
+        out[name] = 0.5 * (kb + np.swapaxes(kb, 1, 2))
+    return out
+
+
+def shell_mass(xyz, mu, coupled: bool, ids=None) -> np.ndarray:
+    """Mass of CQUAD4 / CTRIA3 shells.
+
+    Parameters
+    ----------
+    xyz : array_like, shape (n, nn, 3)
+        Grid coordinates in basic [m]; nn = 4 or 3.
+    mu : array_like, shape (n,)
+        Mass per unit area ``rho t + nsm`` [kg/m^2].
+    coupled : bool
+        False: lumped, ``mu A / nn`` on each grid's T1 T2 T3 (Nastran default).
+        True: consistent translational mass (PARAM,COUPMASS), no rotary inertia.
+    ids : array_like of int, optional
+        Element ids used in error messages.
+
+    Returns
+    -------
+    ndarray, shape (n, 6nn, 6nn)
+        Element mass in basic coordinates [kg], DOF per grid T1 T2 T3 R1 R2 R3.
+    """
+    xyz = _check_xyz(xyz, (3, 4), "shell")
+    n, nn = xyz.shape[:2]
+    mu = np.broadcast_to(np.asarray(mu, dtype=float), (n,))
+    _, xy, _ = shell_frames(xyz, ids)
+    mnn = np.zeros((n, nn, nn))
+    if nn == 4:
+        for xi, eta in _QUAD_GAUSS:
+            nsh, dn = _quad_derivs(xi, eta)
+            _, det, _ = _jacobian(dn, xy)
+            if np.any(det <= 0):
+                raise ElementGeometryError(_describe(det <= 0, ids, "are inverted or re-entrant "
+                                                     "(non-positive Jacobian)", "CQUAD4"))
+            mnn += (mu * det)[:, None, None] * np.outer(nsh, nsh)[None]
+    else:
+        _, det, _ = _jacobian(np.array([[-1.0, 1.0, 0.0], [-1.0, 0.0, 1.0]]), xy)
+        if np.any(det <= 0):
+            raise ElementGeometryError(_describe(det <= 0, ids, "have non-positive area", "CTRIA3"))
+        cons = (np.ones((3, 3)) + np.eye(3)) / 24.0
+        mnn = (mu * det)[:, None, None] * cons[None]
+    if not coupled:
+        total = mnn.sum(axis=(1, 2))
+        mnn = np.zeros_like(mnn)
+        idx = np.arange(nn)
+        mnn[:, idx, idx] = (total / nn)[:, None]
+    m = np.zeros((n, 6 * nn, 6 * nn))
+    for d in range(3):
+        m[:, d::6, d::6] = mnn
+    return m
