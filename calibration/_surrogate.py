@@ -1,0 +1,507 @@
+"""Reduced surrogate of a parametric FE model and its FRFs with modal damping.
+
+Basis (built once per calibration cycle at a point p_b):
+
+* the undamped modes of (K(p_b), M(p_b)) up to ``basis_factor`` times the top
+  of the band (paper Eq. 2.16), and
+* static correction vectors (K(p_b) + s M(p_b))^-1 f for every drive load
+  vector and every sensor output vector. The small positive shift
+  ``s = (2 pi shift_hz)^2`` makes the operator definite for free-free models;
+  the rigid-body part of these vectors is already in the mode set and is
+  removed by the M-orthonormalization. They carry the residual flexibility
+  of the truncated modes, i.e. the "D term" of the drive/sensor FRFs.
+
+T is M-orthonormalized; every AffineMatrix term is projected, so the reduced
+``K_r(p) = T^T K(p) T`` and ``M_r(p)`` are *exact* functions of p for the fixed
+basis (not the first-order Taylor form of paper Eq. 2.20).
+
+FRF at p: solve the small eigenproblem K_r X = M_r X diag(lambda), X^T M_r X = I.
+The viscous damping of paper Eq. 2.14 built from *all* reduced modes is
+diagonal in those modes, so the reduced damped FRF is exactly the modal sum
+
+    H(w) = sum_k q(w) (C T x_k)(x_k^T T^T B) / (lambda_k - w^2 + i w c_k),
+    c_k = 2 zeta_k omega_k,  omega_k = sqrt(lambda_k),
+
+with q = -w^2 (accelerance), i w (mobility) or 1 (receptance). Rigid modes
+(omega_k below ``rigid_hz``) get c_k = 0, as Eq. 2.14 gives for omega_k = 0.
+
+Jacobian: we differentiate this H(p) exactly, *including* the change of the
+damping matrix V(p) through the modes (c_k follows omega_k). With
+A_j = X^T dK_r/dp_j X, B_j = X^T dM_r/dp_j X and r_k = 1/(lambda_k - w^2 + i w c_k),
+the Daleckii-Krein divided-difference form of the eigenvector and eigenvalue
+derivatives collapses to (no division by eigenvalue gaps, so repeated and
+rigid modes are safe)
+
+    dH/dp_j = q C X diag(r) [ -(A_j - w^2 B_j) - i w (rho o A_j + sig o B_j) ] diag(r) X^T B
+
+with rho_kl = 2 zeta/(omega_k + omega_l), sig_kl = 2 zeta omega_k omega_l/(omega_k + omega_l)
+(both 0 between two rigid modes). Uniform zeta only (calibration uses the
+equalized zeta0); FRFs with per-mode damping (validation) need no Jacobian.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.linalg as sla
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from femodel import AffineMatrix
+
+from calibration._errors import CalibrationError
+
+_QUANTITIES = ("accelerance", "mobility", "receptance")
+
+
+@dataclass(frozen=True)
+class FRFModel:
+    """A parametric full-order FE model with its drive and sensor vectors.
+
+    Parameters
+    ----------
+    K, M : AffineMatrix
+        Stiffness (N/m) and mass (kg) of the independent DOF, (n, n), SI.
+    inputs : (n, n_in) array or sparse
+        Load vectors: unit force at each drive DOF in the drive direction.
+    outputs : (n_out, n) array or sparse
+        Sensor rows: displacement of each sensor along its direction.
+    input_names, output_names : tuple of str
+        Channel names, in column/row order.
+    parameter_names : tuple of str
+        Names of the normalized parameters p (P = P0 (1 + p)).
+    """
+
+    K: AffineMatrix
+    M: AffineMatrix
+    inputs: object
+    outputs: object
+    input_names: tuple = ()
+    output_names: tuple = ()
+    parameter_names: tuple = ()
+
+    def __post_init__(self) -> None:
+        n = self.K.shape[0]
+        if self.M.shape != (n, n):
+            raise CalibrationError(f"K is {self.K.shape} but M is {self.M.shape}")
+        if self.K.n_params != self.M.n_params:
+            raise CalibrationError(
+                f"K has {self.K.n_params} parameters but M has {self.M.n_params}"
+            )
+        if self.inputs.shape[0] != n or self.outputs.shape[1] != n:
+            raise CalibrationError(
+                f"inputs {self.inputs.shape} / outputs {self.outputs.shape} do not match {n} DOF"
+            )
+        if not self.input_names:
+            object.__setattr__(self, "input_names", tuple(f"in{i}" for i in range(self.inputs.shape[1])))
+        if not self.output_names:
+            object.__setattr__(
+                self, "output_names", tuple(f"out{i}" for i in range(self.outputs.shape[0]))
+            )
+        if not self.parameter_names:
+            object.__setattr__(self, "parameter_names", tuple(f"p{j}" for j in range(self.K.n_params)))
+
+    @property
+    def n_params(self) -> int:
+        return self.K.n_params
+
+
+@dataclass(frozen=True)
+class Surrogate:
+    """Reduced model, exact in p for a fixed basis.
+
+    Attributes
+    ----------
+    K, M : AffineMatrix
+        Reduced (r, r) stiffness and mass terms, SI.
+    inputs : (r, n_in) ndarray
+        ``T^T B``.
+    outputs : (n_out, r) ndarray
+        ``C T``.
+    p_basis : (n_p,) ndarray
+        Normalized parameters at which the basis was computed.
+    basis_frequencies_hz : (n_modes,) ndarray
+        Full-model natural frequencies of the modes in the basis.
+    n_static : int
+        Number of static correction vectors kept after orthonormalization.
+    n_enrich : int
+        Number of parameter-derivative enrichment vectors kept.
+    rigid_hz : float
+        Modes below this frequency are rigid (no damping).
+    output_names, input_names, parameter_names : tuple of str
+    timings_s : dict
+        Wall time of the build steps.
+    """
+
+    K: AffineMatrix
+    M: AffineMatrix
+    inputs: np.ndarray
+    outputs: np.ndarray
+    p_basis: np.ndarray
+    basis_frequencies_hz: np.ndarray
+    n_static: int
+    rigid_hz: float
+    n_enrich: int
+    output_names: tuple
+    input_names: tuple
+    parameter_names: tuple
+    timings_s: dict = field(default_factory=dict)
+
+    @property
+    def size(self) -> int:
+        return self.K.shape[0]
+
+    @property
+    def n_params(self) -> int:
+        return self.K.n_params
+
+    def output_index(self, names) -> np.ndarray:
+        """Row indices of the named output channels (CalibrationError on unknown names)."""
+        lookup = {n: i for i, n in enumerate(self.output_names)}
+        missing = [n for n in names if n not in lookup]
+        if missing:
+            raise CalibrationError(f"output channels {missing} are not in the surrogate {list(self.output_names)}")
+        return np.array([lookup[n] for n in names], dtype=int)
+
+
+# ----------------------------------------------------------------------------- full-order solves
+
+
+def _factor(A):
+    A = sp.csc_matrix(A)
+    try:
+        lu = spla.splu(A, permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True})
+    except RuntimeError as exc:  # singular factor
+        raise CalibrationError(f"stiffness (+ shift) is singular: {exc}") from exc
+    return lu
+
+
+def full_modes(K, M, max_hz: float, shift_hz: float, max_modes: int = 600, dense_below: int = 1500):
+    """Undamped modes of (K, M) up to ``max_hz`` and a factor of K + s M.
+
+    Parameters
+    ----------
+    K, M : (n, n) sparse or dense
+    max_hz : float
+        Highest natural frequency wanted (Hz).
+    shift_hz : float
+        Shift s = (2 pi shift_hz)^2 > 0 used for shift-invert and static solves.
+    max_modes : int
+        Safety cap on the number of modes.
+
+    Returns
+    -------
+    freqs_hz : (m,) ndarray
+    shapes : (n, m) ndarray, mass-normalized
+    solve : callable, solve(F) = (K + s M)^-1 F for (n, k) arrays
+    """
+    n = K.shape[0]
+    s = (2 * np.pi * shift_hz) ** 2
+    if n <= dense_below:
+        Kd = K.toarray() if sp.issparse(K) else np.asarray(K)
+        Md = M.toarray() if sp.issparse(M) else np.asarray(M)
+        lam, X = sla.eigh(Kd, Md)
+        keep = lam <= (2 * np.pi * max_hz) ** 2
+        lu = sla.cho_factor(Kd + s * Md)
+        solve = lambda F: sla.cho_solve(lu, np.asarray(F.toarray() if sp.issparse(F) else F))  # noqa: E731
+        lam = np.clip(lam[keep], 0.0, None)
+        return np.sqrt(lam) / (2 * np.pi), X[:, keep], solve
+    Ks = sp.csc_matrix(K)
+    Ms = sp.csc_matrix(M)
+    lu = _factor(Ks + s * Ms)
+    solve = lambda F: lu.solve(np.asarray(F.toarray() if sp.issparse(F) else F, dtype=float))  # noqa: E731
+    op = spla.LinearOperator((n, n), matvec=lambda x: lu.solve(np.asarray(x, dtype=float)), dtype=float)
+    k = min(30, n - 2)
+    lam_cut = (2 * np.pi * max_hz) ** 2
+    while True:
+        lam, X = spla.eigsh(Ks, k=k, M=Ms, sigma=-s, which="LM", OPinv=op, tol=1e-10)
+        order = np.argsort(lam)
+        lam, X = lam[order], X[:, order]
+        if lam[-1] > lam_cut or k >= min(max_modes, n - 2):
+            break
+        k = min(2 * k, max_modes, n - 2)
+    keep = lam <= lam_cut
+    lam = np.clip(lam[keep], 0.0, None)
+    X = X[:, keep]
+    # eigsh returns M-orthonormal vectors already; renormalize for safety
+    X = X / np.sqrt(np.einsum("ij,ij->j", X, Ms @ X))
+    return np.sqrt(lam) / (2 * np.pi), X, solve
+
+
+def build_surrogate(
+    model: FRFModel,
+    p,
+    band_hz,
+    basis_factor: float = 2.0,
+    shift_hz: float | None = None,
+    max_modes: int = 600,
+    enrich: bool = True,
+    enrich_tol: float = 1e-6,
+) -> tuple[Surrogate, np.ndarray]:
+    """Reduction basis at ``p`` and the exact-in-p reduced model.
+
+    Parameters
+    ----------
+    model : FRFModel
+    p : (n_p,) array
+        Normalized parameters of the basis point.
+    band_hz : (low, high)
+        Calibration band in Hz; modes up to ``basis_factor * high`` enter the basis.
+    basis_factor : float
+        Mode cut-off as a multiple of the band top (>= 1.2 recommended).
+    shift_hz : float, optional
+        Static-correction / shift-invert shift (default: band low / 4).
+    max_modes : int
+        Cap on the number of modes.
+    enrich : bool
+        Add parameter-derivative enrichment vectors
+        (K + s M)^-1 (dK/dp_j - lambda_i dM/dp_j) phi_i for the elastic modes up to
+        1.25 x band top and every parameter (the first-order change of those
+        mode shapes), compressed by an M-weighted SVD. This keeps the fixed-basis
+        surrogate accurate for local (e.g. single-plate thickness) changes.
+    enrich_tol : float
+        Relative singular-value cut (on M-norm squared) for the compression.
+
+    Returns
+    -------
+    surrogate : Surrogate
+    basis : (n, r) ndarray
+        The M-orthonormal basis T (not kept in the surrogate, which stays small
+        enough to ship to worker processes).
+    """
+    import time
+
+    p = np.asarray(p, dtype=float)
+    if p.shape != (model.n_params,):
+        raise CalibrationError(f"expected {model.n_params} parameters, got shape {p.shape}")
+    low, high = float(band_hz[0]), float(band_hz[1])
+    if not 0 <= low < high:
+        raise CalibrationError(f"band_hz: need 0 <= low < high, got {band_hz}")
+    if shift_hz is None:
+        shift_hz = max(low / 4.0, high / 50.0)
+    t0 = time.perf_counter()
+    K0 = model.K.at(p)
+    M0 = model.M.at(p)
+    t1 = time.perf_counter()
+    freqs, Phi, solve = full_modes(K0, M0, basis_factor * high, shift_hz, max_modes=max_modes)
+    t2 = time.perf_counter()
+    B = model.inputs.toarray() if sp.issparse(model.inputs) else np.asarray(model.inputs, float)
+    C = model.outputs.toarray() if sp.issparse(model.outputs) else np.asarray(model.outputs, float)
+    static = solve(np.hstack([B, C.T]))
+    S = _m_complement(static, Phi, M0, 1e-10)
+    n_static = S.shape[1]
+    n_enrich = 0
+    if enrich:
+        sel = np.flatnonzero((freqs <= 1.25 * high) & (freqs > max(1e-3 * max(low, 1.0), 1e-6 * high)))
+        if sel.size:
+            lam = (2 * np.pi * freqs[sel]) ** 2
+            rhs = []
+            for j in range(model.n_params):
+                dK = model.K.derivative(p, j)
+                dM = model.M.derivative(p, j)
+                rhs.append(dK @ Phi[:, sel] - (dM @ Phi[:, sel]) * lam[None, :])
+            rhs = np.hstack(rhs)
+            nz = np.linalg.norm(rhs, axis=0) > 0
+            if nz.any():
+                E = solve(rhs[:, nz])
+                E = _m_complement(E, np.hstack([Phi, S]), M0, enrich_tol)
+                n_enrich = E.shape[1]
+                S = np.hstack([S, E])
+    T = np.hstack([Phi, S])
+    t3 = time.perf_counter()
+    Kr = model.K.projected(T)
+    Mr = model.M.projected(T)
+    t4 = time.perf_counter()
+    sur = Surrogate(
+        K=Kr,
+        M=Mr,
+        inputs=np.asarray(T.T @ B),
+        outputs=np.asarray(C @ T),
+        p_basis=p.copy(),
+        basis_frequencies_hz=freqs,
+        n_static=n_static,
+        n_enrich=n_enrich,
+        rigid_hz=max(1e-3 * max(low, 1.0), 1e-6 * high),
+        output_names=tuple(model.output_names),
+        input_names=tuple(model.input_names),
+        parameter_names=tuple(model.parameter_names),
+        timings_s={"assemble": t1 - t0, "modes": t2 - t1, "statics": t3 - t2, "project": t4 - t3},
+    )
+    return sur, T
+
+
+def _m_complement(V, Q, M, tol):
+    """M-orthonormal basis of span(V) minus span(Q) (Q M-orthonormal), cut at ``tol``."""
+    for _ in range(2):
+        V = V - Q @ (Q.T @ (M @ V))
+    G = V.T @ (M @ V)
+    G = 0.5 * (G + G.T)
+    w, U = np.linalg.eigh(G)
+    if w.size == 0 or w.max() <= 0:
+        return V[:, :0]
+    keep = w > tol * w.max()
+    V = V @ (U[:, keep] / np.sqrt(w[keep]))
+    V = V - Q @ (Q.T @ (M @ V))
+    G = V.T @ (M @ V)
+    L = np.linalg.cholesky(0.5 * (G + G.T))
+    return np.linalg.solve(L, V.T).T
+
+
+# ----------------------------------------------------------------------------- reduced FRFs
+
+
+def reduced_modes(sur: Surrogate, p) -> tuple[np.ndarray, np.ndarray]:
+    """Eigenvalues lambda (rad^2/s^2, ascending) and M_r-normalized vectors X (r, r) at p."""
+    Kr = sur.K.at(p)
+    Mr = sur.M.at(p)
+    try:
+        lam, X = sla.eigh(Kr, Mr)
+    except np.linalg.LinAlgError as exc:
+        raise CalibrationError(f"reduced mass matrix not positive definite at p={np.round(p, 4)}") from exc
+    return lam, X
+
+
+def _quantity_factor(w: np.ndarray, quantity: str) -> np.ndarray:
+    if quantity == "accelerance":
+        return -(w**2) + 0j
+    if quantity == "mobility":
+        return 1j * w
+    if quantity == "receptance":
+        return np.ones_like(w) + 0j
+    raise CalibrationError(f"FRF quantity must be one of {_QUANTITIES}, got {quantity!r}")
+
+
+def _omegas(lam: np.ndarray, rigid_hz: float) -> tuple[np.ndarray, np.ndarray]:
+    om = np.sqrt(np.clip(lam, 0.0, None))
+    rigid = om < 2 * np.pi * rigid_hz
+    om = np.where(rigid, 0.0, om)
+    return om, rigid
+
+
+def modal_frf(
+    lam: np.ndarray,
+    phi_out: np.ndarray,
+    phi_in: np.ndarray,
+    freq_hz: np.ndarray,
+    zeta,
+    quantity: str = "accelerance",
+    rigid_hz: float = 0.0,
+) -> np.ndarray:
+    """Modal-sum FRF with viscous modal damping (Eq. 2.14 diagonalized).
+
+    Parameters
+    ----------
+    lam : (m,) eigenvalues omega_k^2 (rad^2/s^2)
+    phi_out : (n_out, m) output participation ``C x_k``
+    phi_in : (m, n_in) input participation ``x_k^T B``
+    freq_hz : (n_f,) Hz
+    zeta : float or (m,) damping ratio per mode
+    quantity : "accelerance" | "mobility" | "receptance"
+
+    Returns
+    -------
+    (n_f, n_out, n_in) complex FRF, SI (e.g. (m/s^2)/N).
+    """
+    w = 2 * np.pi * np.asarray(freq_hz, dtype=float)
+    om, rigid = _omegas(lam, rigid_hz)
+    zeta = np.broadcast_to(np.asarray(zeta, dtype=float), om.shape)
+    c = np.where(rigid, 0.0, 2 * zeta * om)
+    lam_c = np.where(rigid, 0.0, om**2)
+    r = 1.0 / (lam_c[None, :] - w[:, None] ** 2 + 1j * w[:, None] * c[None, :])  # (n_f, m)
+    q = _quantity_factor(w, quantity)
+    H = np.einsum("om,fm,mi->foi", phi_out, r * q[:, None], phi_in, optimize=True)
+    return H
+
+
+def surrogate_frf(
+    sur: Surrogate,
+    p,
+    freq_hz,
+    zeta=0.01,
+    quantity: str = "accelerance",
+    outputs=None,
+) -> np.ndarray:
+    """FRF of the surrogate at p: (n_f, n_out, n_in) complex.
+
+    Parameters
+    ----------
+    zeta : float or (r,) array
+        Damping ratio of every reduced mode (ascending frequency order).
+    outputs : index array, optional
+        Rows of ``sur.outputs`` to evaluate (default all).
+    """
+    lam, X = reduced_modes(sur, p)
+    Co = sur.outputs if outputs is None else sur.outputs[np.asarray(outputs)]
+    return modal_frf(lam, Co @ X, X.T @ sur.inputs, freq_hz, zeta, quantity, sur.rigid_hz)
+
+
+def surrogate_frf_jacobian(
+    sur: Surrogate,
+    p,
+    freq_hz,
+    zeta0: float = 0.01,
+    quantity: str = "accelerance",
+    outputs=None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """FRF and its exact derivative with respect to p (uniform damping zeta0).
+
+    Returns
+    -------
+    H : (n_f, n_out, n_in) complex
+    dH : (n_p, n_f, n_out, n_in) complex, dH/dp_j
+    """
+    p = np.asarray(p, dtype=float)
+    lam, X = reduced_modes(sur, p)
+    w = 2 * np.pi * np.asarray(freq_hz, dtype=float)
+    om, rigid = _omegas(lam, sur.rigid_hz)
+    c = 2 * zeta0 * om
+    lam_c = om**2
+    r = 1.0 / (lam_c[None, :] - w[:, None] ** 2 + 1j * w[:, None] * c[None, :])  # (n_f, m)
+    q = _quantity_factor(w, quantity)
+    Co = sur.outputs if outputs is None else sur.outputs[np.asarray(outputs)]
+    u = Co @ X  # (n_out, m)
+    v = X.T @ sur.inputs  # (m, n_in)
+    H = np.einsum("om,fm,mi->foi", u, r * q[:, None], v, optimize=True)
+
+    # A_j, B_j in modal coordinates, from the projected terms and coefficient derivatives
+    dcK = sur.K.coefficient_jacobian(p)  # (n_terms, n_p)
+    dcM = sur.M.coefficient_jacobian(p)
+    KX = np.stack([X.T @ Kt @ X for Kt in sur.K.matrices])  # (n_terms, m, m)
+    MX = np.stack([X.T @ Mt @ X for Mt in sur.M.matrices])
+    A = np.einsum("tj,tab->jab", dcK, KX)
+    Bm = np.einsum("tj,tab->jab", dcM, MX)
+    osum = om[:, None] + om[None, :]
+    both_rigid = rigid[:, None] & rigid[None, :]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rho = np.where(both_rigid, 0.0, 2 * zeta0 / osum)
+        sig = np.where(both_rigid, 0.0, 2 * zeta0 * om[:, None] * om[None, :] / osum)
+    R = rho[None] * A + sig[None] * Bm
+    n_p, m = A.shape[0], A.shape[1]
+    n_f, n_in = w.size, v.shape[1]
+    # right factor diag(r) X^T B for every frequency: (m, n_f * n_in)
+    vr = (r.T[:, :, None] * v[:, None, :]).reshape(m, n_f * n_in)
+    mats = np.concatenate([A, Bm, R], axis=0).reshape(3 * n_p * m, m)
+    W = (mats @ vr.real + 1j * (mats @ vr.imag)).reshape(3, n_p, m, n_f, n_in)
+    ur = u[None, :, :] * r[:, None, :]  # (n_f, n_out, m)
+    T3 = np.einsum("fom,cjmfi->cjfoi", ur, W, optimize=True)  # (3, n_p, n_f, n_out, n_in)
+    w2 = (w**2)[None, :, None, None]
+    dH = -(T3[0]) + w2 * T3[1] - 1j * w[None, :, None, None] * T3[2]
+    dH = dH * q[None, :, None, None]
+    return H, dH
+
+
+def full_order_frf(model: FRFModel, p, freq_hz, zeta=0.01, quantity="accelerance") -> np.ndarray:
+    """Reference FRF of the full model with Eq. 2.14 damping from *all* its modes (dense; small models only)."""
+    n = model.K.shape[0]
+    if n > 4000:
+        raise CalibrationError(f"full_order_frf is a dense reference for small models; model has {n} DOF")
+    K = model.K.at(p)
+    M = model.M.at(p)
+    K = K.toarray() if sp.issparse(K) else np.asarray(K)
+    M = M.toarray() if sp.issparse(M) else np.asarray(M)
+    lam, X = sla.eigh(K, M)
+    B = model.inputs.toarray() if sp.issparse(model.inputs) else np.asarray(model.inputs, float)
+    C = model.outputs.toarray() if sp.issparse(model.outputs) else np.asarray(model.outputs, float)
+    f = np.asarray(freq_hz, float)
+    return modal_frf(lam, C @ X, X.T @ B, f, zeta, quantity, rigid_hz=1e-3 * max(f.min(), 1.0))

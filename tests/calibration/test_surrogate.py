@@ -1,0 +1,102 @@
+"""Surrogate accuracy, exact Jacobian, sampling and metric."""
+
+import numpy as np
+import pytest
+
+from calibration import (
+    CalibrationError,
+    build_surrogate,
+    full_order_frf,
+    half_bandwidth_frequencies,
+    log_deviation,
+    square_deviation,
+    stacked,
+    surrogate_frf,
+    surrogate_frf_jacobian,
+)
+from tests.calibration._models import beam_model
+
+BAND = (20.0, 400.0)
+
+
+@pytest.fixture(scope="module")
+def beam():
+    model, _ = beam_model()
+    sur, T = build_surrogate(model, np.zeros(8), BAND)
+    return model, sur, T
+
+
+OFFSETS = [
+    np.zeros(8),
+    np.full(8, 0.1),
+    np.full(8, -0.1),
+    np.array([0.1, -0.1, 0.1, -0.1, 0.1, -0.1, 0.1, -0.1]),
+    np.array([-0.1, 0.1, -0.1, 0.1, -0.1, 0.1, -0.1, 0.1]),
+]
+
+
+@pytest.mark.parametrize("p", OFFSETS, ids=["nominal", "+10", "-10", "mixed+", "mixed-"])
+def test_surrogate_matches_full_order_within_1_percent(beam, p):
+    model, sur, _ = beam
+    f = half_bandwidth_frequencies(*BAND, 0.01, 3)
+    Hs = surrogate_frf(sur, p, f, 0.01)
+    Hf = full_order_frf(model, p, f, 0.01)
+    rel = np.abs(Hs - Hf) / np.abs(Hf)
+    assert rel.max() < 0.01
+
+
+def test_basis_is_mass_orthonormal_and_has_statics(beam):
+    model, sur, T = beam
+    M0 = model.M.at(np.zeros(8))
+    np.testing.assert_allclose(T.T @ (M0 @ T), np.eye(T.shape[1]), atol=1e-8)
+    assert sur.n_static == 11  # 1 drive + 10 sensors, all independent
+    # modes up to 2 x 400 Hz plus the two rigid-body modes
+    assert sur.basis_frequencies_hz[:2].max() < 1e-2
+    assert sur.basis_frequencies_hz.max() <= 800.0
+
+
+def test_without_enrichment_local_changes_are_poor(beam):
+    """Documents why enrichment is on by default: modes + statics alone miss local thickness changes."""
+    model, _, _ = beam
+    sur, _ = build_surrogate(model, np.zeros(8), BAND, enrich=False)
+    f = half_bandwidth_frequencies(*BAND, 0.01, 3)
+    p = OFFSETS[3]
+    rel = np.abs(surrogate_frf(sur, p, f) - full_order_frf(model, p, f)) / np.abs(full_order_frf(model, p, f))
+    assert rel.max() > 0.05
+
+
+@pytest.mark.parametrize("quantity", ["accelerance", "mobility", "receptance"])
+def test_jacobian_matches_central_differences(beam, quantity):
+    _, sur, _ = beam
+    f = half_bandwidth_frequencies(*BAND, 0.01, 2)
+    p = np.array([0.05, -0.03, 0.1, -0.1, 0.07, -0.02, 0.1, -0.15])
+    H, dH = surrogate_frf_jacobian(sur, p, f, 0.01, quantity)
+    np.testing.assert_allclose(H, surrogate_frf(sur, p, f, 0.01, quantity), rtol=1e-10)
+    for j in range(8):
+        e = np.zeros(8)
+        e[j] = 1e-4
+        fd = (surrogate_frf(sur, p + e, f, 0.01, quantity) - surrogate_frf(sur, p - e, f, 0.01, quantity)) / 2e-4
+        assert np.max(np.abs(fd - dH[j])) < 1e-4 * np.max(np.abs(dH[j])), j
+
+
+def test_half_bandwidth_sampling():
+    f = half_bandwidth_frequencies(100.0, 400.0, 0.01, 3)
+    assert f[0] == 100.0 and np.isclose(f[-1], 400.0)
+    ratio = f[1:] / f[:-1]
+    np.testing.assert_allclose(ratio, ratio[0])
+    # samples inside one half-power bandwidth 2 zeta f around any f in the band
+    assert ratio[0] <= 1 + 2 * 0.01 / 3 + 1e-12
+    with pytest.raises(CalibrationError, match="band_hz"):
+        half_bandwidth_frequencies(400.0, 100.0)
+
+
+def test_metric_principal_branch_and_sd():
+    h = np.array([1.0 + 0j, 2j, -1.0])
+    eps = log_deviation(10 * h, h)
+    np.testing.assert_allclose(eps, 1.0)
+    eps = log_deviation(h * np.exp(1j * 0.3), h)
+    np.testing.assert_allclose(eps.imag, 0.3 / np.log(10))
+    assert np.isclose(square_deviation(eps), (0.3 / np.log(10)) ** 2)
+    assert np.isclose(np.sum(stacked(eps) ** 2), square_deviation(eps))
+    with pytest.raises(CalibrationError, match="NaN"):
+        log_deviation(h, np.array([1.0, np.nan, 1.0]))
