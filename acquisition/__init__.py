@@ -10,3 +10,42 @@ from acquisition._driver import (
 )
 
 __all__ = ["ChannelSpec", "Driver", "DriverError", "DriverInfo", "PhasorBlock", "SampleBlock"]
+
+from acquisition._demod import fit_harmonics, thd
+from acquisition._layout import Layout, LayoutError, read_layout
+from acquisition._plant import ModalPlant, PlantError
+from acquisition._simlab import Fault, ShakerModel, SimLabError, SimulatedLab
+from acquisition.runfile import (
+    LineQuality,
+    Run,
+    RunFileError,
+    RunWriter,
+    create_run,
+    read_analysis,
+    read_run,
+    resume_run,
+    write_analysis,
+)
+
+__all__ += [
+    "Fault",
+    "Layout",
+    "LayoutError",
+    "LineQuality",
+    "ModalPlant",
+    "PlantError",
+    "Run",
+    "RunFileError",
+    "RunWriter",
+    "ShakerModel",
+    "SimLabError",
+    "SimulatedLab",
+    "create_run",
+    "fit_harmonics",
+    "read_analysis",
+    "read_layout",
+    "read_run",
+    "resume_run",
+    "thd",
+    "write_analysis",
+]

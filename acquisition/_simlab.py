@@ -1,0 +1,331 @@
+"""The simulated lab: a driver that answers with the physics of a linear plant.
+
+The structure (a :class:`~acquisition.ModalPlant`) is coupled to a
+voltage-driven electrodynamic shaker (armature mass, suspension, back-EMF), so
+the force it delivers drops at the structure's resonances as on a real rig.
+The coupled system is linear; it is diagonalized once, and the response to a
+sinusoidal drive is evaluated in closed form (steady-state part plus the
+exactly decaying transient of every complex mode), vectorized over samples:
+no time-stepping error and much faster than real time. Sensors add white
+noise, ADC quantization and clipping (overload). The drive is treated as
+ideally reconstructed (continuous sinusoid, phase-continuous on changes).
+
+Faults can be injected (a driver fault at a given clock time, an overload
+spike on a channel) to exercise the controller's safety logic.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+
+from acquisition._demod import fit_harmonics
+from acquisition._driver import ChannelSpec, DriverError, DriverInfo, PhasorBlock, SampleBlock
+from acquisition._plant import ModalPlant
+
+
+class SimLabError(ValueError):
+    """Bad simulated-lab set-up (channel mapping, parameters)."""
+
+
+@dataclass(frozen=True)
+class ShakerModel:
+    """A voltage-driven electrodynamic shaker attached through a stiff stinger.
+
+    Force on the structure ``f = G*Bl/R * V - (Bl^2/R + c_s) v - m_a a - k_s x``
+    with ``v, a, x`` the drive-point velocity, acceleration and displacement.
+    The back-EMF term ``Bl^2/R`` makes the force drop at resonances.
+    """
+
+    force_constant_n_per_a: float = 10.0
+    coil_resistance_ohm: float = 2.0
+    amplifier_gain_v_per_v: float = 1.0
+    armature_mass_kg: float = 0.02
+    suspension_stiffness_n_per_m: float = 2000.0
+    suspension_damping_ns_per_m: float = 1.0
+
+    @property
+    def gain_n_per_v(self) -> float:
+        return self.amplifier_gain_v_per_v * self.force_constant_n_per_a / self.coil_resistance_ohm
+
+    @property
+    def electrical_damping_ns_per_m(self) -> float:
+        return self.force_constant_n_per_a**2 / self.coil_resistance_ohm + self.suspension_damping_ns_per_m
+
+
+@dataclass(frozen=True)
+class Fault:
+    """A fault to inject.
+
+    kind : {"driver_error", "overload"}
+        ``driver_error``: every ``read_block`` reaching ``at_s`` raises :class:`DriverError`;
+        ``overload``: a spike of ``3 x range`` on channel ``channel`` at ``at_s``.
+    at_s : float
+        Driver clock time, s.
+    """
+
+    kind: str
+    at_s: float
+    channel: int = 0
+
+
+class SimulatedLab:
+    """A driver (see :class:`acquisition.Driver`) simulating a shaker test of ``plant``.
+
+    Parameters
+    ----------
+    plant : ModalPlant
+    drive_index : int
+        Plant input the shaker drives.
+    shaker : ShakerModel or None
+        None for an ideal force source of ``gain_n_per_v``.
+    gain_n_per_v : float
+        Force per volt of the ideal source (used when ``shaker`` is None).
+    noise_rms : float or (n_channels,) float
+        White sensor noise, engineering units rms, per channel.
+    adc_bits : int
+        ADC resolution over each channel's ``±range_v``.
+    faults : sequence of Fault
+    seed : int
+    kind : {"sampling", "demodulating"}
+        Return raw :class:`SampleBlock` s (a DAQ) or :class:`PhasorBlock` s (lock-in amplifiers).
+    n_harmonics : int
+        Harmonics reported in demodulating mode.
+    """
+
+    def __init__(
+        self,
+        plant: ModalPlant,
+        *,
+        drive_index: int = 0,
+        shaker: ShakerModel | None = ShakerModel(),
+        gain_n_per_v: float = 5.0,
+        noise_rms=1e-4,
+        adc_bits: int = 24,
+        faults: Sequence[Fault] = (),
+        seed: int = 0,
+        kind: str = "sampling",
+        n_harmonics: int = 5,
+    ):
+        if not isinstance(plant, ModalPlant):
+            raise SimLabError(f"plant must be a ModalPlant, got {type(plant).__name__}")
+        if not 0 <= drive_index < plant.n_in:
+            raise SimLabError(f"drive_index {drive_index} out of range for a plant with {plant.n_in} inputs")
+        if kind not in ("sampling", "demodulating"):
+            raise SimLabError(f"kind must be 'sampling' or 'demodulating', got {kind!r}")
+        for f in faults:
+            if f.kind not in ("driver_error", "overload"):
+                raise SimLabError(f"unknown fault kind {f.kind!r}")
+        self.plant = plant
+        self.drive_index = drive_index
+        self.shaker = shaker
+        self.noise_rms = noise_rms
+        self.adc_bits = int(adc_bits)
+        self.faults = tuple(faults)
+        self.kind = kind
+        self.n_harmonics = n_harmonics
+        self._rng = np.random.default_rng(seed)
+        self._build_coupled(gain_n_per_v)
+        self._configured = False
+        self._n = 0  # samples elapsed on the virtual clock
+        self._rate = None
+        self._freq = 0.0
+        self._amp = 0.0
+        self._phase = 0.0
+        self._w = np.zeros_like(self._p)
+        self._faulted = False
+        #: (time_s, frequency_hz, amplitude_v) every time the drive changed, for inspection.
+        self.drive_log: list[tuple[float, float, float]] = []
+        self.closed = False
+
+    # ----------------------------------------------------------- physics set-up
+    def _build_coupled(self, gain_ideal: float) -> None:
+        p, bz, cz, d = self.plant.diagonal_form()
+        k = self.drive_index
+        b = bz[:, k]
+        cd_all = self.plant.drive_point_form()
+        sh = self.shaker
+        if sh is None or cd_all is None:
+            g = gain_ideal if sh is None else sh.gain_n_per_v
+            K = np.zeros_like(p)
+            den = 1.0
+        else:
+            g = sh.gain_n_per_v
+            cd = cd_all[k]
+            K = sh.electrical_damping_ns_per_m * cd * p + sh.armature_mass_kg * cd * p**2 + sh.suspension_stiffness_n_per_m * cd
+            den = 1.0 + sh.armature_mass_kg * float(np.real(np.sum(cd * p * b)))
+        A = np.diag(p) - np.outer(b, K) / den
+        lam, W = np.linalg.eig(A)
+        Winv = np.linalg.inv(W)
+        # rows: plant outputs (responses) then the force at the drive point
+        C = np.vstack([(cz - np.outer(d[:, k], K) / den) @ W, (-K / den) @ W])
+        bw = Winv @ (b * g / den)
+        # The coupled system is real: keep one pole of each conjugate pair and
+        # double its output (real poles kept once), halving the work.
+        tol = 1e-9 * np.abs(lam).max()
+        keep = lam.imag > tol
+        real = np.abs(lam.imag) <= tol
+        weight = np.where(real, 1.0, 2.0)
+        sel = keep | real
+        self._p = lam[sel]
+        self._b = bw[sel]
+        self._C = C[:, sel] * weight[sel][None, :]
+        self._D = np.concatenate([d[:, k] * g / den, [g / den]]).real
+        self.gain_n_per_v = g / den
+
+    # -------------------------------------------------------------- protocol
+    def configure(self, channels: Sequence[ChannelSpec], sample_rate_hz: float | None) -> DriverInfo:
+        """Map channels to plant outputs: ``physical="sim/<k>"`` picks plant output k, ``"sim/force"``
+        (or role ``"force"``) the drive-point force, ``"sim/drive"`` the drive voltage;
+        response channels without an address take plant outputs in order."""
+        if sample_rate_hz is None or sample_rate_hz <= 0:
+            raise SimLabError(f"the simulated lab needs a positive sample_rate_hz, got {sample_rate_hz}")
+        rows, next_out = [], 0
+        for c in channels:
+            phys = c.physical
+            if phys in ("sim/force",) or (not phys and c.role == "force"):
+                rows.append(self.plant.n_out)
+            elif phys == "sim/drive" or (not phys and c.role == "monitor"):
+                rows.append(-1)
+            elif phys.startswith("sim/"):
+                try:
+                    k = int(phys[4:])
+                except ValueError:
+                    raise SimLabError(f"channel {c.name!r}: bad simulated address {phys!r}") from None
+                if not 0 <= k < self.plant.n_out:
+                    raise SimLabError(f"channel {c.name!r}: plant has outputs 0..{self.plant.n_out - 1}, got {phys!r}")
+                rows.append(k)
+            elif not phys:
+                if next_out >= self.plant.n_out:
+                    raise SimLabError(f"channel {c.name!r}: more response channels than plant outputs ({self.plant.n_out})")
+                rows.append(next_out)
+                next_out += 1
+            else:
+                raise SimLabError(f"channel {c.name!r}: address {phys!r} is not a simulated channel ('sim/<k>')")
+            if phys.startswith("sim/") and phys[4:].isdigit():
+                next_out = max(next_out, int(phys[4:]) + 1)
+        self._rows = np.array(rows)
+        self._channels = tuple(channels)
+        noise = np.broadcast_to(np.asarray(self.noise_rms, dtype=float), (len(channels),))
+        self._noise = noise.copy()
+        self._sens = np.array([c.sensitivity for c in channels], dtype=float)
+        self._range = np.array([c.range_v for c in channels], dtype=float)
+        self._rate = float(sample_rate_hz)
+        self._configured = True
+        return DriverInfo(
+            name="sim",
+            kind=self.kind,
+            sample_rate_hz=self._rate,
+            devices=("simulated-lab",),
+            details={
+                "n_modes": int(np.sum(self.plant.poles.imag > 0)),
+                "shaker": None if self.shaker is None else self.shaker.__dict__,
+                "adc_bits": self.adc_bits,
+            },
+        )
+
+    def time_s(self) -> float:
+        return self._n / self._rate if self._rate else 0.0
+
+    def set_drive(self, frequency_hz: float, amplitude_v: float) -> None:
+        if self.closed:
+            raise DriverError("simulated lab is closed")
+        if not np.isfinite(frequency_hz) or frequency_hz <= 0 or frequency_hz >= 0.5 * (self._rate or np.inf):
+            raise DriverError(f"drive frequency {frequency_hz} Hz outside (0, Nyquist)")
+        if not np.isfinite(amplitude_v) or amplitude_v < 0:
+            raise DriverError(f"drive amplitude must be finite and >= 0, got {amplitude_v}")
+        self._freq = float(frequency_hz)
+        self._amp = float(amplitude_v)
+        self.drive_log.append((self.time_s(), self._freq, self._amp))
+
+    @property
+    def drive_amplitude_v(self) -> float:
+        """Present drive amplitude (peak V)."""
+        return self._amp
+
+    def _advance(self, n: int) -> np.ndarray:
+        """Exact response over the next ``n`` samples: (n_rows, n) noise-free engineering units."""
+        rate = self._rate
+        w = 2 * np.pi * self._freq
+        tau = np.arange(n) / rate
+        phase = self._phase + w * tau
+        p = self._p
+        coef_p = self._b * (0.5 * self._amp) / (1j * w - p)  # e^{+i phi} part of steady states
+        coef_m = self._b * (0.5 * self._amp) / (-1j * w - p)
+        wp0 = coef_p * np.exp(1j * self._phase) + coef_m * np.exp(-1j * self._phase)
+        h0 = self._w - wp0
+        E = np.exp(np.outer(p, tau))
+        S = self._C @ coef_p + (self._C @ coef_m).conj()  # steady state: Re(S e^{i phi})
+        c, sn = np.cos(phase), np.sin(phase)
+        y = np.outer(S.real, c) - np.outer(S.imag, sn)
+        y += ((self._C * h0) @ E).real
+        y += np.outer(self._D, self._amp * c)
+        drive = self._amp * c
+        t_end = n / rate
+        ph_end = self._phase + w * t_end
+        self._w = coef_p * np.exp(1j * ph_end) + coef_m * np.exp(-1j * ph_end) + h0 * np.exp(p * t_end)
+        self._phase = float(np.mod(ph_end, 2 * np.pi))
+        self._n += n
+        return y, drive
+
+    def _sensor(self, y: np.ndarray, drive: np.ndarray, t0: float) -> tuple[np.ndarray, np.ndarray]:
+        rows = self._rows
+        data = np.where(rows[:, None] >= 0, y[np.maximum(rows, 0)], drive[None, :])
+        data = data + self._noise[:, None] * self._rng.standard_normal(data.shape)
+        for f in self.faults:
+            if f.kind == "overload":
+                k = int(round((f.at_s - t0) * self._rate))
+                if 0 <= k < data.shape[1] and 0 <= f.channel < data.shape[0]:
+                    data[f.channel, k] += 3 * self._range[f.channel] / self._sens[f.channel]
+        volts = data * self._sens[:, None]
+        overload = np.any(np.abs(volts) > self._range[:, None], axis=1)
+        volts = np.clip(volts, -self._range[:, None], self._range[:, None])
+        lsb = 2 * self._range / 2**self.adc_bits
+        volts = np.round(volts / lsb[:, None]) * lsb[:, None]
+        return volts / self._sens[:, None], overload
+
+    def read_block(self, n_cycles: int) -> SampleBlock | PhasorBlock:
+        if not self._configured:
+            raise DriverError("simulated lab used before configure()")
+        if self.closed:
+            raise DriverError("simulated lab is closed")
+        if self._freq <= 0:
+            raise DriverError("read_block before set_drive")
+        n = max(int(round(n_cycles * self._rate / self._freq)), 8)
+        t0 = self.time_s()
+        for f in self.faults:
+            if f.kind == "driver_error" and (self._faulted or t0 + n / self._rate >= f.at_s):
+                self._faulted = True
+                # the real hardware would have kept running up to the fault
+                if f.at_s > t0:
+                    self._advance(int((f.at_s - t0) * self._rate))
+                raise DriverError(f"simulated driver fault at t = {f.at_s:.3f} s")
+        y, drive = self._advance(n)
+        data, overload = self._sensor(y, drive, t0)
+        if self.kind == "sampling":
+            return SampleBlock(t0_s=t0, rate_hz=self._rate, samples=data, overload=overload, drive=drive)
+        # lock-in style: demodulate internally, phases relative to the drive at t0
+        h = fit_harmonics(data, self._rate, self._freq, self.n_harmonics)
+        ref = fit_harmonics(drive[None, :], self._rate, self._freq, 1)[0, 0]
+        rel = np.exp(-1j * np.angle(ref) * np.arange(1, self.n_harmonics + 1))
+        return PhasorBlock(
+            t0_s=t0, frequency_hz=self._freq, duration_s=n / self._rate, harmonics=h * rel[None, :], overload=overload
+        )
+
+    def ramp_down(self, duration_s: float = 0.5) -> None:
+        """Ramp the drive amplitude to zero in 20 steps over ``duration_s`` of virtual time."""
+        if self._amp > 0 and self._rate and self._freq > 0:
+            n_steps = 20
+            n = max(int(duration_s * self._rate / n_steps), 1)
+            a0 = self._amp
+            for j in range(1, n_steps + 1):
+                self._amp = a0 * (1 - j / n_steps)
+                self._advance(n)
+        self._amp = 0.0
+        self.drive_log.append((self.time_s(), self._freq, 0.0))
+
+    def close(self) -> None:
+        self.ramp_down(0.0)
+        self.closed = True
