@@ -1,0 +1,584 @@
+"""Loopback SCPI instrument server: a function generator and lock-ins answering from a plant.
+
+Each emulated instrument listens on its own TCP port on 127.0.0.1 (a free port
+chosen by the OS), like a LAN instrument's raw socket, so the VISA driver
+reaches it through the real pyvisa + pyvisa-py stack as
+``TCPIP::127.0.0.1::PORT::SOCKET``. Lines end with ``\\n``; ``;`` separates
+commands on one line.
+
+Physics: the generator drives a shaker whose force per volt is
+``shaker_n_per_v / (1 + i f / shaker_corner_hz)``; the lock-in on a force
+channel sees that force, the lock-in on a response channel sees the plant's
+exact steady-state response ``plant.frf(f) @ force`` (any object with
+``frf(freq_hz) -> (n_f, n_out, n_in)``, e.g. :class:`acquisition.ModalPlant`),
+both times the channel's sensitivity (V per SI unit). The lock-in output
+follows a change of frequency or amplitude through its cascade of RC stages
+(time constant ``OFLT``, slope ``OFSL``) in exact closed form, and carries
+Gaussian noise of the input noise density over the filter's equivalent noise
+bandwidth. Structural transients are not modelled here (the simulated lab
+does that); this server tests the instrument stack, not the settle detector.
+
+Time is a :class:`VirtualClock` shared with the driver in the same process:
+it moves only when the driver sleeps, so a loopback run is deterministic and
+much faster than real time. Because the driver synchronizes with a query
+(``SYST:ERR?``) after every setting, each setting is time-stamped before the
+driver's next sleep.
+
+Faults are injected with :meth:`LoopbackLab.inject`: ``"timeout"`` (the
+query is never answered), ``"garble"`` (the reply is noise), ``"error"`` (an
+entry is pushed on the generator's error queue), ``"drop"`` (the connection
+is closed). Servers are bounded: they stop by themselves after
+``lifetime_s`` and never bind anything but 127.0.0.1.
+"""
+
+from __future__ import annotations
+
+import math
+import socket
+import socketserver
+import threading
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from acquisition._scpi import (
+    LIAS_INPUT_OVERLOAD,
+    LIAS_OUTPUT_OVERLOAD,
+    SR830_SENSITIVITIES_V,
+    SR830_SLOPES_DB,
+    SR830_TIME_CONSTANTS_S,
+    enbw_hz,
+)
+
+FAULT_KINDS = ("timeout", "garble", "error", "drop")
+#: Input overload of the emulated lock-in, peak volts.
+LOCKIN_INPUT_LIMIT_V = 1.4
+
+
+class VirtualClock:
+    """A clock that advances only when somebody sleeps on it (thread-safe)."""
+
+    def __init__(self, start_s: float = 0.0):
+        self._t = float(start_s)
+        self._lock = threading.Lock()
+
+    def now(self) -> float:
+        with self._lock:
+            return self._t
+
+    def sleep(self, duration_s: float) -> None:
+        with self._lock:
+            self._t += max(0.0, float(duration_s))
+
+
+@dataclass
+class _Fault:
+    instrument: str
+    kind: str
+    match: str
+    skip: int
+    count: int
+    message: str
+
+
+@dataclass
+class _Generator:
+    frequency_hz: float = 1000.0
+    vpp: float = 0.1
+    output: bool = False
+    load: str = "50"
+    function: str = "SIN"
+    unit: str = "VPP"
+    sync: bool = False
+    errors: list = field(default_factory=list)
+
+
+@dataclass
+class _Lockin:
+    name: str
+    role: str  # "force" or "response"
+    index: int
+    sensitivity_v_per_unit: float = 1.0
+    sens: int = 26
+    oflt: int = 10
+    ofsl: int = 1
+    status: int = 0
+    fmod: int = 1
+    stages: np.ndarray = field(default_factory=lambda: np.zeros(4, complex))
+    target: complex = 0j
+    t_s: float = 0.0
+
+
+def _advance_stages(stages: np.ndarray, target: complex, x: float) -> np.ndarray:
+    """Cascade of RC stages with constant input ``target`` advanced by ``x`` time constants.
+
+    With deviations e_k = s_k - u the cascade e_1' = -e_1, e_k' = e_{k-1} - e_k
+    (in units of tau) has the closed form e_k(x) = e^{-x} sum_{j<=k} e_j(0) x^{k-j}/(k-j)!.
+    """
+    e0 = stages - target
+    out = np.empty_like(e0)
+    decay = math.exp(-x) if x < 700 else 0.0
+    for k in range(e0.size):
+        acc = 0j
+        for j in range(k + 1):
+            acc += e0[j] * x ** (k - j) / math.factorial(k - j)
+        out[k] = decay * acc
+    return out + target
+
+
+class LoopbackLab:
+    """A generator and one lock-in per plant input and output, served on 127.0.0.1.
+
+    Parameters
+    ----------
+    plant : object with ``frf(freq_hz) -> (n_f, n_out, n_in)``
+        The structure (SI: force in N, response in the plant's quantity).
+    clock : VirtualClock, optional
+        Shared with the driver; a new one by default.
+    shaker_n_per_v, shaker_corner_hz : float
+        Shaker + amplifier: force per generator volt (N/V, peak) at low
+        frequency and its first-order roll-off corner (Hz).
+    noise_v_per_rthz : float
+        Input noise density of each lock-in channel (V/sqrt(Hz)).
+    drive_input : int
+        The plant input the shaker drives.
+    seed : int
+    lifetime_s : float
+        Wall-clock seconds after which the servers stop by themselves.
+    """
+
+    def __init__(
+        self,
+        plant,
+        *,
+        clock: VirtualClock | None = None,
+        shaker_n_per_v: float = 5.0,
+        shaker_corner_hz: float = 2000.0,
+        noise_v_per_rthz: float = 20e-9,
+        drive_input: int = 0,
+        seed: int = 0,
+        lifetime_s: float = 600.0,
+    ):
+        self.plant = plant
+        self.clock = clock if clock is not None else VirtualClock()
+        self.shaker_n_per_v = float(shaker_n_per_v)
+        self.shaker_corner_hz = float(shaker_corner_hz)
+        self.noise_v_per_rthz = float(noise_v_per_rthz)
+        self.drive_input = int(drive_input)
+        self.lifetime_s = float(lifetime_s)
+        self._rng = np.random.default_rng(seed)
+        self._lock = threading.RLock()
+        h = np.asarray(plant.frf(np.array([100.0])))
+        if h.ndim != 3:
+            raise ValueError(f"plant.frf must return (n_f, n_out, n_in), got shape {h.shape}")
+        self.n_out, self.n_in = h.shape[1], h.shape[2]
+        if not 0 <= self.drive_input < self.n_in:
+            raise ValueError(f"drive_input {drive_input} is not an input of a plant with {self.n_in} inputs")
+        self.generator = _Generator()
+        self.lockins: dict[str, _Lockin] = {}
+        for i in range(self.n_in):
+            self.lockins[f"lockin_force{i}"] = _Lockin(f"lockin_force{i}", "force", i)
+        for o in range(self.n_out):
+            self.lockins[f"lockin_resp{o}"] = _Lockin(f"lockin_resp{o}", "response", o)
+        self.transcript: list[tuple[str, str, str | None]] = []
+        self._faults: list[_Fault] = []
+        self._servers: dict[str, socketserver.ThreadingTCPServer] = {}
+        self._threads: list[threading.Thread] = []
+        self._timer: threading.Timer | None = None
+        self._frf_cache: dict[float, np.ndarray] = {}
+
+    # ------------------------------------------------------------ lifecycle
+    def start(self) -> "LoopbackLab":
+        """Bind every instrument to a free port on 127.0.0.1 and serve in daemon threads."""
+        for name in ["generator", *self.lockins]:
+            server = _InstrumentServer(("127.0.0.1", 0), _Handler)
+            server.lab = self
+            server.instrument = name
+            self._servers[name] = server
+            t = threading.Thread(target=server.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True)
+            t.start()
+            self._threads.append(t)
+        self._timer = threading.Timer(self.lifetime_s, self.stop)
+        self._timer.daemon = True
+        self._timer.start()
+        return self
+
+    def stop(self) -> None:
+        """Stop serving and close every connection (idempotent)."""
+        servers, self._servers = self._servers, {}
+        for server in servers.values():
+            server.shutdown()
+            server.server_close()
+            server.close_connections()
+        if self._timer is not None:
+            self._timer.cancel()
+        self.servers_stopped = True
+
+    def __enter__(self) -> "LoopbackLab":
+        return self.start() if not self._servers else self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    def port(self, instrument: str) -> int:
+        return self._servers[instrument].server_address[1]
+
+    def resource(self, instrument: str) -> str:
+        """VISA resource string of an instrument, ``TCPIP::127.0.0.1::PORT::SOCKET``."""
+        return f"TCPIP::127.0.0.1::{self.port(instrument)}::SOCKET"
+
+    @property
+    def generator_resource(self) -> str:
+        return self.resource("generator")
+
+    def lockin_resources(self) -> dict[str, str]:
+        """``{"force": [...], "response": [...]}`` resource strings, in plant input/output order."""
+        return {
+            "force": [self.resource(f"lockin_force{i}") for i in range(self.n_in)],
+            "response": [self.resource(f"lockin_resp{o}") for o in range(self.n_out)],
+        }
+
+    def set_sensitivity(self, instrument: str, sensitivity_v_per_unit: float) -> None:
+        """The sensor behind a lock-in: volts per SI unit (as the user maps it)."""
+        with self._lock:
+            self.lockins[instrument].sensitivity_v_per_unit = float(sensitivity_v_per_unit)
+
+    # ------------------------------------------------------------ faults
+    def inject(self, instrument: str, kind: str, match: str = "", *, skip: int = 0, count: int = 1,
+               message: str = '-222,"Data out of range"') -> None:
+        """Arm a fault on the next command(s) of ``instrument`` starting with ``match``.
+
+        ``skip`` matching commands pass first; the fault then fires ``count`` times.
+        """
+        if kind not in FAULT_KINDS:
+            raise ValueError(f"fault kind must be one of {FAULT_KINDS}, got {kind!r}")
+        if instrument != "generator" and instrument not in self.lockins:
+            raise ValueError(f"no instrument {instrument!r}; have generator, {', '.join(self.lockins)}")
+        with self._lock:
+            self._faults.append(_Fault(instrument, kind, match.upper(), skip, count, message))
+
+    def _take_fault(self, instrument: str, command: str) -> _Fault | None:
+        with self._lock:
+            for f in self._faults:
+                if f.instrument == instrument and command.upper().startswith(f.match) and f.count > 0:
+                    if f.skip > 0:
+                        f.skip -= 1
+                        return None
+                    f.count -= 1
+                    return f
+        return None
+
+    # ------------------------------------------------------------ physics
+    @property
+    def drive_v_peak(self) -> float:
+        """Generator output, peak volts (0 with the output off)."""
+        g = self.generator
+        return g.vpp / 2.0 if g.output else 0.0
+
+    def _frf(self, f: float) -> np.ndarray:
+        h = self._frf_cache.get(f)
+        if h is None:
+            h = np.asarray(self.plant.frf(np.array([f])))[0]
+            self._frf_cache[f] = h
+        return h
+
+    def force_phasor(self) -> np.ndarray:
+        """Force at each plant input, complex peak N (only the driven input is non-zero)."""
+        g = self.generator
+        f = np.zeros(self.n_in, complex)
+        f[self.drive_input] = self.drive_v_peak * self.shaker_n_per_v / (1 + 1j * g.frequency_hz / self.shaker_corner_hz)
+        return f
+
+    def _targets(self) -> dict[str, complex]:
+        force = self.force_phasor()
+        resp = self._frf(self.generator.frequency_hz) @ force if self.drive_v_peak > 0 else np.zeros(self.n_out, complex)
+        out = {}
+        for name, li in self.lockins.items():
+            q = force[li.index] if li.role == "force" else resp[li.index]
+            out[name] = complex(q) * li.sensitivity_v_per_unit
+        return out
+
+    def _advance(self) -> None:
+        """Bring every lock-in filter to now under the current (constant) inputs."""
+        now = self.clock.now()
+        for li in self.lockins.values():
+            dt = now - li.t_s
+            if dt > 0:
+                tau = SR830_TIME_CONSTANTS_S[li.oflt]
+                li.stages = _advance_stages(li.stages, li.target, dt / tau)
+            li.t_s = now
+
+    def _retarget(self) -> None:
+        targets = self._targets()
+        for name, li in self.lockins.items():
+            li.target = targets[name]
+            if abs(li.target) > LOCKIN_INPUT_LIMIT_V:
+                li.status |= LIAS_INPUT_OVERLOAD
+
+    def _reading(self, li: _Lockin) -> complex:
+        """X + iY in V rms at the filter output, with noise over the filter ENBW."""
+        n_stages = SR830_SLOPES_DB[li.ofsl] // 6
+        value = li.stages[n_stages - 1] / math.sqrt(2.0)
+        sigma = self.noise_v_per_rthz * math.sqrt(enbw_hz(SR830_TIME_CONSTANTS_S[li.oflt], SR830_SLOPES_DB[li.ofsl]))
+        value += complex(*self._rng.normal(0.0, sigma, 2))
+        if abs(value) > SR830_SENSITIVITIES_V[li.sens]:
+            li.status |= LIAS_OUTPUT_OVERLOAD
+        return value
+
+    # ------------------------------------------------------------ commands
+    def handle(self, instrument: str, command: str) -> tuple[str | None, str | None]:
+        """Process one command; returns (reply or None, fault kind or None)."""
+        fault = self._take_fault(instrument, command)
+        if fault is not None and fault.kind == "drop":
+            self.transcript.append((instrument, command, None))
+            return None, "drop"
+        with self._lock:
+            self._advance()
+            if instrument == "generator":
+                reply = self._generator_command(command)
+            else:
+                reply = self._lockin_command(self.lockins[instrument], command)
+            self._retarget()
+            if fault is not None and fault.kind == "error" and instrument == "generator":
+                self.generator.errors.append(fault.message)
+        if fault is not None and fault.kind == "garble" and reply is not None:
+            reply = "\x7f#?%" + "".join(reversed(reply))[:5] + "\x1a"
+        if fault is not None and fault.kind == "timeout":
+            reply = None
+        self.transcript.append((instrument, command, reply))
+        return reply, (fault.kind if fault is not None else None)
+
+    def _generator_command(self, command: str) -> str | None:
+        g = self.generator
+        head, _, arg = command.strip().partition(" ")
+        head = head.upper()
+        arg = arg.strip()
+
+        def number(lo: float, hi: float) -> float | None:
+            try:
+                v = float(arg)
+            except ValueError:
+                g.errors.append('-104,"Data type error"')
+                return None
+            if not lo <= v <= hi:
+                g.errors.append('-222,"Data out of range"')
+                return None
+            return v
+
+        if head == "*IDN?":
+            return "Agilent Technologies,33522B,MY00000001,4.00-loopback"
+        if head == "*RST":
+            self.generator = _Generator(errors=g.errors)
+            return None
+        if head == "*CLS":
+            g.errors.clear()
+            return None
+        if head == "*OPC?":
+            return "1"
+        if head == "SYST:ERR?":
+            return g.errors.pop(0) if g.errors else '+0,"No error"'
+        if head in ("OUTP", "OUTPUT"):
+            if arg.upper() in ("ON", "1"):
+                g.output = True
+            elif arg.upper() in ("OFF", "0"):
+                g.output = False
+            else:
+                g.errors.append('-224,"Illegal parameter value"')
+            return None
+        if head == "OUTP?":
+            return "1" if g.output else "0"
+        if head == "OUTP:LOAD":
+            g.load = arg.upper()
+            return None
+        if head == "OUTP:SYNC":
+            g.sync = arg.upper() in ("ON", "1")
+            return None
+        if head == "FUNC":
+            g.function = arg.upper()
+            return None
+        if head == "VOLT:UNIT":
+            g.unit = arg.upper()
+            return None
+        if head == "VOLT:OFFS":
+            number(-10.0, 10.0)
+            return None
+        if head == "FREQ":
+            v = number(1e-6, 30e6)
+            if v is not None:
+                g.frequency_hz = v  # phase-continuous on a 33500B: no transient to model
+            return None
+        if head == "FREQ?":
+            return f"{g.frequency_hz:+.14E}"
+        if head == "VOLT":
+            v = number(0.001, 20.0)
+            if v is not None:
+                g.vpp = v
+            return None
+        if head == "VOLT?":
+            return f"{g.vpp:+.14E}"
+        g.errors.append(f'-113,"Undefined header; {head}"')
+        return None
+
+    def _lockin_command(self, li: _Lockin, command: str) -> str | None:
+        head, _, arg = command.strip().partition(" ")
+        head = head.upper()
+        arg = arg.strip()
+
+        def index(n: int) -> int | None:
+            try:
+                i = int(arg)
+            except ValueError:
+                return None
+            return i if 0 <= i < n else None
+
+        if head == "*IDN?":
+            return f"Stanford_Research_Systems,SR830,s/n{li.name},ver1.07-loopback"
+        if head in ("*RST", "*CLS"):
+            if head == "*RST":
+                li.sens, li.oflt, li.ofsl = 26, 10, 1
+            li.status = 0
+            return None
+        if head in ("FMOD", "RSLP", "ISRC", "ICPL", "IGND", "HARM", "OUTX"):
+            return None
+        if head in ("SENS", "OFLT", "OFSL"):
+            i = index({"SENS": 27, "OFLT": 20, "OFSL": 4}[head])
+            if i is not None:
+                setattr(li, head.lower(), i)
+            return None
+        if head in ("SENS?", "OFLT?", "OFSL?"):
+            return str(getattr(li, head[:-1].lower()))
+        if head == "FREQ?":
+            return f"{self.generator.frequency_hz:.6f}"
+        if head == "LIAS?":
+            status, li.status = li.status, 0
+            return str(status)
+        if head in ("SNAP?", "OUTP?"):
+            z = self._reading(li)
+            values = {1: z.real, 2: z.imag, 3: abs(z), 4: math.degrees(math.atan2(z.imag, z.real)),
+                      9: self.generator.frequency_hz}
+            try:
+                which = [int(p) for p in arg.split(",")]
+                return ",".join(f"{values[w]:.6e}" for w in which)
+            except (ValueError, KeyError):
+                return None
+        return None  # an SR830 ignores what it does not know (and sets an ERRS bit)
+
+
+class _InstrumentServer(socketserver.ThreadingMixIn, socketserver.TCPServer):
+    daemon_threads = True
+    allow_reuse_address = True
+    lab: LoopbackLab
+    instrument: str
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._connections: set[socket.socket] = set()
+        self._conn_lock = threading.Lock()
+
+    def track(self, sock: socket.socket, add: bool) -> None:
+        with self._conn_lock:
+            (self._connections.add if add else self._connections.discard)(sock)
+
+    def close_connections(self) -> None:
+        with self._conn_lock:
+            for sock in list(self._connections):
+                try:
+                    sock.shutdown(socket.SHUT_RDWR)
+                except OSError:
+                    pass
+                sock.close()
+            self._connections.clear()
+
+
+class _Handler(socketserver.StreamRequestHandler):
+    def setup(self) -> None:
+        super().setup()
+        self.request.settimeout(self.server.lab.lifetime_s)
+        self.server.track(self.request, True)
+
+    def finish(self) -> None:
+        self.server.track(self.request, False)
+        try:
+            super().finish()
+        except OSError:
+            pass
+
+    def handle(self) -> None:
+        lab: LoopbackLab = self.server.lab
+        name = self.server.instrument
+        while True:
+            try:
+                raw = self.rfile.readline()
+            except OSError:
+                return
+            if not raw:
+                return
+            line = raw.decode("ascii", errors="replace").strip()
+            if not line:
+                continue
+            replies = []
+            for command in (c.strip() for c in line.split(";")):
+                if not command:
+                    continue
+                reply, fault = lab.handle(name, command)
+                if fault == "drop":
+                    self.request.shutdown(socket.SHUT_RDWR)
+                    return
+                if reply is not None:
+                    replies.append(reply)
+            if replies:
+                try:
+                    self.wfile.write((";".join(replies) + "\n").encode("latin-1"))
+                    self.wfile.flush()
+                except OSError:
+                    return
+
+
+def loopback_visa_driver(plant, *, lab_options: dict | None = None, **driver_options):
+    """A :class:`~acquisition.drivers.visa.VisaDriver` talking to its own :class:`LoopbackLab`.
+
+    The lab is started on 127.0.0.1 with a :class:`VirtualClock` shared with
+    the driver. At :meth:`configure` the force channels are wired, in order,
+    to the lock-ins of the plant's inputs and the response channels to those
+    of its outputs; each lock-in's sensor gets the channel's sensitivity (the
+    mapping a user makes once in the hardware configuration file). Closing
+    the driver stops the lab. ``driver.lab`` gives access to the lab (fault
+    injection, transcript, generator state).
+    """
+    from acquisition.drivers.visa import VisaDriver
+
+    class LoopbackVisaDriver(VisaDriver):
+        def configure(self, channels, sample_rate_hz=None):
+            resources = self.lab.lockin_resources()
+            counters = {"force": 0, "response": 0}
+            mapped = []
+            for ch in channels:
+                if ch.role not in counters:
+                    raise ValueError(f"channel {ch.name!r}: the loopback lab has no lock-in for role {ch.role!r}")
+                i = counters[ch.role]
+                if i >= len(resources[ch.role]):
+                    raise ValueError(
+                        f"channel {ch.name!r}: the plant has only {len(resources[ch.role])} {ch.role} channel(s)"
+                    )
+                counters[ch.role] += 1
+                name = f"lockin_force{i}" if ch.role == "force" else f"lockin_resp{i}"
+                self.lab.set_sensitivity(name, ch.sensitivity)
+                mapped.append(replace(ch, physical=resources[ch.role][i]))
+            return super().configure(mapped, sample_rate_hz)
+
+        def close(self):
+            try:
+                super().close()
+            finally:
+                self.lab.stop()
+
+    options = dict(lab_options or {})
+    clock = options.pop("clock", None) or VirtualClock()
+    lab = LoopbackLab(plant, clock=clock, **options).start()
+    try:
+        driver = LoopbackVisaDriver(lab.generator_resource, clock=clock, **driver_options)
+    except Exception:
+        lab.stop()
+        raise
+    driver.lab = lab
+    return driver
