@@ -224,18 +224,25 @@ def _mesh(h: float, count_only: bool = False):
 
 
 def _element_size_for(target_dof: int) -> float:
-    """Element size (mm) whose mesh has about ``target_dof`` grid DOF (bisection on log h)."""
+    """Element size (mm) whose mesh has the grid-DOF count closest to ``target_dof``.
+
+    The count is a step function of the size (intervals are split into whole
+    numbers of elements), so bisect on log(h) and keep the closest size seen.
+    """
     lo, hi = math.log(0.5), math.log(200.0)
-    for _ in range(40):
+    best = (float("inf"), 1.0)
+    for _ in range(60):
         mid = 0.5 * (lo + hi)
         n_nodes, _ = _mesh(math.exp(mid), count_only=True)
-        if 6 * (n_nodes + len(_BUSHINGS)) > target_dof:
+        dof = 6 * (n_nodes + len(_BUSHINGS))
+        best = min(best, (abs(dof - target_dof), math.exp(mid)))
+        if dof > target_dof:
             lo = mid
         else:
             hi = mid
-        if hi - lo < 1e-3:
+        if hi - lo < 1e-6:
             break
-    return math.exp(0.5 * (lo + hi))
+    return best[1]
 
 
 # ----------------------------------------------------------------------------
