@@ -6,8 +6,9 @@ reaches it through the real pyvisa + pyvisa-py stack as
 ``TCPIP::127.0.0.1::PORT::SOCKET``. Lines end with ``\\n``; ``;`` separates
 commands on one line.
 
-Physics: the generator drives a shaker whose force per volt is
-``shaker_n_per_v / (1 + i f / shaker_corner_hz)``; the lock-in on a force
+Physics: the generator drives a shaker (:meth:`LoopbackLab.shaker_gain`: an
+:class:`acquisition.ShakerModel` loaded by the drive-point receptance, so the
+force drops at resonances, or a plain gain with a roll-off); the lock-in on a force
 channel sees that force, the lock-in on a response channel sees the plant's
 exact steady-state response ``plant.frf(f) @ force`` (any object with
 ``frf(freq_hz) -> (n_f, n_out, n_in)``, e.g. :class:`acquisition.ModalPlant`),
@@ -136,8 +137,10 @@ class LoopbackLab:
     clock : VirtualClock, optional
         Shared with the driver; a new one by default.
     shaker_n_per_v, shaker_corner_hz : float
-        Shaker + amplifier: force per generator volt (N/V, peak) at low
-        frequency and its first-order roll-off corner (Hz).
+        Shaker + amplifier without a ``shaker`` model: force per generator
+        volt (N/V, peak) at low frequency and a first-order roll-off corner (Hz).
+    shaker : acquisition.ShakerModel, optional
+        Electrodynamic shaker loading the drive point (see :meth:`shaker_gain`).
     noise_v_per_rthz : float
         Input noise density of each lock-in channel (V/sqrt(Hz)).
     drive_input : int
@@ -154,6 +157,7 @@ class LoopbackLab:
         clock: VirtualClock | None = None,
         shaker_n_per_v: float = 5.0,
         shaker_corner_hz: float = 2000.0,
+        shaker=None,
         noise_v_per_rthz: float = 20e-9,
         drive_input: int = 0,
         seed: int = 0,
@@ -163,6 +167,7 @@ class LoopbackLab:
         self.clock = clock if clock is not None else VirtualClock()
         self.shaker_n_per_v = float(shaker_n_per_v)
         self.shaker_corner_hz = float(shaker_corner_hz)
+        self.shaker = shaker
         self.noise_v_per_rthz = float(noise_v_per_rthz)
         self.drive_input = int(drive_input)
         self.lifetime_s = float(lifetime_s)
@@ -180,6 +185,7 @@ class LoopbackLab:
             self.lockins[f"lockin_force{i}"] = _Lockin(f"lockin_force{i}", "force", i)
         for o in range(self.n_out):
             self.lockins[f"lockin_resp{o}"] = _Lockin(f"lockin_resp{o}", "response", o)
+        self.lockins["lockin_drive"] = _Lockin("lockin_drive", "drive", 0)
         self.transcript: list[tuple[str, str, str | None]] = []
         self._faults: list[_Fault] = []
         self._servers: dict[str, socketserver.ThreadingTCPServer] = {}
@@ -231,12 +237,28 @@ class LoopbackLab:
     def generator_resource(self) -> str:
         return self.resource("generator")
 
-    def lockin_resources(self) -> dict[str, str]:
-        """``{"force": [...], "response": [...]}`` resource strings, in plant input/output order."""
-        return {
-            "force": [self.resource(f"lockin_force{i}") for i in range(self.n_in)],
-            "response": [self.resource(f"lockin_resp{o}") for o in range(self.n_out)],
-        }
+    def lockin_for(self, channel) -> str:
+        """The lock-in that measures a channel, addressed as on the simulated lab.
+
+        ``physical="sim/<k>"`` is plant output k, ``"sim/force"`` (or role
+        ``"force"`` without an address) the drive-point force, ``"sim/drive"``
+        (or role ``"monitor"``) the drive voltage; response channels without an
+        address take plant outputs in the order they are asked for.
+        """
+        phys = channel.physical
+        if phys == "sim/force" or (not phys and channel.role == "force"):
+            return f"lockin_force{self.drive_input}"
+        if phys == "sim/drive" or (not phys and channel.role == "monitor"):
+            return "lockin_drive"
+        if phys.startswith("sim/"):
+            try:
+                k = int(phys[4:])
+            except ValueError:
+                raise ValueError(f"channel {channel.name!r}: bad simulated address {phys!r}") from None
+            if not 0 <= k < self.n_out:
+                raise ValueError(f"channel {channel.name!r}: the plant has outputs 0..{self.n_out - 1}, got {phys!r}")
+            return f"lockin_resp{k}"
+        raise ValueError(f"channel {channel.name!r}: the loopback lab cannot measure {phys!r}")
 
     def set_sensitivity(self, instrument: str, sensitivity_v_per_unit: float) -> None:
         """The sensor behind a lock-in: volts per SI unit (as the user maps it)."""
@@ -282,11 +304,31 @@ class LoopbackLab:
             self._frf_cache[f] = h
         return h
 
+    def shaker_gain(self, frequency_hz: float) -> complex:
+        """Force per generator volt at the drive point, N/V (complex).
+
+        With a ``shaker`` (:class:`acquisition.ShakerModel`) and a plant that
+        knows its drive-point receptance X, the back-EMF, armature mass and
+        suspension load the drive point, ``F = G V / (1 + Z_s X)`` with
+        ``Z_s = s m_a + c_e + k_s / s``, so the force drops at resonances;
+        otherwise ``shaker_n_per_v / (1 + i f / shaker_corner_hz)``.
+        """
+        cd = getattr(self.plant, "drive_point_form", lambda: None)()
+        if self.shaker is not None and cd is not None:
+            sh = self.shaker
+            s = 2j * np.pi * frequency_hz
+            poles, bz, _, _ = self.plant.diagonal_form()
+            x_dp = (cd[self.drive_input] / (s - poles)) @ bz[:, self.drive_input]
+            z_s = s * sh.armature_mass_kg + sh.electrical_damping_ns_per_m + sh.suspension_stiffness_n_per_m / s
+            return complex(sh.gain_n_per_v / (1 + z_s * s * x_dp))
+        if self.shaker is not None:
+            return complex(self.shaker.gain_n_per_v)
+        return complex(self.shaker_n_per_v / (1 + 1j * frequency_hz / self.shaker_corner_hz))
+
     def force_phasor(self) -> np.ndarray:
         """Force at each plant input, complex peak N (only the driven input is non-zero)."""
-        g = self.generator
         f = np.zeros(self.n_in, complex)
-        f[self.drive_input] = self.drive_v_peak * self.shaker_n_per_v / (1 + 1j * g.frequency_hz / self.shaker_corner_hz)
+        f[self.drive_input] = self.drive_v_peak * self.shaker_gain(self.generator.frequency_hz)
         return f
 
     def _targets(self) -> dict[str, complex]:
@@ -294,7 +336,12 @@ class LoopbackLab:
         resp = self._frf(self.generator.frequency_hz) @ force if self.drive_v_peak > 0 else np.zeros(self.n_out, complex)
         out = {}
         for name, li in self.lockins.items():
-            q = force[li.index] if li.role == "force" else resp[li.index]
+            if li.role == "force":
+                q = force[li.index]
+            elif li.role == "response":
+                q = resp[li.index]
+            else:
+                q = self.drive_v_peak  # the drive itself: phase 0 against the reference
             out[name] = complex(q) * li.sensitivity_v_per_unit
         return out
 
@@ -549,21 +596,14 @@ def loopback_visa_driver(plant, *, lab_options: dict | None = None, **driver_opt
 
     class LoopbackVisaDriver(VisaDriver):
         def configure(self, channels, sample_rate_hz=None):
-            resources = self.lab.lockin_resources()
-            counters = {"force": 0, "response": 0}
-            mapped = []
+            mapped, next_out = [], 0
             for ch in channels:
-                if ch.role not in counters:
-                    raise ValueError(f"channel {ch.name!r}: the loopback lab has no lock-in for role {ch.role!r}")
-                i = counters[ch.role]
-                if i >= len(resources[ch.role]):
-                    raise ValueError(
-                        f"channel {ch.name!r}: the plant has only {len(resources[ch.role])} {ch.role} channel(s)"
-                    )
-                counters[ch.role] += 1
-                name = f"lockin_force{i}" if ch.role == "force" else f"lockin_resp{i}"
+                if not ch.physical and ch.role == "response":
+                    ch = replace(ch, physical=f"sim/{next_out}")
+                    next_out += 1
+                name = self.lab.lockin_for(ch)
                 self.lab.set_sensitivity(name, ch.sensitivity)
-                mapped.append(replace(ch, physical=resources[ch.role][i]))
+                mapped.append(replace(ch, physical=self.lab.resource(name)))
             return super().configure(mapped, sample_rate_hz)
 
         def close(self):
