@@ -1,0 +1,432 @@
+"""identify(): FRFs in, a labelled continuous-time model and modal parameters out."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ._errors import IdentificationError
+from ._metrics import channel_deviation
+from ._poles import LABELS, ModalParameters, Poles, label_poles, normalize_shapes
+from ._statespace import QUANTITIES, StateSpace, frequency_grid
+from ._subspace import (
+    bilinear_alpha,
+    fit_bd,
+    fit_cd,
+    real_modal_form,
+    realize,
+    subspace_basis,
+    unit_circle,
+)
+
+
+@dataclass(frozen=True)
+class Identification:
+    """Result of :func:`identify`.
+
+    Attributes
+    ----------
+    model : StateSpace
+        Real continuous-time model in real modal (block-diagonal) form, all
+        poles kept (physical and residual), in the orientation of the data.
+    singular_values : ndarray (q n_out',)
+        Singular values of the projected data matrix (order-selection aid).
+    poles : Poles
+        Every pole (pair) of ``model`` with its label.
+    modal : ModalParameters
+        Modal parameters of the poles labelled ``"physical"``.
+    band_hz : (2,) analysed band [Hz].
+    order : int
+        State dimension ``n``.
+    fit_deviation : ndarray (n_out, n_in)
+        Square deviation of log10 ratios (paper Eq. 2.5) per channel, model vs
+        data, over the lines in band.
+    settings : dict
+        The numerical settings used (block_rows, alpha_rad_s, thresholds...).
+    """
+
+    model: StateSpace
+    singular_values: np.ndarray
+    poles: Poles
+    modal: ModalParameters
+    band_hz: tuple[float, float]
+    order: int
+    fit_deviation: np.ndarray
+    settings: dict = field(default_factory=dict)
+
+    @property
+    def quantity(self) -> str:
+        return self.model.quantity
+
+    @property
+    def fit_deviation_total(self) -> float:
+        """Square deviation over all channels and lines in band."""
+        return float(np.mean(self.fit_deviation))
+
+    def frf(self, freq_hz) -> np.ndarray:
+        """Model FRF at any frequencies [Hz] -> (n_f, n_out, n_in)."""
+        return self.model.frf(freq_hz)
+
+    def to_arrays(self) -> tuple[dict[str, np.ndarray], dict]:
+        """Plain arrays and scalar attributes for storage (e.g. ``write_analysis``).
+
+        Returns
+        -------
+        arrays : dict of ndarray
+        attrs : dict of str/int/float (JSON-serializable)
+        """
+        arrays = {
+            "A": np.asarray(self.model.A),
+            "B": np.asarray(self.model.B),
+            "C": np.asarray(self.model.C),
+            "D": np.asarray(self.model.D),
+            "singular_values": np.asarray(self.singular_values),
+            "pole_eigenvalues_rad_s": np.asarray(self.poles.eigenvalues),
+            "pole_labels": np.array(self.poles.labels, dtype="S16"),
+            "pole_contribution": np.asarray(self.poles.contribution),
+            "mode_eigenvalues_rad_s": np.asarray(self.modal.eigenvalues),
+            "mode_shapes": np.asarray(self.modal.shapes),
+            "mode_participation": np.asarray(self.modal.participation),
+            "fit_deviation": np.asarray(self.fit_deviation),
+        }
+        attrs = {
+            "format": "frfcal.identification/1",
+            "quantity": self.model.quantity,
+            "order": int(self.order),
+            "band_lo_hz": float(self.band_hz[0]),
+            "band_hi_hz": float(self.band_hz[1]),
+            "settings_json": json.dumps(self.settings),
+        }
+        return arrays, attrs
+
+    @classmethod
+    def from_arrays(cls, arrays: dict, attrs: dict) -> Identification:
+        """Inverse of :meth:`to_arrays`."""
+        try:
+            fmt = attrs.get("format", "")
+            if isinstance(fmt, bytes):
+                fmt = fmt.decode()
+            if not str(fmt).startswith("frfcal.identification/"):
+                raise IdentificationError(f"identification record has format {fmt!r}, expected frfcal.identification/1")
+            quantity = attrs["quantity"]
+            quantity = quantity.decode() if isinstance(quantity, bytes) else str(quantity)
+            model = StateSpace(
+                np.asarray(arrays["A"]),
+                np.asarray(arrays["B"]),
+                np.asarray(arrays["C"]),
+                np.asarray(arrays["D"]),
+                quantity,
+            )
+            labels = tuple(
+                s.decode() if isinstance(s, bytes) else str(s) for s in np.asarray(arrays["pole_labels"]).tolist()
+            )
+            poles = Poles(np.asarray(arrays["pole_eigenvalues_rad_s"]), labels, np.asarray(arrays["pole_contribution"]))
+            modal = ModalParameters(
+                np.asarray(arrays["mode_eigenvalues_rad_s"]),
+                np.asarray(arrays["mode_shapes"]),
+                np.asarray(arrays["mode_participation"]),
+            )
+            settings = attrs.get("settings_json", "{}")
+            settings = json.loads(settings.decode() if isinstance(settings, bytes) else settings)
+            return cls(
+                model=model,
+                singular_values=np.asarray(arrays["singular_values"]),
+                poles=poles,
+                modal=modal,
+                band_hz=(float(attrs["band_lo_hz"]), float(attrs["band_hi_hz"])),
+                order=int(attrs["order"]),
+                fit_deviation=np.asarray(arrays["fit_deviation"]),
+                settings=settings,
+            )
+        except KeyError as exc:
+            raise IdentificationError(f"identification record lacks field {exc.args[0]!r}") from None
+
+
+@dataclass(frozen=True)
+class _Data:
+    """Validated data restricted to the band, possibly transposed (dual)."""
+
+    freq_hz: np.ndarray  # (n_f,)
+    omega: np.ndarray  # rad/s
+    H: np.ndarray  # (n_f, p, m) in identification orientation
+    W: np.ndarray  # (n_f, p, m) weights 1/sigma
+    out_scale: np.ndarray  # (p,) scale of each output for the subspace step
+    band_hz: tuple[float, float]
+    dual: bool
+    alpha: float
+    quantity: str
+
+
+def _prepare(freq_hz, H, *, band_hz, weights, valid, quantity) -> _Data:
+    f = frequency_grid(freq_hz)
+    Ha = np.asarray(H)
+    if Ha.ndim != 3:
+        raise IdentificationError(f"H must be (n_freq, n_out, n_in), got shape {Ha.shape}")
+    if Ha.shape[0] != f.size:
+        raise IdentificationError(f"H has {Ha.shape[0]} lines but freq_hz has {f.size}")
+    Ha = Ha.astype(complex)
+    if quantity not in QUANTITIES:
+        raise IdentificationError(f"quantity must be one of {QUANTITIES}, got {quantity!r}")
+    keep = np.ones(f.size, dtype=bool)
+    if valid is not None:
+        v = np.asarray(valid, dtype=bool)
+        if v.shape != f.shape:
+            raise IdentificationError(f"valid must be ({f.size},) booleans, got shape {v.shape}")
+        keep &= v
+    if band_hz is None:
+        band = (float(f[keep].min()) if keep.any() else 0.0, float(f[keep].max()) if keep.any() else 0.0)
+    else:
+        b = np.asarray(band_hz, dtype=float).reshape(-1)
+        if b.size != 2 or not np.all(np.isfinite(b)) or not (0 <= b[0] < b[1]):
+            raise IdentificationError(f"band_hz must be (lo, hi) with 0 <= lo < hi, got {band_hz!r}")
+        band = (float(b[0]), float(b[1]))
+        keep &= (f >= band[0]) & (f <= band[1])
+    bad = ~np.all(np.isfinite(Ha.reshape(f.size, -1)), axis=1)
+    if np.any(bad & keep):
+        k = int(np.flatnonzero(bad & keep)[0])
+        raise IdentificationError(f"H holds NaN/Inf at line {k} ({f[k]:g} Hz); mark it invalid with `valid`")
+    if keep.sum() < 2:
+        raise IdentificationError(f"fewer than 2 valid lines in band {band} Hz")
+    n_f, p, m = Ha.shape
+    if weights is None:
+        rms = np.sqrt(np.mean(np.abs(Ha[keep]) ** 2, axis=(0, 2)))
+        if np.any(rms == 0):
+            raise IdentificationError(f"output channel {int(np.flatnonzero(rms == 0)[0])} is identically zero in band")
+        W = np.broadcast_to((1.0 / rms)[None, :, None], Ha.shape)
+    else:
+        w = np.asarray(weights, dtype=float)
+        if w.shape == (p,):
+            if np.any(~np.isfinite(w)) or np.any(w <= 0):
+                raise IdentificationError("weights (per-output noise level) must be finite and > 0")
+            W = np.broadcast_to((1.0 / w)[None, :, None], Ha.shape)
+        elif w.shape == Ha.shape:
+            if np.any(~np.isfinite(w[keep])) or np.any(w[keep] <= 0):
+                raise IdentificationError("weights (per-line standard errors) must be finite and > 0 in band")
+            W = 1.0 / np.where(w > 0, w, 1.0)
+        else:
+            raise IdentificationError(
+                f"weights must be ({p},) per-output noise levels or {Ha.shape} standard errors, got {w.shape}"
+            )
+    fk = f[keep]
+    Hk = Ha[keep]
+    Wk = np.array(W[keep], dtype=float)
+    dual = m > p
+    if dual:  # identify the transposed system: the data matrices grow with n_in
+        Hk = Hk.transpose(0, 2, 1)
+        Wk = Wk.transpose(0, 2, 1)
+    out_scale = np.sqrt(np.mean(Wk**2, axis=(0, 2)))
+    omega = 2 * np.pi * fk
+    alpha = bilinear_alpha(2 * np.pi * band[0], 2 * np.pi * band[1])
+    return _Data(fk, omega, np.ascontiguousarray(Hk), Wk, out_scale, band, dual, alpha, quantity)
+
+
+def default_block_rows(order: int, n_out: int) -> int:
+    """Default number of block rows ``q``: ``q n_out >= 2 n`` and ``q >= n/n_out + 2``."""
+    return int(max(int(np.ceil(2 * order / n_out)), int(np.ceil(order / n_out)) + 2))
+
+
+def _basis(data: _Data, block_rows: int):
+    z = unit_circle(data.omega, data.alpha)
+    Hs = data.H * data.out_scale[None, :, None]
+    p, m = data.H.shape[1:]
+    if 2 * data.H.shape[0] * m < block_rows * (m + p):
+        raise IdentificationError(
+            f"too few lines ({data.H.shape[0]}) for block_rows={block_rows}: need "
+            f"2 n_f n_in >= q (n_in + n_out); lower the order or widen the band"
+        )
+    return subspace_basis(z, Hs, block_rows)
+
+
+def _fit(data: _Data, basis, sv, order: int, *, enforce_stability: bool, refine: int):
+    """Model of one order from the shared basis, in identification orientation."""
+    p = data.H.shape[1]
+    n = int(order)
+    Ad, Cd = realize(basis, sv, n, p)
+    eye = np.eye(n)
+    try:
+        Pi = np.linalg.inv(Ad + eye)
+    except np.linalg.LinAlgError:
+        raise IdentificationError(f"order {n}: identified pole at z = -1 (infinite frequency)") from None
+    A = data.alpha * (Ad - eye) @ Pi
+    C = (Cd @ Pi) / data.out_scale[:, None]
+    Am, _, Cm, blocks = real_modal_form(A, None, C)
+    was_unstable = np.zeros(len(blocks), dtype=bool)
+    for i, blk in enumerate(blocks):
+        if Am[blk.start, blk.start] > 0:
+            was_unstable[i] = True
+            if enforce_stability:  # reflect into the left half plane, keep the frequency
+                for j in range(blk.start, blk.stop):
+                    Am[j, j] = -Am[j, j]
+    B, D = fit_bd(data.omega, data.H, data.W, Am, Cm)
+    for _ in range(int(refine)):
+        Cm, D = fit_cd(data.omega, data.H, data.W, Am, B)
+        B, D = fit_bd(data.omega, data.H, data.W, Am, Cm)
+    return Am, B, Cm, D, blocks, was_unstable
+
+
+def block_poles(A: np.ndarray, blocks) -> np.ndarray:
+    """One eigenvalue (Im >= 0) per block of a real modal-form ``A``."""
+    lam = np.empty(len(blocks), dtype=complex)
+    for i, b in enumerate(blocks):
+        if b.stop - b.start == 1:
+            lam[i] = A[b.start, b.start]
+        else:
+            s, w = A[b.start, b.start], A[b.start, b.start + 1]
+            lam[i] = complex(s, abs(w))
+    return lam
+
+
+def block_modal(A, B, C, blocks):
+    """Per block: eigenvalue (Im>=0), shape ``C x`` (p,), participation ``y B`` (m,)."""
+    shapes, parts = [], []
+    for b in blocks:
+        Ab = A[b, b]
+        lam, X = np.linalg.eig(Ab)
+        i = int(np.argmax(lam.imag))
+        Y = np.linalg.inv(X)
+        shapes.append(C[:, b] @ X[:, i])
+        parts.append(Y[i, :] @ B[b, :])
+    return np.array(shapes).T, np.array(parts)
+
+
+def contributions(data: _Data, A, B, C, blocks) -> np.ndarray:
+    """Largest weighted ratio, over the lines, of each block's own FRF term to the data."""
+    ref = np.linalg.norm((data.W * data.H).reshape(data.H.shape[0], -1), axis=1)
+    ref = np.where(ref > 0, ref, np.inf)
+    s = 1j * data.omega
+    out = np.empty(len(blocks))
+    for i, b in enumerate(blocks):
+        lam, X = np.linalg.eig(A[b, b])
+        R = np.einsum("pr,rm->rpm", C[:, b] @ X, np.linalg.solve(X, B[b, :].astype(complex)))
+        Hb = np.einsum("rpm,fr->fpm", R, 1.0 / (s[:, None] - lam[None, :]))
+        out[i] = np.max(np.linalg.norm((data.W * Hb).reshape(Hb.shape[0], -1), axis=1) / ref)
+    return out
+
+
+def identify(
+    freq_hz,
+    H,
+    order: int,
+    *,
+    band_hz=None,
+    weights=None,
+    quantity: str = "accelerance",
+    valid=None,
+    block_rows: int | None = None,
+    enforce_stability: bool = True,
+    zeta_max: float = 0.2,
+    min_contribution: float = 0.05,
+    refine: int = 1,
+) -> Identification:
+    """Frequency-domain subspace identification of a continuous-time model from FRFs.
+
+    McKelvey-Akcay-Ljung (1996) subspace algorithm on an arbitrary frequency
+    grid, in continuous time through the exact scaled bilinear map
+    (``alpha = 2/T = sqrt(omega_lo omega_hi)``); ``D`` is always estimated;
+    ``B, D`` then ``C, D`` then ``B, D`` are refined by weighted linear least
+    squares on the data. Unstable poles are reflected into the left half plane
+    (when ``enforce_stability``) and labelled ``"unstable"``; every pole stays
+    in the model, only those labelled ``"physical"`` enter :attr:`Identification.modal`.
+
+    Parameters
+    ----------
+    freq_hz : array_like (n_f,)
+        Frequencies [Hz], any (non-uniform) grid.
+    H : array_like, complex (n_f, n_out, n_in)
+        Measured FRFs, e^{+i omega t} convention.
+    order : int
+        State dimension ``n`` (two per mode; e.g. 44 = 22 pole pairs).
+    band_hz : (lo, hi), optional
+        Analysed band [Hz]; lines outside are ignored and poles outside are
+        labelled ``"out-of-band"``. Default: the data range.
+    weights : array_like, optional
+        ``(n_out,)`` noise standard deviation per output (FRF units) or
+        ``(n_f, n_out, n_in)`` standard error per line. Residuals are divided
+        by it. Default: each output scaled by its RMS level in band.
+    quantity : {"accelerance", "mobility", "receptance"}
+        FRF quantity, carried by the model.
+    valid : array_like of bool (n_f,), optional
+        Lines to use (e.g. a run file's ``valid`` mask).
+    block_rows : int, optional
+        Number of block rows ``q`` of the data matrices (default
+        :func:`default_block_rows`).
+    enforce_stability : bool
+        Reflect unstable poles into the left half plane before the
+        least-squares refinement.
+    zeta_max : float
+        Poles with larger damping ratio are labelled ``"overdamped"``.
+    min_contribution : float
+        Poles whose own FRF term never reaches this fraction of the data
+        (weighted Frobenius norm over channels, per line) are ``"negligible"``.
+    refine : int
+        Rounds of alternating ``C, D`` / ``B, D`` least-squares refinement.
+
+    Returns
+    -------
+    Identification
+
+    Raises
+    ------
+    IdentificationError
+        On inconsistent shapes, NaNs in band, too few lines for the order, etc.
+    """
+    n = int(order)
+    if n < 1 or n != order:
+        raise IdentificationError(f"order must be a positive integer, got {order!r}")
+    data = _prepare(freq_hz, H, band_hz=band_hz, weights=weights, valid=valid, quantity=quantity)
+    p = data.H.shape[1]
+    q = default_block_rows(n, p) if block_rows is None else int(block_rows)
+    if q * p <= n:
+        raise IdentificationError(
+            f"block_rows={q} too small for order {n} with {p} outputs: need block_rows * {p} > {n}"
+        )
+    basis, sv = _basis(data, q)
+    return _assemble(data, basis, sv, n, q, enforce_stability, zeta_max, min_contribution, refine)
+
+
+def _assemble(data, basis, sv, n, q, enforce_stability, zeta_max, min_contribution, refine):
+    A, B, C, D, blocks, was_unstable = _fit(data, basis, sv, n, enforce_stability=enforce_stability, refine=refine)
+    lam = block_poles(A, blocks)
+    contrib = contributions(data, A, B, C, blocks)
+    labels = label_poles(lam, contrib, was_unstable, data.band_hz, zeta_max, min_contribution)
+    model = StateSpace(A, B, C, D, data.quantity)
+    H_data = data.H
+    if data.dual:
+        model = model.transposed()
+        H_data = H_data.transpose(0, 2, 1)
+    phys = [i for i, s in enumerate(labels) if s == "physical"]
+    shapes, parts = block_modal(model.A, model.B, model.C, [blocks[i] for i in phys])
+    if not phys:
+        shapes = np.zeros((model.n_out, 0), complex)
+        parts = np.zeros((0, model.n_in), complex)
+    shapes, parts = normalize_shapes(shapes, parts)
+    modal = ModalParameters(lam[phys], shapes, parts)
+    H_model = model.frf(data.freq_hz)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        fit = channel_deviation(H_model, H_data) if np.all(H_data != 0) else np.full(H_data.shape[1:], np.nan)
+    settings = {
+        "block_rows": int(q),
+        "alpha_rad_s": float(data.alpha),
+        "dual": bool(data.dual),
+        "enforce_stability": bool(enforce_stability),
+        "zeta_max": float(zeta_max),
+        "min_contribution": float(min_contribution),
+        "refine": int(refine),
+        "n_lines": int(data.freq_hz.size),
+        "n_reflected": int(np.sum(was_unstable)) if enforce_stability else 0,
+    }
+    return Identification(
+        model=model,
+        singular_values=sv,
+        poles=Poles(lam, labels, contrib),
+        modal=modal,
+        band_hz=data.band_hz,
+        order=n,
+        fit_deviation=fit,
+        settings=settings,
+    )
+
+
+__all__ = ["Identification", "identify", "default_block_rows", "LABELS"]

@@ -1,0 +1,161 @@
+"""Stabilization diagram: poles across model orders and their consistency."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ._errors import IdentificationError
+from ._identify import Identification, _assemble, _basis, _prepare, block_modal, default_block_rows
+from ._poles import Poles, mac
+from ._subspace import real_modal_form
+
+
+@dataclass(frozen=True)
+class Stabilization:
+    """Poles of a sequence of model orders sharing one subspace factorization.
+
+    Attributes
+    ----------
+    orders : tuple of int
+    poles : tuple of Poles, one per order
+    shapes : tuple of complex arrays (n_out, n_poles), one per order
+        Mode shape (``C x``) of every pole, for MAC checks.
+    stable_frequency, stable_damping, stable_shape : tuple of bool arrays
+        Per order, per pole: whether the nearest pole of the previous order
+        agrees within ``tol_frequency`` (relative), ``tol_damping`` (relative)
+        and has MAC >= ``min_mac``. All False at the first order.
+    singular_values : ndarray
+    band_hz : (lo, hi)
+    tolerances : dict
+    """
+
+    orders: tuple[int, ...]
+    poles: tuple[Poles, ...]
+    shapes: tuple[np.ndarray, ...]
+    stable_frequency: tuple[np.ndarray, ...]
+    stable_damping: tuple[np.ndarray, ...]
+    stable_shape: tuple[np.ndarray, ...]
+    singular_values: np.ndarray
+    band_hz: tuple[float, float]
+    tolerances: dict
+
+    def stable(self, index: int) -> np.ndarray:
+        """Poles of ``orders[index]`` stable in frequency, damping and shape and labelled physical."""
+        return (
+            self.stable_frequency[index]
+            & self.stable_damping[index]
+            & self.stable_shape[index]
+            & self.poles[index].physical
+        )
+
+    def persistent(self, index: int, n_orders: int = 3) -> np.ndarray:
+        """Physical poles of ``orders[index]`` fully stable over the ``n_orders`` orders up to it.
+
+        Follows each pole back through the nearest-frequency chain; this is the
+        automatic physical-pole selection of the diagram.
+        """
+        if index < n_orders - 1:
+            raise IdentificationError(f"persistent: need {n_orders} orders up to index {index}")
+        keep = self.stable(index).copy()
+        f = self.poles[index].frequency_hz
+        for i in np.flatnonzero(keep):
+            fi = f[i]
+            for j in range(index - 1, index - n_orders, -1):
+                fj = self.poles[j].frequency_hz
+                if fj.size == 0:
+                    keep[i] = False
+                    break
+                k = int(np.argmin(np.abs(fj - fi)))
+                ok = self.stable_frequency[j][k] and self.stable_damping[j][k] and self.stable_shape[j][k]
+                ok = ok or j == index - n_orders + 1 and abs(fj[k] - fi) <= self.tolerances["frequency"] * fi
+                if not ok:
+                    keep[i] = False
+                    break
+                fi = fj[k]
+        return keep
+
+
+def stabilization(
+    freq_hz,
+    H,
+    orders,
+    *,
+    band_hz=None,
+    weights=None,
+    quantity: str = "accelerance",
+    valid=None,
+    block_rows: int | None = None,
+    enforce_stability: bool = True,
+    zeta_max: float = 0.2,
+    min_contribution: float = 0.05,
+    tol_frequency: float = 0.005,
+    tol_damping: float = 0.05,
+    min_mac: float = 0.95,
+) -> Stabilization:
+    """Identify a sequence of orders and check pole consistency across them.
+
+    One McKelvey factorization (with ``block_rows`` sized for the largest
+    order) serves every order; each order then gets its own ``B, D``
+    least-squares fit and pole labels as in :func:`identify` (no ``C``
+    refinement, for speed).
+
+    Parameters
+    ----------
+    orders : sequence of int
+        Increasing state dimensions.
+    tol_frequency, tol_damping : float
+        Relative change allowed for a pole to count as stable.
+    min_mac : float
+        MAC with the nearest previous pole for shape stability.
+    Other parameters as in :func:`identify`.
+    """
+    ords = tuple(int(o) for o in orders)
+    if not ords or any(o < 1 for o in ords) or any(b <= a for a, b in zip(ords, ords[1:])):
+        raise IdentificationError(f"orders must be increasing positive integers, got {list(orders)!r}")
+    data = _prepare(freq_hz, H, band_hz=band_hz, weights=weights, valid=valid, quantity=quantity)
+    p = data.H.shape[1]
+    q = default_block_rows(ords[-1], p) if block_rows is None else int(block_rows)
+    if q * p <= ords[-1]:
+        raise IdentificationError(f"block_rows={q} too small for order {ords[-1]} with {p} outputs")
+    basis, sv = _basis(data, q)
+    poles, shapes, sf, sd, ss = [], [], [], [], []
+    prev: Identification | None = None
+    prev_shapes = None
+    for n in ords:
+        ident = _assemble(data, basis, sv, n, q, enforce_stability, zeta_max, min_contribution, refine=0)
+        Am, Bm, Cm, blocks = real_modal_form(ident.model.A, ident.model.B, ident.model.C)
+        sh, _ = block_modal(Am, Bm, Cm, blocks)
+        sh = sh if len(blocks) else np.zeros((ident.model.n_out, 0), complex)
+        f = ident.poles.frequency_hz
+        z = ident.poles.damping
+        npol = f.size
+        a = np.zeros(npol, bool)
+        b = np.zeros(npol, bool)
+        c = np.zeros(npol, bool)
+        if prev is not None and len(prev.poles):
+            fp = prev.poles.frequency_hz
+            zp = prev.poles.damping
+            for i in range(npol):
+                k = int(np.argmin(np.abs(fp - f[i])))
+                a[i] = abs(fp[k] - f[i]) <= tol_frequency * f[i]
+                b[i] = abs(zp[k] - z[i]) <= tol_damping * abs(z[i])
+                c[i] = mac(sh[:, i], prev_shapes[:, k])[0, 0] >= min_mac
+        poles.append(ident.poles)
+        shapes.append(sh)
+        sf.append(a)
+        sd.append(b)
+        ss.append(c)
+        prev, prev_shapes = ident, sh
+    return Stabilization(
+        orders=ords,
+        poles=tuple(poles),
+        shapes=tuple(shapes),
+        stable_frequency=tuple(sf),
+        stable_damping=tuple(sd),
+        stable_shape=tuple(ss),
+        singular_values=sv,
+        band_hz=data.band_hz,
+        tolerances={"frequency": tol_frequency, "damping": tol_damping, "mac": min_mac},
+    )

@@ -1,0 +1,288 @@
+"""Frequency-domain subspace identification kernels (McKelvey, Akcay & Ljung 1996).
+
+The continuous-time problem is solved through the scaled bilinear map
+
+    s = alpha (z - 1) / (z + 1),   alpha = 2 / T,
+
+which sends the imaginary axis s = i omega onto the unit circle,
+z = exp(i theta) with theta = 2 arctan(omega / alpha). A continuous-time model
+of order n is *exactly* a discrete-time model of order n in z, so the FRF
+samples are used unchanged, only their frequencies are mapped. Choosing
+alpha = sqrt(omega_lo omega_hi) spreads the band symmetrically around
+theta = pi/2, so the powers z^k that make up the data matrices stay of unit
+modulus and well conditioned even at orders ~100 (raw powers of i omega would
+span 10^(2 n) over a 100-550 Hz band).
+
+All kernels take arrays in rad/s (stated per function) and return arrays.
+
+References
+----------
+T. McKelvey, H. Akcay, L. Ljung, "Subspace-based multivariable system
+identification from frequency response data", IEEE TAC 41(7), 960-979, 1996.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.linalg as sla
+
+from ._errors import IdentificationError
+
+
+def bilinear_alpha(omega_lo: float, omega_hi: float) -> float:
+    """Bilinear-map scale ``alpha = 2/T = sqrt(omega_lo * omega_hi)`` [rad/s].
+
+    A band starting at DC uses ``omega_lo = omega_hi / 1000`` instead of 0.
+    """
+    if not omega_hi > 0:
+        raise IdentificationError(f"band upper edge must be > 0 rad/s, got {omega_hi}")
+    lo = max(float(omega_lo), 1e-3 * float(omega_hi))
+    return float(np.sqrt(lo * omega_hi))
+
+
+def unit_circle(omega: np.ndarray, alpha: float) -> np.ndarray:
+    """Map ``s = i omega`` [rad/s] to ``z = (alpha + i omega)/(alpha - i omega)`` on the unit circle."""
+    return np.exp(2j * np.arctan(np.asarray(omega, dtype=float) / alpha))
+
+
+def to_continuous(Ad: np.ndarray, Bd: np.ndarray, Cd: np.ndarray, Dd: np.ndarray, alpha: float):
+    """Exact inverse bilinear map of a discrete model in ``z`` to continuous ``(A, B, C, D)``.
+
+    With ``s = alpha (z-1)/(z+1)``: ``A = alpha (Ad - I)(Ad + I)^-1``,
+    ``B = sqrt(2 alpha) (Ad + I)^-1 Bd``, ``C = sqrt(2 alpha) Cd (Ad + I)^-1``,
+    ``D = Dd - Cd (Ad + I)^-1 Bd``.
+    """
+    n = Ad.shape[0]
+    P = Ad + np.eye(n)
+    Pi = np.linalg.inv(P)
+    A = alpha * (Ad - np.eye(n)) @ Pi
+    r = np.sqrt(2.0 * alpha)
+    return A, r * Pi @ Bd, r * Cd @ Pi, Dd - Cd @ Pi @ Bd
+
+
+def to_discrete(A: np.ndarray, B: np.ndarray, C: np.ndarray, D: np.ndarray, alpha: float):
+    """Exact bilinear map of a continuous model to ``z`` (inverse of :func:`to_continuous`)."""
+    n = A.shape[0]
+    Q = np.linalg.inv(alpha * np.eye(n) - A)
+    r = np.sqrt(2.0 * alpha)
+    return (alpha * np.eye(n) + A) @ Q, r * Q @ B, r * C @ Q, D + C @ Q @ B
+
+
+def subspace_basis(z: np.ndarray, H: np.ndarray, block_rows: int) -> tuple[np.ndarray, np.ndarray]:
+    """Column space of the extended observability matrix from FRF samples.
+
+    Forms McKelvey's data matrices ``Y = [z_k^j H_k]`` and ``U = [z_k^j I]``
+    (``j = 0..q-1``), takes real and imaginary parts side by side, and removes
+    the input part by an LQ factorization: ``[U; Y] = L Q``, so that the
+    column space of ``L22`` is that of ``O_q``. Only a thin QR of a
+    ``(2 n_f n_in) x q (n_in + n_out)`` matrix is computed, never the product
+    of the large Hankel-like matrices.
+
+    Parameters
+    ----------
+    z : ndarray, complex (n_f,)
+        Unit-circle frequencies (see :func:`unit_circle`).
+    H : ndarray, complex (n_f, p, m)
+        FRF samples, already scaled per output.
+    block_rows : int
+        Number of block rows ``q``; ``q * p`` must exceed the order.
+
+    Returns
+    -------
+    basis : ndarray, (q p, q p)
+        Left singular vectors of ``L22``, best first.
+    singular_values : ndarray, (q p,)
+    """
+    nf, p, m = H.shape
+    q = int(block_rows)
+    zp = z[None, :] ** np.arange(q)[:, None]  # (q, nf), |z| = 1: well conditioned
+    Y = (zp[:, :, None, None] * H[None]).transpose(0, 2, 1, 3).reshape(q * p, nf * m)
+    U = (zp[:, :, None, None] * np.eye(m)[None, None]).transpose(0, 2, 1, 3).reshape(q * m, nf * m)
+    Z = np.vstack([U, Y])
+    Zr = np.hstack([Z.real, Z.imag])
+    R = np.linalg.qr(Zr.T, mode="r")  # (q(m+p), q(m+p)); Q is never formed
+    L22 = R[q * m :, q * m :].T
+    basis, sv, _ = np.linalg.svd(L22, full_matrices=False)
+    return basis, sv
+
+
+def realize(basis: np.ndarray, singular_values: np.ndarray, order: int, p: int):
+    """Discrete ``(Ad, Cd)`` of order ``n`` from the observability basis by shift invariance."""
+    n = int(order)
+    O = basis[:, :n] * np.sqrt(singular_values[:n])[None, :]
+    Cd = O[:p, :]
+    Ad = np.linalg.lstsq(O[:-p, :], O[p:, :], rcond=None)[0]
+    return Ad, Cd
+
+
+def real_modal_form(A: np.ndarray, B: np.ndarray | None, C: np.ndarray):
+    """Similarity transform to real block-diagonal (modal) form.
+
+    Each complex pair ``sigma +/- i omega_d`` becomes the 2x2 block
+    ``[[sigma, omega_d], [-omega_d, sigma]]``; each real pole a 1x1 block.
+    Blocks are ordered by ``omega_d`` (real poles first).
+
+    Returns
+    -------
+    Am, Bm, Cm : the transformed matrices (``Bm`` is None when ``B`` is None)
+    blocks : list of slices, one per pole (pair) in order
+    """
+    n = A.shape[0]
+    lam, X = np.linalg.eig(A)
+    keep = np.flatnonzero(lam.imag >= 0)
+    keep = keep[np.lexsort((lam.real[keep], lam.imag[keep]))]
+    cols: list[np.ndarray] = []
+    blocks: list[slice] = []
+    Am = np.zeros((n, n))
+    for i in keep:
+        v = X[:, i]
+        j = len(cols)
+        if lam[i].imag == 0.0:
+            u = v.real / np.linalg.norm(v.real)
+            cols.append(u)
+            Am[j, j] = lam[i].real
+            blocks.append(slice(j, j + 1))
+        else:
+            # the phase of v is free: pick the one making Re v and Im v orthogonal
+            phi = 0.5 * np.angle(np.sum(v * v))
+            v = v * np.exp(-1j * phi)
+            sc = np.sqrt(2.0) / np.linalg.norm(v)
+            cols.extend([v.real * sc, v.imag * sc])
+            s, w = lam[i].real, lam[i].imag
+            Am[j : j + 2, j : j + 2] = [[s, w], [-w, s]]
+            blocks.append(slice(j, j + 2))
+    if len(cols) != n:
+        raise IdentificationError(
+            f"state matrix of order {n} could not be brought to modal form "
+            f"({len(cols)} states found): eigenvalues are not in conjugate pairs"
+        )
+    T = np.column_stack(cols)
+    Bm = None if B is None else np.linalg.solve(T, B)
+    return Am, Bm, C @ T, blocks
+
+
+def _lstsq_real(R: np.ndarray, Y: np.ndarray) -> np.ndarray:
+    """Real least squares with column equilibration, rank-revealing (LAPACK gelsy)."""
+    norms = np.linalg.norm(R, axis=0)
+    norms[norms == 0] = 1.0
+    X = sla.lstsq(R / norms, Y, lapack_driver="gelsy", check_finite=False)[0]
+    return X / norms[:, None]
+
+
+def _separable(W: np.ndarray):
+    """``(a, c)`` if ``W[k, i, j] == a[i] * c[j]`` for every line ``k``, else None."""
+    w0 = W[0]
+    if not np.allclose(W, w0[None], rtol=1e-12, atol=0):
+        return None
+    a = w0[:, 0]
+    c = w0[0, :] / w0[0, 0]
+    if not np.allclose(w0, np.outer(a, c), rtol=1e-12, atol=0):
+        return None
+    return a, c
+
+
+def _solve_normal(N: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """Solve a symmetric positive semi-definite system with equilibration; pseudo-inverse if singular."""
+    d = np.sqrt(np.abs(np.diag(N)))
+    d[d == 0] = 1.0
+    Ns = N / np.outer(d, d)
+    try:
+        cho = sla.cho_factor(Ns, check_finite=False)
+        x = sla.cho_solve(cho, rhs / d[:, None], check_finite=False)
+    except np.linalg.LinAlgError:
+        x = sla.lstsq(Ns, rhs / d[:, None], lapack_driver="gelsd", check_finite=False)[0]
+    return x / d[:, None]
+
+
+def _fit_bd_separable(omega, H, a, A, C):
+    """Fast ``B, D`` fit for output weights ``a`` (same on every line and input).
+
+    In a diagonalizing basis ``A = X diag(lam) X^-1`` the regressor of line k
+    is ``C X diag(g_k) X^-1`` with ``g_k = 1/(i omega_k - lam)``, so the
+    normal matrix is ``X^-H [(X^H C^T a^2 C X) .* (G^H G)] X^-1``: O(n_f n^2)
+    work instead of O(n_f n_out n^2) for a QR of the stacked regressor. One
+    step of iterative refinement on the residual recovers the accuracy lost
+    by squaring the condition number.
+    """
+    nf, p, m = H.shape
+    n = A.shape[0]
+    lam, X = np.linalg.eig(A)
+    Xi = np.linalg.inv(X)
+    Ct = C @ X  # (p, n)
+    G = 1.0 / (1j * omega[:, None] - lam[None, :])  # (nf, n)
+    a2 = a**2
+    V = Ct.conj().T * a2[None, :]  # (n, p) = X^H C^T A^2
+    Nbb = Xi.conj().T @ ((V @ Ct) * (G.conj().T @ G)) @ Xi
+    gs = G.sum(axis=0)
+    Nbd = Xi.conj().T @ (gs.conj()[:, None] * V)  # (n, p)
+    N = np.zeros((n + p, n + p))
+    N[:n, :n] = Nbb.real
+    N[:n, n:] = Nbd.real
+    N[n:, :n] = Nbd.real.T
+    N[n:, n:] = np.diag(nf * a2)
+
+    def rhs(E):  # Re(J^H E) for data E (nf, p, m)
+        VE = np.einsum("rp,kpm->krm", V, E, optimize=True)
+        rb = Xi.conj().T @ np.einsum("kr,krm->rm", G.conj(), VE, optimize=True)
+        rd = a2[:, None] * E.sum(axis=0)
+        return np.vstack([rb.real, rd.real])
+
+    def model(x):
+        Bt = Xi @ x[:n]
+        return np.einsum("pr,kr,rm->kpm", Ct, G, Bt, optimize=True) + x[n:][None]
+
+    x = _solve_normal(N, rhs(H))
+    x = x + _solve_normal(N, rhs(H - model(x)))
+    return x[:n], x[n:]
+
+
+def fit_bd(omega: np.ndarray, H: np.ndarray, W: np.ndarray, A: np.ndarray, C: np.ndarray):
+    """Least-squares ``B, D`` for fixed modal-form ``A, C``: min sum |W (C(iwI-A)^-1 B + D - H)|^2.
+
+    Parameters
+    ----------
+    omega : (n_f,) rad/s
+    H : (n_f, p, m) complex data
+    W : (n_f, p, m) real positive weights (1/standard error)
+    A : (n, n) real block-diagonal modal form (see :func:`real_modal_form`)
+    C : (p, n)
+
+    Returns
+    -------
+    B : (n, m), D : (p, m)
+
+    Notes
+    -----
+    Weights that factor as ``W[k, i, j] = a[i] c[j]`` (per-output noise
+    levels, the default) use fast structured normal equations; general
+    per-line weights use a QR least-squares solve of the stacked regressor.
+    """
+    nf, p, m = H.shape
+    n = A.shape[0]
+    sep = _separable(W)
+    if sep is not None:
+        return _fit_bd_separable(omega, H, sep[0], A, C)
+    lam, X = np.linalg.eig(A)
+    Xi = np.linalg.inv(X)
+    G = 1.0 / (1j * omega[:, None] - lam[None, :])  # (nf, n)
+    Phi = ((C @ X)[None, :, :] * G[:, None, :]) @ Xi  # (nf, p, n)
+    B = np.empty((n, m))
+    D = np.empty((p, m))
+    eye = np.broadcast_to(np.eye(p)[None], (nf, p, p))
+    for j in range(m):
+        w = W[:, :, j][:, :, None]
+        R = np.concatenate([Phi * w, eye * w], axis=2).reshape(nf * p, n + p)
+        rhs = (H[:, :, j] * W[:, :, j]).reshape(nf * p, 1)
+        X = _lstsq_real(np.vstack([R.real, R.imag]), np.vstack([rhs.real, rhs.imag]))
+        B[:, j] = X[:n, 0]
+        D[:, j] = X[n:, 0]
+    return B, D
+
+
+def fit_cd(omega: np.ndarray, H: np.ndarray, W: np.ndarray, A: np.ndarray, B: np.ndarray):
+    """Least-squares ``C, D`` for fixed modal-form ``A, B`` (the dual of :func:`fit_bd`).
+
+    Cheap: the regressor has ``2 n_f n_in`` rows.
+    """
+    C, D = fit_bd(omega, H.transpose(0, 2, 1), W.transpose(0, 2, 1), A.T, B.T)
+    return C.T, D.T
