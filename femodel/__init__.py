@@ -4,7 +4,20 @@ Public API is re-exported here; each concept lives in its own private module.
 """
 
 from femodel._affine import AffineMatrix
+from femodel._assembly import Assembly, MatrixTerm, assemble
+from femodel._dofs import DofMap
+from femodel._matrices import ImportedMatrices, read_dmig, read_matrices, read_op2_matrices, read_op4
+from femodel._model import CoordSystem, FEModel, ModelError, RBE2, RBE3, Table
+from femodel._modes import Modes, normal_modes, solve_modes
+from femodel._reader import read_bdf
+from femodel._sensors import MassProperties, mass_properties, rigid_body_vectors, sensor_matrix
+from femodel._units import UNIT_SYSTEMS, UnitSystem, unit_system
 from femodel._elements_shell import ElementGeometryError, shell_mass, shell_stiffness
 from femodel._elements_solid import solid_mass, solid_stiffness
 
-__all__ = ["AffineMatrix", "ElementGeometryError", "shell_stiffness", "shell_mass", "solid_stiffness", "solid_mass"]
+__all__ = [
+    "Assembly", "MatrixTerm", "assemble", "DofMap", "ImportedMatrices", "read_dmig", "read_matrices",
+    "read_op2_matrices", "read_op4", "CoordSystem", "FEModel", "ModelError", "RBE2", "RBE3", "Table",
+    "Modes", "normal_modes", "solve_modes", "read_bdf", "MassProperties", "mass_properties",
+    "rigid_body_vectors", "sensor_matrix", "UNIT_SYSTEMS", "UnitSystem", "unit_system",
+    "AffineMatrix", "ElementGeometryError", "shell_stiffness", "shell_mass", "solid_stiffness", "solid_mass"]

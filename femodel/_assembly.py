@@ -1,0 +1,557 @@
+"""Vectorized sparse assembly of K and M as sums of parameter-scaled terms.
+
+Each element family is evaluated for all its elements at once; the element
+matrices are rotated to the grids' displacement (CD) systems and scattered
+COO -> CSR.  Matrices are kept split into :class:`MatrixTerm` objects, each
+proportional to a known monomial of card values (E, RHO, T, M, K, ...), so
+that a parametric model can rescale them exactly without reassembly.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import numpy as np
+import scipy.sparse as sp
+
+from femodel._dofs import DofMap
+from femodel._model import FEModel, ModelError
+
+Factors = tuple
+
+
+@dataclass(frozen=True)
+class MatrixTerm:
+    """One fixed sparse term of K or M.
+
+    Parameters
+    ----------
+    kind : str
+        "K" or "M".
+    factors : tuple of ((card, id, field), exponent)
+        Sorted; the term is proportional to prod(value ** exponent) of these
+        card fields (empty: a constant term, e.g. non-structural mass).
+    matrix : scipy.sparse.csr_matrix, (n_g, n_g)
+        Symmetric, SI, g-set DOF, WTMASS applied, at the deck's values.
+    label : str
+        What it is, e.g. "MAT1 3 E: PBAR 1 axial+bending".
+    """
+
+    kind: str
+    factors: Factors
+    matrix: sp.csr_matrix
+    label: str
+
+
+@dataclass(frozen=True)
+class Assembly:
+    """Assembled model: g-set terms plus the transformation to independent DOF.
+
+    Attributes
+    ----------
+    model : FEModel
+    gset : DofMap
+        Six DOF per grid (grid order of ``model.grid_ids``), in each grid's CD system.
+    terms : tuple of MatrixTerm
+    T : csr_matrix (n_g, n_a)
+        u_g = T u_a: rigid-element dependent DOF eliminated, SPC'd and
+        AUTOSPC'd DOF removed.
+    aset : DofMap
+        The independent DOF (columns of T).
+    autospc : DofMap
+        DOF removed because they had neither stiffness nor mass.
+    timings : dict
+        Seconds spent in element evaluation, scatter and constraints.
+    """
+
+    model: FEModel
+    gset: DofMap
+    terms: tuple
+    T: sp.csr_matrix
+    aset: DofMap
+    autospc: DofMap
+    timings: dict = field(default_factory=dict)
+
+    def _sum(self, kind: str) -> sp.csr_matrix:
+        n = len(self.gset)
+        out = sp.csr_matrix((n, n))
+        for t in self.terms:
+            if t.kind == kind:
+                out = out + t.matrix
+        return out.tocsr()
+
+    @cached_property
+    def _kg(self) -> sp.csr_matrix:
+        return self._sum("K")
+
+    @cached_property
+    def _mg(self) -> sp.csr_matrix:
+        return self._sum("M")
+
+    def stiffness_g(self) -> sp.csr_matrix:
+        """Sum of the stiffness terms, (n_g, n_g), N/m (N m/rad for rotations)."""
+        return self._kg
+
+    def mass_g(self) -> sp.csr_matrix:
+        """Sum of the mass terms, (n_g, n_g), kg (kg m^2 for rotations)."""
+        return self._mg
+
+    def reduce(self, matrix_g) -> sp.csr_matrix:
+        """T^T A T for a g-set matrix, symmetrized."""
+        r = (self.T.T @ (matrix_g @ self.T)).tocsr()
+        return (0.5 * (r + r.T)).tocsr()
+
+    @cached_property
+    def _ka(self) -> sp.csr_matrix:
+        return self.reduce(self._kg)
+
+    @cached_property
+    def _ma(self) -> sp.csr_matrix:
+        return self.reduce(self._mg)
+
+    def stiffness(self) -> sp.csr_matrix:
+        """Stiffness on the independent DOF, (n_a, n_a)."""
+        return self._ka
+
+    def mass(self) -> sp.csr_matrix:
+        """Mass on the independent DOF, (n_a, n_a)."""
+        return self._ma
+
+    def expand(self, u_a: np.ndarray) -> np.ndarray:
+        """Independent-DOF vectors (n_a, ...) to the g-set (n_g, ...)."""
+        return self.T @ u_a
+
+
+class _Collector:
+    """Accumulates COO triplets per (kind, factors) and labels."""
+
+    def __init__(self, n: int):
+        self.n = n
+        self.parts: dict[tuple, list] = {}
+        self.labels: dict[tuple, list] = {}
+
+    def add(self, kind: str, factors, label: str, ke: np.ndarray, dofs: np.ndarray, scale=None):
+        """ke (n_el, d, d), dofs (n_el, d) g-set indices, scale (n_el,) or None."""
+        if ke.shape[0] == 0:
+            return
+        factors = tuple(sorted(factors))
+        if scale is not None:
+            ke = ke * np.asarray(scale, dtype=float)[:, None, None]
+        d = dofs.shape[1]
+        rows = np.broadcast_to(dofs[:, :, None], (dofs.shape[0], d, d)).astype(np.int32).ravel()
+        cols = np.broadcast_to(dofs[:, None, :], (dofs.shape[0], d, d)).astype(np.int32).ravel()
+        key = (kind, factors)
+        self.parts.setdefault(key, []).append((rows, cols, ke.ravel()))
+        lab = self.labels.setdefault(key, [])
+        if label not in lab:
+            lab.append(label)
+
+    def terms(self) -> tuple:
+        out = []
+        for key in sorted(self.parts, key=lambda k: (k[0], str(k[1]))):
+            kind, factors = key
+            parts = self.parts[key]
+            r = np.concatenate([p[0] for p in parts])
+            c = np.concatenate([p[1] for p in parts])
+            v = np.concatenate([p[2] for p in parts])
+            m = sp.csr_matrix((v, (r, c)), shape=(self.n, self.n))
+            m.sum_duplicates()
+            m = (0.5 * (m + m.T)).tocsr()
+            fac = ", ".join(f"{a[0]} {a[1]} {a[2]}" + (f"^{e}" if e != 1 else "") for a, e in factors) or "constant"
+            out.append(MatrixTerm(kind, factors, m, f"{kind} ~ {fac}: " + "; ".join(self.labels[key])))
+        return tuple(out)
+
+
+def _cd_transform(model: FEModel):
+    """Per-grid 3x3 CD axes (None when every grid uses basic)."""
+    if not np.any(model.cd != 0):
+        return None
+    return model.cd_axes()
+
+
+def _to_cd(ke: np.ndarray, node_rows: np.ndarray, cd_axes, dof_per_node: int) -> np.ndarray:
+    """Rotate element matrices from basic to the grids' CD systems."""
+    if cd_axes is None:
+        return ke
+    n, nn = node_rows.shape
+    blocks = dof_per_node // 3
+    L = np.zeros((n, nn * dof_per_node, nn * dof_per_node))
+    lam = cd_axes[node_rows]  # (n, nn, 3, 3) columns CD in basic: u_basic = lam u_cd
+    for a in range(nn):
+        for b in range(blocks):
+            s = a * dof_per_node + 3 * b
+            L[:, s : s + 3, s : s + 3] = lam[:, a]
+    return np.einsum("nji,njk,nkl->nil", L, ke, L, optimize=True)
+
+
+def _dofs(node_rows: np.ndarray, comps=(0, 1, 2, 3, 4, 5)) -> np.ndarray:
+    c = np.asarray(comps)
+    return (6 * node_rows[:, :, None] + c[None, None, :]).reshape(node_rows.shape[0], -1)
+
+
+def _mat(model: FEModel, mids, what: str):
+    """(E, G, NU, RHO, g_follows_e) for MAT1 ids."""
+    mat = model.materials.get("MAT1")
+    if mat is None or len(mat) == 0:
+        raise ModelError(f"{what} references MAT1 {sorted(set(np.asarray(mids).tolist()))[:5]} but there is no MAT1")
+    try:
+        r = mat.rows(mids)
+    except ModelError as exc:
+        raise ModelError(f"{what}: {exc}") from None
+    return mat["E"][r], mat["G"][r], mat["NU"][r], mat["RHO"][r], mat["g_follows_e"][r]
+
+
+def _g_factor(mid: int, follows: bool):
+    return (("MAT1", int(mid), "E"), 1) if follows else (("MAT1", int(mid), "G"), 1)
+
+
+def assemble(model: FEModel) -> Assembly:
+    """Assemble the model's K and M terms and the constraint transformation.
+
+    Parameters
+    ----------
+    model : FEModel
+
+    Returns
+    -------
+    Assembly
+    """
+    from femodel._constraints import constraint_transformation
+
+    t0 = time.perf_counter()
+    gset = DofMap.for_grids(model.grid_ids)
+    col = _Collector(len(gset))
+    cd_axes = _cd_transform(model)
+    wt = float(model.wtmass)
+    _add_bars(model, col, cd_axes, wt)
+    _add_rods(model, col, cd_axes, wt)
+    _add_springs(model, col)
+    _add_bushes(model, col, cd_axes)
+    _add_conm2(model, col, cd_axes, wt)
+    _add_shells(model, col, cd_axes, wt)
+    _add_solids(model, col, cd_axes, wt)
+    t1 = time.perf_counter()
+    terms = col.terms()
+    t2 = time.perf_counter()
+    kg = None
+    mg = None
+    for t in terms:
+        if t.kind == "K":
+            kg = t.matrix if kg is None else kg + t.matrix
+        else:
+            mg = t.matrix if mg is None else mg + t.matrix
+    n = len(gset)
+    kg = sp.csr_matrix((n, n)) if kg is None else kg.tocsr()
+    mg = sp.csr_matrix((n, n)) if mg is None else mg.tocsr()
+    T, aset, auto = constraint_transformation(model, gset, kg, mg)
+    t3 = time.perf_counter()
+    asm = Assembly(
+        model=model,
+        gset=gset,
+        terms=terms,
+        T=T,
+        aset=aset,
+        autospc=auto,
+        timings={"elements_s": t1 - t0, "scatter_s": t2 - t1, "constraints_s": t3 - t2, "total_s": t3 - t0},
+    )
+    # seed the cached sums with the matrices already formed
+    asm.__dict__["_kg"] = kg
+    asm.__dict__["_mg"] = mg
+    return asm
+
+
+# ---------------------------------------------------------------- element families
+def _add_bars(model, col, cd_axes, wt):
+    from femodel._elements_line import beam_matrices
+
+    for card in ("CBAR", "CBEAM"):
+        tab = model.elements.get(card)
+        if tab is None or len(tab) == 0:
+            continue
+        prop = model.properties.get("PBAR")
+        if prop is None:
+            raise ModelError(f"{card} elements reference properties but no PBAR/PBARL/PBEAM/PBEAML is defined")
+        try:
+            pr = prop.rows(tab["pid"])
+        except ModelError as exc:
+            raise ModelError(f"{card}: {exc}") from None
+        mids = prop["mid"][pr]
+        E, G, _, rho, follows = _mat(model, mids, card)
+        nodes = model.grid_index(tab["nodes"].ravel(), what=f"{card} grid").reshape(-1, 2)
+        out = beam_matrices(
+            model.xyz[nodes[:, 0]], model.xyz[nodes[:, 1]], tab["v"], tab["wa"], tab["wb"],
+            prop["A"][pr], prop["I1"][pr], prop["I2"][pr], prop["J"][pr], E, G, prop["k1"][pr], prop["k2"][pr],
+            coupled=model.coupmass, torsion_inertia=(card == "CBEAM"), ids=tab.ids, what=card,
+        )
+        dofs = _dofs(nodes)
+        kE = _to_cd(out["stiffness_E"], nodes, cd_axes, 6)
+        kG = _to_cd(out["stiffness_G"], nodes, cd_axes, 6)
+        mu = _to_cd(out["mass_unit"], nodes, cd_axes, 6)
+        mt = _to_cd(out["mass_torsion_unit"], nodes, cd_axes, 6) if "mass_torsion_unit" in out else None
+        pids = tab["pid"]
+        pcard = prop["card"][pr]
+        A = prop["A"][pr]
+        nsm = prop["nsm"][pr]
+        for pid in np.unique(pids):
+            sel = pids == pid
+            mid = int(mids[sel][0])
+            lab = f"{card} {pcard[sel][0]} {int(pid)}"
+            col.add("K", [(("MAT1", mid, "E"), 1)], lab + " axial+bending", kE[sel], dofs[sel], E[sel])
+            col.add("K", [_g_factor(mid, bool(follows[sel][0]))], lab + " torsion", kG[sel], dofs[sel], G[sel])
+            col.add("M", [(("MAT1", mid, "RHO"), 1)], lab + " mass", mu[sel], dofs[sel], wt * rho[sel] * A[sel])
+            if mt is not None:
+                col.add("M", [(("MAT1", mid, "RHO"), 1)], lab + " torsional inertia", mt[sel], dofs[sel], wt * rho[sel])
+            if np.any(nsm[sel] != 0):
+                col.add("M", [], lab + " NSM", mu[sel], dofs[sel], wt * nsm[sel])
+
+
+def _add_rods(model, col, cd_axes, wt):
+    from femodel._elements_line import rod_matrices
+
+    for card in ("CROD", "CONROD"):
+        tab = model.elements.get(card)
+        if tab is None or len(tab) == 0:
+            continue
+        if card == "CROD":
+            prop = model.properties.get("PROD")
+            if prop is None:
+                raise ModelError("CROD elements but no PROD defined")
+            try:
+                pr = prop.rows(tab["pid"])
+            except ModelError as exc:
+                raise ModelError(f"CROD: {exc}") from None
+            mids, A, J, nsm = prop["mid"][pr], prop["A"][pr], prop["J"][pr], prop["nsm"][pr]
+            groups = tab["pid"]
+            pname = lambda p: f"CROD PROD {int(p)}"  # noqa: E731
+        else:
+            mids, A, J, nsm = tab["mid"], tab["A"], tab["J"], tab["nsm"]
+            groups = tab.ids
+            pname = lambda e: f"CONROD {int(e)}"  # noqa: E731
+        E, G, _, rho, follows = _mat(model, mids, card)
+        nodes = model.grid_index(tab["nodes"].ravel(), what=f"{card} grid").reshape(-1, 2)
+        out = rod_matrices(model.xyz[nodes[:, 0]], model.xyz[nodes[:, 1]], A, J, coupled=model.coupmass, ids=tab.ids)
+        dofs = _dofs(nodes)
+        kE = _to_cd(out["stiffness_E"], nodes, cd_axes, 6)
+        kG = _to_cd(out["stiffness_G"], nodes, cd_axes, 6)
+        mu = _to_cd(out["mass_unit"], nodes, cd_axes, 6)
+        # group by material (CONROD carries its own section, so per material)
+        for mid in np.unique(mids):
+            sel = mids == mid
+            lab = ", ".join(sorted({pname(g) for g in groups[sel]})[:3]) + (" ..." if len(set(groups[sel].tolist())) > 3 else "")
+            col.add("K", [(("MAT1", int(mid), "E"), 1)], lab + " axial", kE[sel], dofs[sel], E[sel])
+            if np.any(J[sel] != 0):
+                col.add("K", [_g_factor(int(mid), bool(follows[sel][0]))], lab + " torsion", kG[sel], dofs[sel], G[sel])
+            col.add("M", [(("MAT1", int(mid), "RHO"), 1)], lab + " mass", mu[sel], dofs[sel], wt * rho[sel] * A[sel])
+            if np.any(nsm[sel] != 0):
+                col.add("M", [], lab + " NSM", mu[sel], dofs[sel], wt * nsm[sel])
+
+
+def _add_springs(model, col):
+    for card in ("CELAS1", "CELAS2"):
+        tab = model.elements.get(card)
+        if tab is None or len(tab) == 0:
+            continue
+        g = tab["nodes"]
+        c = tab["components"].astype(np.int64)
+        k = tab["k"]
+        for i in range(len(tab)):
+            # scalar springs connect g-set DOF directly (components are in CD)
+            dofs = []
+            signs = []
+            for j in range(2):
+                if g[i, j]:
+                    dofs.append(6 * int(model.grid_index(g[i, j], what=f"{card} {tab.ids[i]} grid")[0]) + c[i, j] - 1)
+                    signs.append(1.0 if j == 0 else -1.0)
+            s = np.array(signs)
+            ke = np.outer(s, s)[None]
+            if card == "CELAS1":
+                pid = int(tab["pid"][i])
+                fac, lab = [(("PELAS", pid, "K1"), 1)], f"CELAS1 PELAS {pid}"
+            else:
+                fac, lab = [(("CELAS2", int(tab.ids[i]), "K"), 1)], f"CELAS2 {int(tab.ids[i])}"
+            col.add("K", fac, lab, ke, np.array([dofs]), np.array([k[i]]))
+
+
+def _add_bushes(model, col, cd_axes):
+    from femodel._elements_line import bush_matrices
+
+    tab = model.elements.get("CBUSH")
+    if tab is None or len(tab) == 0:
+        return
+    prop = model.properties.get("PBUSH")
+    if prop is None:
+        raise ModelError("CBUSH elements but no PBUSH defined")
+    try:
+        pr = prop.rows(tab["pid"])
+    except ModelError as exc:
+        raise ModelError(f"CBUSH: {exc}") from None
+    raw = tab["nodes"]
+    grounded = raw[:, 1] == 0
+    na = model.grid_index(raw[:, 0], what="CBUSH grid")
+    nb = np.where(grounded, na, model.grid_index(np.where(grounded, raw[:, 0], raw[:, 1]), what="CBUSH grid"))
+    nodes = np.column_stack([na, nb])
+    kk = bush_matrices(model.xyz[na], model.xyz[nb], tab["axes"], tab["s"], grounded)
+    dofs = _dofs(nodes)
+    kvals = prop["k"][pr]
+    pids = tab["pid"]
+    for i in range(6):
+        ke = _to_cd(kk[i], nodes, cd_axes, 6)
+        for pid in np.unique(pids):
+            sel = (pids == pid) & (kvals[:, i] != 0)
+            if np.any(sel):
+                col.add("K", [(("PBUSH", int(pid), f"K{i + 1}"), 1)], f"CBUSH PBUSH {int(pid)} K{i + 1}", ke[sel], dofs[sel], kvals[sel, i])
+
+
+def _add_conm2(model, col, cd_axes, wt):
+    from femodel._elements_line import conm2_matrices
+
+    tab = model.elements.get("CONM2")
+    if tab is None or len(tab) == 0:
+        return
+    nodes = model.grid_index(tab["nodes"][:, 0], what="CONM2 grid")[:, None]
+    m_unit, mi = conm2_matrices(tab["offset"], tab["inertia"])
+    m_unit = _to_cd(m_unit, nodes, cd_axes, 6)
+    mi = _to_cd(mi, nodes, cd_axes, 6)
+    dofs = _dofs(nodes)
+    mass = tab["mass"]
+    for i, eid in enumerate(tab.ids.tolist()):
+        col.add("M", [(("CONM2", eid, "M"), 1)], f"CONM2 {eid} mass", m_unit[i : i + 1], dofs[i : i + 1], [wt * mass[i]])
+        if np.any(mi[i] != 0):
+            col.add("M", [], f"CONM2 {eid} inertia", mi[i : i + 1], dofs[i : i + 1], [wt])
+
+
+def _plane_stress(E, nu):
+    c = (E / (1.0 - nu**2))[:, None, None]
+    d = np.zeros((E.shape[0], 3, 3))
+    d[:, 0, 0] = d[:, 1, 1] = 1.0
+    d[:, 0, 1] = d[:, 1, 0] = nu
+    d[:, 2, 2] = 0.5 * (1.0 - nu)
+    return c * d
+
+
+def _add_shells(model, col, cd_axes, wt):
+    cards = [c for c in ("CQUAD4", "CTRIA3") if c in model.elements and len(model.elements[c])]
+    if not cards:
+        return
+    try:
+        from femodel._elements_shell import shell_mass, shell_stiffness
+    except ImportError as exc:  # pragma: no cover - the kernel module ships with femodel
+        raise ModelError(f"shell elements present but the shell kernels are unavailable: {exc}") from None
+    prop = model.properties.get("PSHELL")
+    if prop is None:
+        raise ModelError(f"{'/'.join(cards)} elements but no PSHELL defined")
+    for card in cards:
+        tab = model.elements[card]
+        try:
+            pr = prop.rows(tab["pid"])
+        except ModelError as exc:
+            raise ModelError(f"{card}: {exc}") from None
+        nodes = model.grid_index(tab["nodes"].ravel(), what=f"{card} grid").reshape(len(tab), -1)
+        xyz = model.xyz[nodes]
+        if np.any(tab["zoffs"] != 0):
+            bad = tab.ids[tab["zoffs"] != 0][:5].tolist()
+            raise ModelError(f"{card} {bad}: ZOFFS offsets are not supported")
+        t_p = prop["t"][pr]
+        t_el = tab["t"]
+        t = np.where(np.all(np.isnan(t_el), axis=1), t_p, np.nanmean(np.where(np.isnan(t_el), t_p[:, None], t_el), axis=1))
+        if np.any(~(t > 0)):
+            raise ModelError(f"{card} {tab.ids[~(t > 0)][:5].tolist()}: thickness must be positive (PSHELL T or T1..T4)")
+        n = len(tab)
+        m1, m2, m3 = prop["mid1"][pr], prop["mid2"][pr], prop["mid3"][pr]
+        ratio, tst, nsm = prop["bending_ratio"][pr], prop["ts_t"][pr], prop["nsm"][pr]
+        dm = np.zeros((n, 3, 3))
+        db = np.zeros((n, 3, 3))
+        ds = np.zeros((n, 2, 2))
+        rho = np.zeros(n)
+        has1 = m1 > 0
+        if np.any(has1):
+            E1, G1, nu1, r1, _ = _mat(model, m1[has1], f"{card} PSHELL MID1")
+            dm[has1] = _plane_stress(E1, nu1) * t[has1, None, None]
+            rho[has1] = r1
+        has2 = m2 > 0
+        if np.any(has2):
+            E2, G2, nu2, _, _ = _mat(model, m2[has2], f"{card} PSHELL MID2")
+            db[has2] = _plane_stress(E2, nu2) * (ratio[has2] * t[has2] ** 3 / 12.0)[:, None, None]
+        has3 = m3 > 0
+        if np.any(has3):
+            E3, G3, _, _, f3 = _mat(model, m3[has3], f"{card} PSHELL MID3")
+            ds[has3] = np.eye(2)[None] * (G3 * tst[has3] * t[has3])[:, None, None]
+        rigid_shear = has2 & ~has3
+        if np.any(rigid_shear):
+            # MID3 blank: no transverse shear flexibility; a stiff penalty stands in for it
+            _, G2r, _, _, _ = _mat(model, m2[rigid_shear], f"{card} PSHELL MID2")
+            ds[rigid_shear] = np.eye(2)[None] * (1e3 * G2r * t[rigid_shear])[:, None, None]
+        k = shell_stiffness(xyz, dm, db, ds, model.k6rot, ids=tab.ids)
+        mu_unit = shell_mass(xyz, np.ones(n), model.coupmass, ids=tab.ids)
+        dofs = _dofs(nodes)
+        for key in k:
+            k[key] = _to_cd(k[key], nodes, cd_axes, 6)
+        mu_unit = _to_cd(mu_unit, nodes, cd_axes, 6)
+        pids = tab["pid"]
+        mat = model.materials.get("MAT1")
+        for pid in np.unique(pids):
+            sel = pids == pid
+            i0 = np.flatnonzero(sel)[0]
+            lab = f"{card} PSHELL {int(pid)}"
+            T = ("PSHELL", int(pid), "T")
+            if m1[i0] > 0:
+                f = [(("MAT1", int(m1[i0]), "E"), 1), (T, 1)]
+                col.add("K", f, lab + " membrane", k["membrane"][sel], dofs[sel])
+                col.add("K", f, lab + " drilling", k["drill"][sel], dofs[sel])
+                col.add("M", [(("MAT1", int(m1[i0]), "RHO"), 1), (T, 1)], lab + " mass", mu_unit[sel], dofs[sel], wt * rho[sel] * t[sel])
+            if m2[i0] > 0:
+                col.add("K", [(("MAT1", int(m2[i0]), "E"), 1), (T, 3)], lab + " bending", k["bending"][sel], dofs[sel])
+                if m3[i0] > 0:
+                    r3 = mat.rows([m3[i0]])[0]
+                    gf = _g_factor(int(m3[i0]), bool(mat["g_follows_e"][r3]))
+                    col.add("K", [gf, (T, 1)], lab + " transverse shear", k["shear"][sel], dofs[sel])
+                else:
+                    col.add("K", [(("MAT1", int(m2[i0]), "E"), 1), (T, 1)], lab + " transverse shear (rigid penalty)", k["shear"][sel], dofs[sel])
+            if np.any(nsm[sel] != 0):
+                col.add("M", [], lab + " NSM", mu_unit[sel], dofs[sel], wt * nsm[sel])
+
+
+def _iso_c(E, nu):
+    lam = E * nu / ((1 + nu) * (1 - 2 * nu))
+    mu = E / (2 * (1 + nu))
+    c = np.zeros((E.shape[0], 6, 6))
+    for i in range(3):
+        for j in range(3):
+            c[:, i, j] = lam
+        c[:, i, i] = lam + 2 * mu
+        c[:, 3 + i, 3 + i] = mu
+    return c
+
+
+def _add_solids(model, col, cd_axes, wt):
+    names = [k for k, t in model.elements.items() if t.card in ("CTETRA", "CPENTA", "CHEXA", "CPYRAM") and len(t)]
+    if not names:
+        return
+    from femodel._elements_solid import solid_mass, solid_stiffness
+
+    prop = model.properties.get("PSOLID")
+    if prop is None:
+        raise ModelError("solid elements but no PSOLID defined")
+    for name in names:
+        tab = model.elements[name]
+        try:
+            pr = prop.rows(tab["pid"])
+        except ModelError as exc:
+            raise ModelError(f"{tab.card}: {exc}") from None
+        mids = prop["mid"][pr]
+        E, G, nu, rho, _ = _mat(model, mids, f"{tab.card} PSOLID")
+        nodes = model.grid_index(tab["nodes"].ravel(), what=f"{tab.card} grid").reshape(len(tab), -1)
+        xyz = model.xyz[nodes]
+        c_unit = _iso_c(np.ones_like(E), nu)
+        k = solid_stiffness(xyz, c_unit, ids=tab.ids)
+        m = solid_mass(xyz, np.ones(len(tab)), model.coupmass, ids=tab.ids)
+        k = _to_cd(k, nodes, cd_axes, 3)
+        m = _to_cd(m, nodes, cd_axes, 3)
+        dofs = _dofs(nodes, (0, 1, 2))
+        for mid in np.unique(mids):
+            sel = mids == mid
+            lab = f"{tab.card} PSOLID {','.join(str(int(p)) for p in np.unique(tab['pid'][sel])[:3])}"
+            col.add("K", [(("MAT1", int(mid), "E"), 1)], lab + " stiffness", k[sel], dofs[sel], E[sel])
+            col.add("M", [(("MAT1", int(mid), "RHO"), 1)], lab + " mass", m[sel], dofs[sel], wt * rho[sel])
