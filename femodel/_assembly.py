@@ -172,18 +172,24 @@ def _cd_transform(model: FEModel):
 
 
 def _to_cd(ke: np.ndarray, node_rows: np.ndarray, cd_axes, dof_per_node: int) -> np.ndarray:
-    """Rotate element matrices from basic to the grids' CD systems."""
+    """Rotate element matrices from basic to the grids' CD systems (3x3 block-wise)."""
     if cd_axes is None:
         return ke
     n, nn = node_rows.shape
     blocks = dof_per_node // 3
-    L = np.zeros((n, nn * dof_per_node, nn * dof_per_node))
-    lam = cd_axes[node_rows]  # (n, nn, 3, 3) columns CD in basic: u_basic = lam u_cd
-    for a in range(nn):
-        for b in range(blocks):
-            s = a * dof_per_node + 3 * b
-            L[:, s : s + 3, s : s + 3] = lam[:, a]
-    return np.einsum("nji,njk,nkl->nil", L, ke, L, optimize=True)
+    lam = cd_axes[node_rows]  # (n, nn, 3, 3): u_basic = lam u_cd
+    touched = np.any(np.abs(lam - np.eye(3)) > 0, axis=(1, 2, 3))
+    if not np.any(touched):
+        return ke
+    out = ke.copy()
+    sub = ke[touched]
+    m = sub.shape[0]
+    B = nn * blocks
+    lb = np.repeat(lam[touched], blocks, axis=1)  # (m, B, 3, 3) per 3-DOF block
+    k6 = sub.reshape(m, B, 3, B, 3).transpose(0, 1, 3, 2, 4)  # (m, B, B, 3, 3)
+    k6 = np.swapaxes(lb, 2, 3)[:, :, None] @ k6 @ lb[:, None, :]
+    out[touched] = k6.transpose(0, 1, 3, 2, 4).reshape(m, B * 3, B * 3)
+    return out
 
 
 def _dofs(node_rows: np.ndarray, comps=(0, 1, 2, 3, 4, 5)) -> np.ndarray:

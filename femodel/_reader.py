@@ -20,7 +20,7 @@ from femodel._units import UnitSystem, unit_system
 SUPPORTED_CARDS = frozenset(
     """GRID GRDSET CORD2R CORD2C CORD2S CORD1R CORD1C CORD1S
     CQUAD4 CTRIA3 PSHELL CBAR CBEAM PBAR PBARL PBEAM PBEAML CROD CONROD PROD
-    CHEXA CPENTA CTETRA PSOLID CONM2 CELAS1 CELAS2 PELAS CBUSH PBUSH
+    CHEXA CPENTA CTETRA CPYRAM PSOLID CONM2 CELAS1 CELAS2 PELAS CBUSH PBUSH
     RBE2 RBE3 SPC SPC1 SPCADD MAT1 PARAM""".split()
 )
 
@@ -331,8 +331,16 @@ def _convert(bdf, path: Path, us: UnitSystem, ignored: dict) -> FEModel:
         props["PBUSH"] = Table("PBUSH", np.array([r[0] for r in rows], np.int64), {"k": kk})
 
     # ---------------- elements
+    # properties of unsupported types (PCOMP, ...): their elements are dropped
+    # (only reachable with allow_unsupported=True; otherwise the card list failed)
+    bad_pids = {int(pid): p.type for pid, p in bdf.properties.items() if p.type in ignored}
     by_type: dict[str, list] = {}
     for eid, e in sorted(bdf.elements.items()):
+        pid = getattr(e, "pid", None)
+        if isinstance(pid, (int, np.integer)) and int(pid) in bad_pids:
+            key = f"{e.type} with {bad_pids[int(pid)]}"
+            ignored[key] = ignored.get(key, 0) + 1
+            continue
         by_type.setdefault(e.type, []).append((eid, e))
     elements: dict[str, Table] = {}
     cd_axes_cache = {}
@@ -447,8 +455,8 @@ def _convert(bdf, path: Path, us: UnitSystem, ignored: dict) -> FEModel:
         s = np.zeros(n)
         pid = np.zeros(n, np.int64)
         for i, (eid, e) in enumerate(rows):
-            ga = int(e.ga)
-            gb = 0 if e.gb in (None, 0) else int(e.gb)
+            ga = int(e.nodes[0])
+            gb = 0 if e.nodes[1] in (None, 0) else int(e.nodes[1])
             need_grids("CBUSH", eid, [ga] + ([gb] if gb else []))
             nodes[i] = ga, gb
             pid[i] = int(e.pid)
@@ -503,7 +511,7 @@ def _convert(bdf, path: Path, us: UnitSystem, ignored: dict) -> FEModel:
             {"pid": np.array([int(e.pid) for _, e in rows], np.int64), "nodes": nodes, "t": tn, "zoffs": zoffs},
         )
 
-    for card in ("CTETRA", "CPENTA", "CHEXA"):
+    for card in ("CTETRA", "CPYRAM", "CPENTA", "CHEXA"):
         rows = by_type.get(card, [])
         if not rows:
             continue
@@ -517,7 +525,7 @@ def _convert(bdf, path: Path, us: UnitSystem, ignored: dict) -> FEModel:
             need_grids(card, eid, ns)
             groups.setdefault(len(ns), []).append((eid, e, ns))
         for nn, grp in sorted(groups.items()):
-            name = f"{card}{nn}" if len(groups) > 1 or nn not in (4, 6, 8) else card
+            name = f"{card}{nn}" if len(groups) > 1 or nn not in (4, 5, 6, 8) else card
             elements[name] = Table(
                 card,
                 np.array([g[0] for g in grp], np.int64),
@@ -585,8 +593,12 @@ def _convert(bdf, path: Path, us: UnitSystem, ignored: dict) -> FEModel:
     if cc is not None:
         for sc_id in sorted(cc.subcases):
             sc = cc.subcases[sc_id]
-            if sc.has_parameter("SPC"):
-                spc_id = int(sc.get_parameter("SPC")[0])
+            val = sc.params.get("SPC") if hasattr(sc, "params") else None
+            if val is not None:
+                try:
+                    spc_id = int(val[0])
+                except (TypeError, ValueError):
+                    raise ModelError(f"{where}: case control SPC = {val[0]!r} is not a set id") from None
                 if sc_id != 0:
                     break
     if spc_id is not None:
