@@ -50,7 +50,7 @@ BUSHING_MASS_KG = (0.136, 0.136, 0.215, 0.215)
 PROPERTIES: dict[int, tuple[str, float, int]] = {
     1: ("top skin", 2.3, 1),
     2: ("bottom skin", 2.0, 1),
-    3: ("webs and end caps", 2.5, 1),
+    3: ("webs and end caps", 2.0, 1),
     4: ("bracket RHS", 2.5, 1),
     5: ("bracket LHS", 2.5, 1),
     6: ("arm base RHS", 2.3, 1),
@@ -89,9 +89,9 @@ PAPER_PARAMETERS: tuple[tuple[str, str, int, str, float, float, str], ...] = (
 _X_CROSS = ((100.0, 180.0), (820.0, 900.0))
 _X_ARM = (420.0, 520.0)
 _X_BRACKET = (640.0, 740.0)
-_H = 60.0
-_Z_BRACKET_WELD = 72.0
-_Z_BRACKET_TOP = 140.0
+_H = 50.0
+_Z_BRACKET_WELD = _H + 12.0
+_Z_BRACKET_TOP = _H + 80.0
 _BUSHINGS = (  # (x, y) of the patch centre, patch is +-40 mm in x and y
     (40.0, 40.0), (40.0, 560.0), (960.0, 40.0), (960.0, 560.0),
 )
