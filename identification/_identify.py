@@ -223,8 +223,15 @@ def _prepare(freq_hz, H, *, band_hz, weights, valid, quantity) -> _Data:
 
 
 def default_block_rows(order: int, n_out: int) -> int:
-    """Default number of block rows ``q``: ``q n_out >= 2 n`` and ``q >= n/n_out + 2``."""
-    return int(max(int(np.ceil(2 * order / n_out)), int(np.ceil(order / n_out)) + 2))
+    """Default number of block rows ``q``.
+
+    ``q n_out >= 2 n``, ``q >= n/n_out + 2`` and ``q >= min(n, 16)``: on
+    lightly damped measured data with few outputs a taller data matrix
+    averages the noise much better (free-beam data: q = 4 misplaces a mode by
+    0.3 Hz, q = 16 by 0.05 Hz).
+    """
+    n, p = int(order), int(n_out)
+    return int(max(int(np.ceil(2 * n / p)), int(np.ceil(n / p)) + 2, min(n, 16)))
 
 
 def _basis(data: _Data, block_rows: int):
