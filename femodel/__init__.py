@@ -14,10 +14,16 @@ from femodel._sensors import MassProperties, mass_properties, rigid_body_vectors
 from femodel._units import UNIT_SYSTEMS, UnitSystem, unit_system
 from femodel._elements_shell import ElementGeometryError, shell_mass, shell_stiffness
 from femodel._elements_solid import solid_mass, solid_stiffness
+from femodel._params import Parameter, ParameterError, ParameterSet, read_parameters
+from femodel._parametric import ParametricModel, parametric_model
+from femodel._writeback import write_bdf
+from femodel._example import SubframeExample, example_subframe
 
 __all__ = [
     "Assembly", "MatrixTerm", "assemble", "DofMap", "ImportedMatrices", "read_dmig", "read_matrices",
     "read_op2_matrices", "read_op4", "CoordSystem", "FEModel", "ModelError", "RBE2", "RBE3", "Table",
     "Modes", "normal_modes", "solve_modes", "read_bdf", "MassProperties", "mass_properties",
     "rigid_body_vectors", "sensor_matrix", "UNIT_SYSTEMS", "UnitSystem", "unit_system",
-    "AffineMatrix", "ElementGeometryError", "shell_stiffness", "shell_mass", "solid_stiffness", "solid_mass"]
+    "AffineMatrix", "ElementGeometryError", "shell_stiffness", "shell_mass", "solid_stiffness", "solid_mass",
+    "Parameter", "ParameterError", "ParameterSet", "read_parameters", "ParametricModel", "parametric_model",
+    "write_bdf", "SubframeExample", "example_subframe"]

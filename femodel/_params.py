@@ -33,19 +33,18 @@ from pathlib import Path
 
 import numpy as np
 
+from femodel._model import ModelError
+from femodel._units import UNIT_SYSTEMS as _CORE_UNITS
 
-class ParameterError(ValueError):
+
+class ParameterError(ModelError):
     """A parameter file or parameter definition is invalid (names file and parameter)."""
 
 
 #: unit system -> (metres per length unit, kilograms per mass unit); time is seconds.
+#: The same systems as :mod:`femodel._units`, which the reader uses.
 UNIT_SYSTEMS: dict[str, tuple[float, float]] = {
-    "si": (1.0, 1.0),
-    "mm-t-s": (1e-3, 1e3),
-    # inch, lbf, s: the mass unit is lbf s^2 / in
-    "in-lbf-s": (0.0254, 4.4482216152605 / 0.0254),
-    # any consistent system whose numbers are taken as they are
-    "consistent": (1.0, 1.0),
+    name: (us.length_m, us.mass_kg) for name, us in _CORE_UNITS.items()
 }
 
 #: (card, field) -> physical kind. The kind fixes the SI conversion factor.
