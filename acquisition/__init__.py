@@ -11,8 +11,28 @@ from acquisition._driver import (
 
 __all__ = ["ChannelSpec", "Driver", "DriverError", "DriverInfo", "PhasorBlock", "SampleBlock"]
 
+from acquisition._controller import (
+    AcquisitionAbort,
+    LimitBreach,
+    OverloadAbort,
+    SweepResult,
+    plan_channels,
+    quantity_of,
+    run_plan,
+    run_sweep,
+)
 from acquisition._demod import fit_harmonics, thd
 from acquisition._layout import Layout, LayoutError, read_layout
+from acquisition._plan import (
+    Plan,
+    PlanError,
+    Pole,
+    estimate_duration_s,
+    load_plan,
+    plan_from_dict,
+    plan_lines,
+    summarize_plan,
+)
 from acquisition._plant import ModalPlant, PlantError
 from acquisition._simlab import Fault, ShakerModel, SimLabError, SimulatedLab
 from acquisition.runfile import (
@@ -28,6 +48,22 @@ from acquisition.runfile import (
 )
 
 __all__ += [
+    "AcquisitionAbort",
+    "LimitBreach",
+    "OverloadAbort",
+    "Plan",
+    "PlanError",
+    "Pole",
+    "SweepResult",
+    "estimate_duration_s",
+    "load_plan",
+    "plan_channels",
+    "plan_from_dict",
+    "plan_lines",
+    "quantity_of",
+    "run_plan",
+    "run_sweep",
+    "summarize_plan",
     "Fault",
     "Layout",
     "LayoutError",
