@@ -1,0 +1,128 @@
+"""``frfcal pretest``: sensor layout by Effective Independence, drive point, mass loading, layout file."""
+
+from __future__ import annotations
+
+import argparse
+
+HELP = "plan sensors (Effective Independence) and the shaker position for a model; write the layout file"
+
+
+def _ints(text: str) -> list[int]:
+    out = []
+    for part in text.replace(",", " ").split():
+        if "-" in part.strip("-") and not part.startswith("-"):
+            lo, hi = part.split("-", 1)
+            out.extend(range(int(lo), int(hi) + 1))
+        else:
+            out.append(int(part))
+    return out
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("model", metavar="MODEL.bdf", help="Nastran bulk data deck")
+    parser.add_argument("--units", default="si", help="unit system of the deck: si, mm-t-s, in-lbf-s (default si)")
+    parser.add_argument("--sensors", type=int, default=20, help="number of sensors (a triax counts once; default 20)")
+    modes = parser.add_mutually_exclusive_group()
+    modes.add_argument("--modes", type=int, default=None, help="target: the first N elastic modes (default 20)")
+    modes.add_argument("--band", type=float, nargs=2, metavar=("LO_HZ", "HI_HZ"), help="target: elastic modes in a band")
+    modes.add_argument("--mode-numbers", type=_ints, metavar="N,..", help="target: 1-based mode numbers, e.g. 7-26")
+    parser.add_argument("--out", default="layout.json", help="layout file to write (figures go beside it)")
+    parser.add_argument("--json", action="store_true", help="print one JSON object (the layout file content)")
+    parser.add_argument("--triax", action="store_true", help="triaxial sensors (kept whole)")
+    parser.add_argument("--direction", default="normal", metavar="normal|x|y|z|vx,vy,vz",
+                        help="single-axis direction (default: local surface normal)")
+    parser.add_argument("--include", type=_ints, default=[], metavar="G,..", help="grids that must carry a sensor")
+    parser.add_argument("--exclude", type=_ints, default=[], metavar="G,..", help="grids that must not carry a sensor")
+    parser.add_argument("--candidates", type=_ints, default=None, metavar="G,..", help="candidate grids (default: all shell grids)")
+    parser.add_argument("--pids", type=_ints, default=None, metavar="PID,..", help="candidate grids of these property ids")
+    parser.add_argument("--box", type=float, nargs=6, default=None,
+                        metavar=("XMIN", "YMIN", "ZMIN", "XMAX", "YMAX", "ZMAX"), help="candidate box, m (basic)")
+    parser.add_argument("--min-distance", type=float, default=0.0, metavar="M", help="minimum sensor spacing, m")
+    parser.add_argument("--shaker-candidates", type=int, default=5, metavar="N", help="ranked drive points to report")
+    parser.add_argument("--drives", type=int, default=1, metavar="K", help="drive points to put in the layout (default 1)")
+    parser.add_argument("--free-drive", action="store_true",
+                        help="rank drive points over all candidates (default: collocated with the sensors)")
+    parser.add_argument("--drive-criterion", choices=["weakest", "adpr", "product"], default="weakest",
+                        help="drive ranking: weakest-mode participation (default), ADPR, or their product")
+    parser.add_argument("--sensor-mass-g", type=float, default=0.5, help="mass of one sensor, g (default 0.5)")
+    parser.add_argument("--drive-mass-g", type=float, default=5.0, help="force sensor + stinger mass, g (default 5)")
+    parser.add_argument("--no-figures", action="store_true", help="do not write the PNG figures")
+
+
+def run(args) -> int:
+    import json
+    from pathlib import Path
+
+    import numpy as np
+
+    import femodel
+    import pretest
+
+    direction = args.direction
+    if not args.triax:
+        pretest.parse_direction(direction)
+    cfg = pretest.PretestConfig(
+        n_sensors=args.sensors,
+        n_modes=args.modes if (args.modes is not None or args.band or args.mode_numbers) else 20,
+        band_hz=tuple(args.band) if args.band else None,
+        mode_numbers=tuple(args.mode_numbers) if args.mode_numbers else None,
+        direction=direction,
+        triax=args.triax,
+        candidate_grids=tuple(args.candidates) if args.candidates else None,
+        candidate_pids=tuple(args.pids) if args.pids else None,
+        candidate_box_m=tuple(args.box) if args.box else None,
+        include_grids=tuple(args.include),
+        exclude_grids=tuple(args.exclude),
+        min_distance_m=args.min_distance,
+        n_drives=args.drives,
+        n_shaker_candidates=args.shaker_candidates,
+        collocated_drive=not args.free_drive,
+        drive_criterion=args.drive_criterion,
+        sensor_mass_kg=args.sensor_mass_g * 1e-3,
+        drive_mass_kg=args.drive_mass_g * 1e-3,
+    )
+    model = femodel.read_bdf(args.model, units=args.units)
+    res = pretest.plan_pretest(model, cfg)
+    out = Path(args.out)
+    pretest.write_layout(out, res, model_path=args.model, units=args.units)
+    figures = []
+    if not args.no_figures:
+        stem = out.with_suffix("")
+        figures.append(str(pretest.plot_layout(model, res, f"{stem}_layout.png")))
+        figures.append(str(pretest.plot_automac(res, f"{stem}_automac.png")))
+    data = pretest.layout_dict(res, model_path=args.model, units=args.units, relative_to=out.parent)
+    if args.json:
+        data["layout_file"] = str(out)
+        data["figures"] = figures
+        print(json.dumps(data))
+        return 0
+    m = res.metrics
+    t = res.target
+    n_sens = len(set(res.sensors.group.tolist()))
+    print(f"model {args.model} ({args.units}): {model.n_grids} grids, {t.n_rigid} rigid-body mode(s)")
+    print(f"target: {t.indices.size} modes, {t.frequencies_hz[0]:.2f}-{t.frequencies_hz[-1]:.2f} Hz "
+          f"(mode numbers {t.indices[0] + 1}-{t.indices[-1] + 1})")
+    print(f"candidates: {np.unique(res.candidates.group).size} "
+          f"({'triaxial' if cfg.triax else 'single-axis, ' + str(cfg.direction)}); chosen {n_sens} sensors, "
+          f"{res.sensors.n_rows} channels" + (f", {res.efi.n_swaps} distance swaps" if res.efi.n_swaps else ""))
+    i, j = m.automac_worst_pair
+    print(f"Fisher information: log10 det {m.fim_log10_det:.3f}, condition number {m.fim_condition:.4g}")
+    print(f"autoMAC: largest off-diagonal {m.automac_max_offdiag:.4f} (modes {t.indices[i] + 1} and {t.indices[j] + 1})")
+    print(" mode   f (Hz)  independence  peak frac  mass-load shift (Hz)")
+    for k in range(t.indices.size):
+        print(f" {t.indices[k] + 1:4d} {t.frequencies_hz[k]:9.2f} {m.mode_independence[k]:12.3f} "
+              f"{m.mode_peak_fraction[k]:10.3f} {res.mass_loading.shift_hz[k]:12.4f}")
+    print("channels:")
+    for name, g, d, x in zip(res.channel_names, res.sensors.grids, res.sensors.directions, res.sensors.xyz_m):
+        print(f"  {name:<8s} grid {g:>8d}  dir [{d[0]:+.3f} {d[1]:+.3f} {d[2]:+.3f}]  "
+              f"xyz_m [{x[0]:.4f} {x[1]:.4f} {x[2]:.4f}]")
+    rk, dc = res.drive_ranking, res.drive_candidates
+    print(f"drive candidates ({cfg.drive_criterion}; {'collocated' if cfg.collocated_drive else 'free'}):")
+    for r, i in enumerate(rk.order[: cfg.n_shaker_candidates].tolist(), 1):
+        d = dc.directions[i]
+        print(f"  {r}. grid {dc.grids[i]:>8d} dir [{d[0]:+.3f} {d[1]:+.3f} {d[2]:+.3f}]  weakest "
+              f"{rk.weakest[i]:.3f} (mode {t.indices[rk.weakest_mode[i]] + 1})  ADPR {rk.adpr_normalized[i]:.3f}")
+    for n, g in zip(res.drive_names, res.drives.grids):
+        print(f"{n}: grid {g}")
+    print(f"wrote {out}" + "".join(f"\nwrote {f}" for f in figures))
+    return 0
