@@ -585,12 +585,15 @@ def loopback_visa_driver(plant, *, lab_options: dict | None = None, **driver_opt
     """A :class:`~acquisition.drivers.visa.VisaDriver` talking to its own :class:`LoopbackLab`.
 
     The lab is started on 127.0.0.1 with a :class:`VirtualClock` shared with
-    the driver. At :meth:`configure` the force channels are wired, in order,
-    to the lock-ins of the plant's inputs and the response channels to those
-    of its outputs; each lock-in's sensor gets the channel's sensitivity (the
-    mapping a user makes once in the hardware configuration file). Closing
-    the driver stops the lab. ``driver.lab`` gives access to the lab (fault
-    injection, transcript, generator state).
+    the driver. At :meth:`configure` each channel is wired to a lock-in by its
+    simulated-lab address (:meth:`LoopbackLab.lockin_for`), and the lock-in's
+    sensor gets the channel's sensitivity (the mapping a user makes once in
+    the hardware configuration file). As a lab would, a signal conditioner
+    with gain ``min(1, 1 V / range_v)`` sits in front of each lock-in so that
+    the channel's range fits the lock-in's 1 V rms full scale (the driver sees
+    the combined sensitivity). Closing the driver stops the lab.
+    ``driver.lab`` gives access to the lab (fault injection, transcript,
+    generator state).
     """
     from acquisition.drivers.visa import VisaDriver
 
@@ -602,8 +605,10 @@ def loopback_visa_driver(plant, *, lab_options: dict | None = None, **driver_opt
                     ch = replace(ch, physical=f"sim/{next_out}")
                     next_out += 1
                 name = self.lab.lockin_for(ch)
-                self.lab.set_sensitivity(name, ch.sensitivity)
-                mapped.append(replace(ch, physical=self.lab.resource(name)))
+                gain = min(1.0, 1.0 / ch.range_v)  # the signal conditioner in front of the lock-in
+                self.lab.set_sensitivity(name, ch.sensitivity * gain)
+                mapped.append(replace(ch, physical=self.lab.resource(name), sensitivity=ch.sensitivity * gain,
+                                      range_v=ch.range_v * gain))
             return super().configure(mapped, sample_rate_hz)
 
         def close(self):

@@ -125,7 +125,8 @@ class VisaInstrument:
         self.close()
         if isinstance(exc, pyvisa.errors.VisaIOError) and exc.error_code == pyvisa.constants.StatusCode.error_timeout:
             return DriverError(
-                f"{self.name} ({self.resource}): no reply to {command!r} within {self.timeout_ms} ms (timeout)"
+                f"{self.name} ({self.resource}): no reply to {command!r} within {self.timeout_ms} ms "
+                "(timeout: the instrument is busy, hung, or the connection dropped)"
             )
         if isinstance(exc, UnicodeDecodeError):
             return DriverError(f"{self.name} ({self.resource}): garbled reply to {command!r} (not ASCII)")
@@ -205,7 +206,7 @@ class VisaDriver:
         clock=None,
         tc_fraction: float = 0.1,
         filter_slope_db: int = 24,
-        max_drive_v: float = 5.0,
+        max_drive_v: float = 10.0,
         ramp_step_s: float = 0.05,
         resource_manager=None,
     ):
