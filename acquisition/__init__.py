@@ -85,3 +85,4 @@ __all__ += [
     "thd",
     "write_analysis",
 ]
+from acquisition._hardware_config import HardwareConfig, HardwareConfigError, read_hardware_config  # noqa: E402,F401
