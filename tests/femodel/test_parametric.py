@@ -1,0 +1,272 @@
+"""ParametricModel: exactness against fresh assemblies, derivatives, units, round trips."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+import femodel
+from femodel import ParameterError, assemble, example_subframe, parametric_model, read_bdf, read_parameters
+
+# A small deck with every parameter kind the subframe lacks: PBUSH K, PELAS K,
+# CELAS2 K, plus shells (E, RHO, T), a CONM2 and an RBE2.
+SPRINGS_DECK = """\
+SOL 103
+CEND
+BEGIN BULK
+GRID,1,,0.,0.,0.
+GRID,2,,200.,0.,0.
+GRID,3,,200.,150.,0.
+GRID,4,,0.,150.,0.
+GRID,5,,400.,0.,0.
+GRID,6,,400.,150.,0.
+GRID,7,,500.,75.,20.
+GRID,8,,520.,75.,20.
+MAT1,3,210000.,,0.3,7.85-9
+PSHELL,5,3,2.5,3,,3
+PSHELL,6,3,4.0,3,,3
+CQUAD4,1,5,1,2,3,4
+CQUAD4,2,6,2,5,6,3
+RBE2,20,7,123456,5,6
+CONM2,30,8,,0.002
+PBUSH,40,K,1000.,2000.,3000.,4.+5,5.+5,6.+5
+CBUSH,41,40,7,8,,,,0
+PELAS,50,123.
+CELAS1,51,50,1,3,8,3
+CELAS1,52,50,4,1,8,1
+CELAS2,60,45.,4,5,8,5
+"""
+SPRINGS_DECK_END = "ENDDATA\n"
+
+SPRINGS_PARAMS = """\
+[model]
+bdf = "springs.bdf"
+units = "mm-t-s"
+
+[[parameter]]
+name = "E"
+card = "MAT1"
+id = 3
+field = "E"
+lower = -0.5
+upper = 0.5
+
+[[parameter]]
+name = "rho"
+card = "MAT1"
+id = 3
+field = "RHO"
+lower = -0.5
+upper = 0.5
+
+[[parameter]]
+name = "t"
+card = "PSHELL"
+ids = [5, 6]
+field = "T"
+lower = -0.5
+upper = 0.5
+
+[[parameter]]
+name = "m"
+card = "CONM2"
+id = 30
+field = "M"
+lower = -0.5
+upper = 0.5
+
+[[parameter]]
+name = "kx"
+card = "PBUSH"
+id = 40
+field = "K1"
+lower = -0.5
+upper = 0.5
+
+[[parameter]]
+name = "krz"
+card = "PBUSH"
+id = 40
+field = "K6"
+lower = -0.5
+upper = 0.5
+
+[[parameter]]
+name = "kelas"
+card = "PELAS"
+id = 50
+field = "K"
+lower = -0.5
+upper = 0.5
+
+[[parameter]]
+name = "kcelas2"
+card = "CELAS2"
+id = 60
+field = "K"
+lower = -0.5
+upper = 0.5
+"""
+
+RNG = np.random.default_rng(3)
+
+
+def rel(a, b) -> float:
+    d = (a - b).tocsr() if sp.issparse(a) else a - b
+    scale = abs(b).max() if sp.issparse(b) else np.abs(b).max()
+    return float(abs(d).max() / scale) if sp.issparse(d) else float(np.abs(d).max() / scale)
+
+
+def fresh(path, units):
+    asm = assemble(read_bdf(path, units=units))
+    return asm, asm.stiffness(), asm.mass()
+
+
+@pytest.fixture(scope="module")
+def springs(tmp_path_factory):
+    d = tmp_path_factory.mktemp("springs")
+    (d / "springs.bdf").write_text(SPRINGS_DECK + SPRINGS_DECK_END)
+    (d / "p.toml").write_text(SPRINGS_PARAMS)
+    return d, parametric_model(d / "p.toml")
+
+
+@pytest.fixture(scope="module")
+def subframe(tmp_path_factory):
+    d = tmp_path_factory.mktemp("subframe")
+    ex = example_subframe(d, target_dof=5000, units="mm-t-s")
+    return d, ex, parametric_model(ex.params)
+
+
+def test_nominal_terms_sum_to_the_assembly(springs, subframe):
+    for _, pm in (springs, subframe[::2]):
+        p0 = np.zeros(pm.n_params)
+        assert rel(pm.stiffness(p0), pm.assembly.stiffness()) < 1e-14
+        assert rel(pm.mass(p0), pm.assembly.mass()) < 1e-14
+        assert pm.K.shape == (len(pm.aset),) * 2
+
+
+def test_every_kind_equals_fresh_assembly_of_written_deck(springs, tmp_path):
+    d, pm = springs
+    np.testing.assert_allclose(
+        pm.nominal, [210e9, 7850.0, 2.5e-3, 2.0, 1e6, 6e5 * 1e-3, 123e3, 45e-3], rtol=1e-13
+    )
+    for j, name in enumerate(pm.parameters.names):
+        p = np.zeros(pm.n_params)
+        p[j] = 0.37 if j % 2 else -0.29
+        out = pm.write_bdf(tmp_path / f"{name}.bdf", p)
+        asm, K, M = fresh(out, "mm-t-s")
+        np.testing.assert_array_equal(asm.aset.keys, pm.aset.keys)
+        assert rel(pm.stiffness(p), K) < 1e-13, name
+        assert rel(pm.mass(p), M) < 1e-13, name
+        # the change itself (not drowned by the large shell terms) matches the deck's change
+        K0, M0 = pm.assembly.stiffness(), pm.assembly.mass()
+        dk_deck, dm_deck = (K - K0).tocsr(), (M - M0).tocsr()
+        assert abs(dk_deck).max() + abs(dm_deck).max() > 0, name
+        for ours, deck, ref in ((pm.stiffness(p) - K0, dk_deck, K0), (pm.mass(p) - M0, dm_deck, M0)):
+            # round-off of the large terms is ~1e-16 |K0|; the change must match beyond it
+            assert abs(ours - deck).max() <= 1e-12 * abs(deck).max() + 1e-15 * abs(ref).max(), name
+    # all at once, random point inside the bounds
+    p = RNG.uniform(pm.lower, pm.upper)
+    asm, K, M = fresh(pm.write_bdf(tmp_path / "all.bdf", p), "mm-t-s")
+    assert rel(pm.stiffness(p), K) < 1e-13 and rel(pm.mass(p), M) < 1e-13
+    vals = pm.physical(p)
+    assert vals["t"] == pytest.approx(2.5e-3 * (1 + p[2]), rel=1e-15)
+    np.testing.assert_allclose(pm.normalized(vals), p, rtol=0, atol=1e-15)
+
+
+def test_subframe_parameters_equal_fresh_assembly(subframe, tmp_path):
+    _, ex, pm = subframe
+    assert pm.parameters.names[0] == "E_main" and pm.n_params == 17
+    p = RNG.uniform(pm.lower, pm.upper)
+    asm, K, M = fresh(pm.write_bdf(tmp_path / "p.bdf", p), "mm-t-s")
+    assert rel(pm.stiffness(p), K) < 1e-13
+    assert rel(pm.mass(p), M) < 1e-13
+    # total mass follows rho, t and the bushing masses
+    assert pm.assembly.model.units == "mm-t-s"
+
+
+def test_derivatives_equal_central_differences(springs, subframe):
+    for pm in (springs[1], subframe[2]):
+        p = RNG.uniform(0.5 * pm.lower, 0.5 * pm.upper)
+        h = 1e-4
+        for j in range(pm.n_params):
+            e = np.zeros(pm.n_params)
+            e[j] = h
+            fd_k = (pm.stiffness(p + e) - pm.stiffness(p - e)) / (2 * h)
+            fd_m = (pm.mass(p + e) - pm.mass(p - e)) / (2 * h)
+            dk, dm = pm.dK(p, j), pm.dM(p, j)
+            # truncation: h^2/6 * (third derivative) <= ~1e-8 relative for t^3 terms;
+            # round-off: eps * |A(p)| / h from the large terms of the full matrix
+            for exact, fd, full in ((dk, fd_k, pm.stiffness(p)), (dm, fd_m, pm.mass(p))):
+                tol = 1e-7 * abs(exact).max() + 20 * 2.2e-16 * abs(full).max() / h
+                assert abs(fd - exact).max() <= tol, pm.parameters.names[j]
+
+
+def test_derivatives_equal_differences_of_assembled_decks(springs, tmp_path):
+    """dK/dp from the parametric form vs central differences of fresh assemblies of written decks."""
+    d, pm = springs
+    p = np.zeros(pm.n_params)
+    h = 1e-3
+    for j, name in enumerate(pm.parameters.names):
+        e = np.zeros(pm.n_params)
+        e[j] = h
+        _, Kp, Mp = fresh(pm.write_bdf(tmp_path / "a.bdf", p + e), "mm-t-s")
+        _, Km, Mm = fresh(pm.write_bdf(tmp_path / "b.bdf", p - e), "mm-t-s")
+        dk, dm = pm.dK(p, j), pm.dM(p, j)
+        for exact, fd in ((dk, (Kp - Km) / (2 * h)), (dm, (Mp - Mm) / (2 * h))):
+            if abs(exact).max() > 0:
+                assert rel(fd, exact) < 1e-6, name  # t^3: truncation h^2 = 1e-6
+            else:
+                assert abs(fd).max() == 0.0, name
+
+
+def test_reassembly_shares_one_pattern(subframe):
+    _, _, pm = subframe
+    a = pm.stiffness(np.zeros(17))
+    b = pm.stiffness(np.full(17, 0.1))
+    assert a.indices is not b.indices and np.array_equal(a.indices, b.indices) and np.array_equal(a.indptr, b.indptr)
+    assert (pm.K.at(np.full(17, 0.1)) - b).count_nonzero() == 0 or rel(pm.K.at(np.full(17, 0.1)), b) < 1e-15
+
+
+def test_round_trip_at_nominal_gives_identical_matrices(subframe, tmp_path):
+    _, ex, pm = subframe
+    out = pm.write_bdf(tmp_path / "same.bdf", np.zeros(17))
+    asm, K, M = fresh(out, "mm-t-s")
+    K0, M0 = pm.assembly.stiffness(), pm.assembly.mass()
+    assert abs(K - K0).max() == 0.0 and abs(M - M0).max() == 0.0
+
+
+def test_mm_and_si_decks_give_the_same_physics(tmp_path):
+    a = example_subframe(tmp_path / "mm", 5000, units="mm-t-s")
+    b = example_subframe(tmp_path / "si", 5000, units="si")
+    pa, pb = parametric_model(a.params), parametric_model(b.params)
+    np.testing.assert_allclose(pa.nominal, pb.nominal, rtol=1e-15)
+    p = np.linspace(-0.15, 0.15, 17)
+    assert rel(pa.stiffness(p), pb.stiffness(p)) < 1e-12
+    assert rel(pa.mass(p), pb.mass(p)) < 1e-12
+    fa = femodel.normal_modes(pa.stiffness(p), pa.mass(p), 26).frequencies_hz
+    fb = femodel.normal_modes(pb.stiffness(p), pb.mass(p), 26).frequencies_hz
+    np.testing.assert_allclose(fa[6:], fb[6:], rtol=1e-9)
+
+
+def test_bad_parameters(springs, tmp_path):
+    d, _ = springs
+    bad = SPRINGS_PARAMS.replace("id = 60\n", "id = 61\n")
+    (d / "bad.toml").write_text(bad)
+    with pytest.raises(ParameterError, match=r"'kcelas2': card CELAS2 61 \(field K\) is not in the deck"):
+        parametric_model(d / "bad.toml")
+    # a property no element uses does not enter K or M
+    (d / "unused.bdf").write_text(SPRINGS_DECK + "PSHELL,7,3,1.0,3,,3\n" + SPRINGS_DECK_END)
+    ps = read_parameters(d / "p.toml")
+    unused = SPRINGS_PARAMS.replace('bdf = "springs.bdf"', 'bdf = "unused.bdf"').replace("ids = [5, 6]", "ids = [7]")
+    (d / "unused.toml").write_text(unused)
+    with pytest.raises(ParameterError, match="'t' .*does not enter K or M"):
+        parametric_model(d / "unused.toml")
+    pm = parametric_model(ps)
+    with pytest.raises(ValueError, match="expected 8 normalized parameters"):
+        pm.physical(np.zeros(3))
+    with pytest.raises(ValueError, match="non-positive physical value"):
+        pm.stiffness(np.full(8, -1.0))
+    with pytest.raises(ParameterError, match="no parameter named 'zz'"):
+        pm.dK(np.zeros(8), "zz")
