@@ -195,10 +195,12 @@ def _quad_local(xy, dm, db, ds, kdrill, ids):
     kb = np.zeros((n, 24, 24))
     ks = np.zeros((n, 24, 24))
     kd = np.zeros((n, 24, 24))
-    # centroid membrane shear row (B-bar) and detJ
+    # membrane incompatible modes (Wilson QM6 with Taylor's centroid-Jacobian form):
+    # u, v += a (1 - xi^2) + b (1 - eta^2), condensed after integration
     _, d0 = _quad_derivs(0.0, 0.0)
-    _, _, inv0 = _jacobian(d0, xy)
-    bm0 = _membrane_b(np.einsum("nab,bk->nak", inv0, d0), 4)
+    _, det0, inv0 = _jacobian(d0, xy)
+    kua = np.zeros((n, 24, 4))
+    kaa = np.zeros((n, 4, 4))
     # MITC4 tying points: gamma_xi at (0, -1) and (0, +1); gamma_eta at (-1, 0), (+1, 0)
     tying = {}
     for key, (xi, eta, a) in {"A": (0.0, -1.0, 0), "C": (0.0, 1.0, 0), "D": (-1.0, 0.0, 1), "B": (1.0, 0.0, 1)}.items():
@@ -214,8 +216,16 @@ def _quad_local(xy, dm, db, ds, kdrill, ids):
                                                  "(non-positive Jacobian; check grid order)", "CQUAD4"))
         dxy = np.einsum("nab,bk->nak", inv, dn)
         bm = _membrane_b(dxy, 4)
-        bm[:, 2, :] = bm0[:, 2, :]
         km += _btdb(bm, dm, det)
+        dinc = np.einsum("nab,bk->nak", inv0, np.diag([-2.0 * xi, -2.0 * eta])) * (det0 / det)[:, None, None]
+        ba = np.zeros((n, 3, 4))
+        ba[:, 0, 0:2] = dinc[:, 0]
+        ba[:, 1, 2:4] = dinc[:, 1]
+        ba[:, 2, 0:2] = dinc[:, 1]
+        ba[:, 2, 2:4] = dinc[:, 0]
+        dba = np.matmul(dm, ba) * det[:, None, None]
+        kua += np.matmul(np.swapaxes(bm, 1, 2), dba)
+        kaa += np.matmul(np.swapaxes(ba, 1, 2), dba)
         kb += _btdb(_bending_b(dxy, 4), db, det)
         g_xi = 0.5 * (1 - eta) * tying["A"] + 0.5 * (1 + eta) * tying["C"]
         g_eta = 0.5 * (1 - xi) * tying["D"] + 0.5 * (1 + xi) * tying["B"]
@@ -223,6 +233,7 @@ def _quad_local(xy, dm, db, ds, kdrill, ids):
         ks += _btdb(bs, ds, det)
         bd = _drill_b(nsh, dxy, 4)
         kd += np.einsum("ni,nj->nij", bd, bd * (kdrill * det)[:, None])
+    km = km - np.matmul(kua, np.linalg.solve(kaa, np.swapaxes(kua, 1, 2)))
     return km, kb, ks, kd
 
 
@@ -258,6 +269,42 @@ def _tri_local(xy, dm, db, ds, kdrill, ids):
     return km, kb, ks, kd
 
 
+def _polygon_area(xy: np.ndarray) -> np.ndarray:
+    """(n,) signed area of the projected polygon (shoelace)."""
+    x, y = xy[..., 0], xy[..., 1]
+    return 0.5 * np.sum(x * np.roll(y, -1, axis=1) - np.roll(x, -1, axis=1) * y, axis=1)
+
+
+def _effective_shear(ds: np.ndarray, db: np.ndarray, area: np.ndarray, coeff: float) -> np.ndarray:
+    """Transverse shear stiffness in series with the residual bending flexibility.
+
+    ``ds_eff = (ds^-1 + coeff * A / 12 * diag(1/D11, 1/D22))^-1``.  Infinite
+    entries of ``ds`` mean shear-rigid; elements without bending stiffness
+    get no transverse shear stiffness.
+    """
+    n = ds.shape[0]
+    out = np.zeros((n, 2, 2))
+    dbd = np.stack([db[:, 0, 0], db[:, 1, 1]], axis=1)
+    plate = np.all(dbd > 0, axis=1)
+    rigid = ~np.all(np.isfinite(ds), axis=(1, 2))
+    extra = np.zeros((n, 2, 2))
+    extra[plate, 0, 0] = coeff * area[plate] / (12.0 * dbd[plate, 0])
+    extra[plate, 1, 1] = coeff * area[plate] / (12.0 * dbd[plate, 1])
+    flex = extra.copy()
+    soft = plate & ~rigid
+    if soft.any():
+        flex[soft] += np.linalg.inv(ds[soft])
+    ok = plate & (np.abs(np.linalg.det(np.where(plate[:, None, None], flex, np.eye(2)))) > 0)
+    out[ok] = np.linalg.inv(flex[ok])
+    # shear-rigid plate without the residual term: a stiff penalty (1e4 x bending scale)
+    pen = plate & ~ok
+    out[pen, 0, 0] = 1e4 * 12.0 * dbd[pen, 0] / area[pen]
+    out[pen, 1, 1] = 1e4 * 12.0 * dbd[pen, 1] / area[pen]
+    keep = ~plate
+    out[keep] = np.where(np.isfinite(ds[keep]), ds[keep], 0.0)
+    return out
+
+
 def _to_basic(rot: np.ndarray, h: np.ndarray) -> np.ndarray:
     """(n, 6nn, 6nn) map from basic grid DOF to local DOF of the projected points.
 
@@ -275,7 +322,14 @@ def _to_basic(rot: np.ndarray, h: np.ndarray) -> np.ndarray:
     return t
 
 
-def shell_stiffness(xyz, dm, db, ds, k6rot, ids=None) -> dict[str, np.ndarray]:
+RESIDUAL_BENDING_COEFF = 0.7
+"""Coefficient of the residual bending flexibility added in series to the
+transverse shear (MacNeal's correction of the too-stiff bilinear plate); 0.7
+with L^2 = element area reproduces Nastran's femap_exhaust and dakota_cylinder
+eigenvalues to about 0.2 % (docs/validation.md, Shells and solids)."""
+
+
+def shell_stiffness(xyz, dm, db, ds, k6rot, ids=None, residual_bending=True) -> dict[str, np.ndarray]:
     """Stiffness of CQUAD4 / CTRIA3 shells, split by constitutive term.
 
     Parameters
@@ -296,13 +350,24 @@ def shell_stiffness(xyz, dm, db, ds, k6rot, ids=None) -> dict[str, np.ndarray]:
         Nastran PARAM,K6ROT (dimensionless); 0 gives no drilling stiffness.
     ids : array_like of int, shape (n,), optional
         Element ids used in error messages.
+    residual_bending : bool, default True
+        Put the residual bending flexibility ``RESIDUAL_BENDING_COEFF * A /
+        (12 D_ii)`` in series with the transverse shear (as Nastran's QUAD4
+        does in spirit; needed to match its frequencies within 0.5 %).  With it
+        the ``shear`` term depends on ``ds`` and ``db`` (homogeneous of degree
+        one in both together, e.g. exact under scaling of E, but not a
+        monomial in the thickness); False makes it exactly linear in ``ds``
+        at the price of a 1-3 % stiffer coarse-mesh plate.
 
     Returns
     -------
     dict of str to ndarray, each shape (n, 6nn, 6nn)
-        ``membrane`` (linear in dm), ``bending`` (db), ``shear`` (ds) and
-        ``drill`` (dm[2,2] times K6ROT), in basic coordinates, DOF per grid
-        T1 T2 T3 R1 R2 R3.  Their sum is the element stiffness.
+        ``membrane`` (homogeneous of degree one in dm; the quad's condensed
+        incompatible modes make it exactly linear under scalar scaling of dm),
+        ``bending`` (linear in db), ``shear`` (linear in ds, see
+        ``residual_bending``) and ``drill`` (linear in dm[2,2] and K6ROT), in
+        basic coordinates, DOF per grid T1 T2 T3 R1 R2 R3.  Their sum is the
+        element stiffness.
 
     Raises
     ------
@@ -318,6 +383,8 @@ def shell_stiffness(xyz, dm, db, ds, k6rot, ids=None) -> dict[str, np.ndarray]:
     if k6rot < 0:
         raise ValueError(f"PARAM,K6ROT must be >= 0, got {k6rot}")
     rot, xy, h = shell_frames(xyz, ids)
+    coeff = RESIDUAL_BENDING_COEFF if residual_bending else 0.0
+    ds = _effective_shear(ds, db, np.abs(_polygon_area(xy)), coeff)
     kdrill = 1e-6 * k6rot * dm[:, 2, 2]
     local = (_quad_local if nn == 4 else _tri_local)(xy, dm, db, ds, kdrill, ids)
     t = _to_basic(rot, h)
