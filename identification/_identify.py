@@ -15,6 +15,7 @@ from ._subspace import (
     bilinear_alpha,
     fit_bd,
     fit_cd,
+    importance,
     real_modal_form,
     realize,
     subspace_basis,
@@ -86,6 +87,7 @@ class Identification:
             "pole_eigenvalues_rad_s": np.asarray(self.poles.eigenvalues),
             "pole_labels": np.array(self.poles.labels, dtype="S16"),
             "pole_contribution": np.asarray(self.poles.contribution),
+            "pole_importance": np.asarray(self.poles.importance),
             "mode_eigenvalues_rad_s": np.asarray(self.modal.eigenvalues),
             "mode_shapes": np.asarray(self.modal.shapes),
             "mode_participation": np.asarray(self.modal.participation),
@@ -122,7 +124,12 @@ class Identification:
             labels = tuple(
                 s.decode() if isinstance(s, bytes) else str(s) for s in np.asarray(arrays["pole_labels"]).tolist()
             )
-            poles = Poles(np.asarray(arrays["pole_eigenvalues_rad_s"]), labels, np.asarray(arrays["pole_contribution"]))
+            poles = Poles(
+                np.asarray(arrays["pole_eigenvalues_rad_s"]),
+                labels,
+                np.asarray(arrays["pole_contribution"]),
+                np.asarray(arrays["pole_importance"]),
+            )
             modal = ModalParameters(
                 np.asarray(arrays["mode_eigenvalues_rad_s"]),
                 np.asarray(arrays["mode_shapes"]),
@@ -325,6 +332,7 @@ def identify(
     enforce_stability: bool = True,
     zeta_max: float = 0.2,
     min_contribution: float = 0.05,
+    min_importance: float = 1.0,
     refine: int = 1,
 ) -> Identification:
     """Frequency-domain subspace identification of a continuous-time model from FRFs.
@@ -367,6 +375,10 @@ def identify(
     min_contribution : float
         Poles whose own FRF term never reaches this fraction of the data
         (weighted Frobenius norm over channels, per line) are ``"negligible"``.
+    min_importance : float
+        Poles whose removal (with ``B, D`` refitted) raises the weighted
+        residual sum of squares by less than this factor of itself are
+        ``"negligible"``: the data do not need them (noise modes, split poles).
     refine : int
         Rounds of alternating ``C, D`` / ``B, D`` least-squares refinement.
 
@@ -390,14 +402,16 @@ def identify(
             f"block_rows={q} too small for order {n} with {p} outputs: need block_rows * {p} > {n}"
         )
     basis, sv = _basis(data, q)
-    return _assemble(data, basis, sv, n, q, enforce_stability, zeta_max, min_contribution, refine)
+    return _assemble(data, basis, sv, n, q, enforce_stability, zeta_max, min_contribution, min_importance, refine)
 
 
-def _assemble(data, basis, sv, n, q, enforce_stability, zeta_max, min_contribution, refine):
+def _assemble(data, basis, sv, n, q, enforce_stability, zeta_max, min_contribution, min_importance, refine):
     A, B, C, D, blocks, was_unstable = _fit(data, basis, sv, n, enforce_stability=enforce_stability, refine=refine)
     lam = block_poles(A, blocks)
     contrib = contributions(data, A, B, C, blocks)
-    labels = label_poles(lam, contrib, was_unstable, data.band_hz, zeta_max, min_contribution)
+    a = np.sqrt(np.mean(data.W**2, axis=(0, 2)))  # per-output weights (exact unless per-line errors)
+    imp = importance(data.omega, data.H, a, A, C, blocks)
+    labels = label_poles(lam, contrib, imp, was_unstable, data.band_hz, zeta_max, min_contribution, min_importance)
     model = StateSpace(A, B, C, D, data.quantity)
     H_data = data.H
     if data.dual:
@@ -420,6 +434,7 @@ def _assemble(data, basis, sv, n, q, enforce_stability, zeta_max, min_contributi
         "enforce_stability": bool(enforce_stability),
         "zeta_max": float(zeta_max),
         "min_contribution": float(min_contribution),
+        "min_importance": float(min_importance),
         "refine": int(refine),
         "n_lines": int(data.freq_hz.size),
         "n_reflected": int(np.sum(was_unstable)) if enforce_stability else 0,
@@ -427,7 +442,7 @@ def _assemble(data, basis, sv, n, q, enforce_stability, zeta_max, min_contributi
     return Identification(
         model=model,
         singular_values=sv,
-        poles=Poles(lam, labels, contrib),
+        poles=Poles(lam, labels, contrib, imp),
         modal=modal,
         band_hz=data.band_hz,
         order=n,

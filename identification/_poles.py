@@ -48,11 +48,15 @@ class Poles:
     contribution : ndarray (n_p,)
         Largest ratio, over the data lines in band, of the pole's own FRF term
         to the data (Frobenius norms over channels, outputs weighted) [-].
+    importance : ndarray (n_p,)
+        Relative increase of the weighted residual sum of squares when the
+        pole is removed and ``B, D`` are refitted [-].
     """
 
     eigenvalues: np.ndarray
     labels: tuple[str, ...]
     contribution: np.ndarray
+    importance: np.ndarray
 
     def __post_init__(self) -> None:
         lam = _frozen(self.eigenvalues, complex).reshape(-1)
@@ -64,7 +68,11 @@ class Poles:
             raise IdentificationError(f"Poles: unknown label(s) {sorted(set(bad))}; allowed {LABELS}")
         object.__setattr__(self, "eigenvalues", lam)
         object.__setattr__(self, "labels", labels)
-        object.__setattr__(self, "contribution", _frozen(self.contribution, float).reshape(-1))
+        for name in ("contribution", "importance"):
+            v = _frozen(getattr(self, name), float).reshape(-1)
+            if v.size != lam.size:
+                raise IdentificationError(f"Poles: {v.size} {name} values for {lam.size} eigenvalues")
+            object.__setattr__(self, name, v)
 
     def __len__(self) -> int:
         return self.eigenvalues.size
@@ -178,13 +186,16 @@ def normalize_shapes(shapes: np.ndarray, participation: np.ndarray):
 def label_poles(
     lam: np.ndarray,
     contribution: np.ndarray,
+    importance: np.ndarray,
     was_unstable: np.ndarray,
     band_hz: tuple[float, float],
     zeta_max: float,
     min_contribution: float,
+    min_importance: float,
 ) -> tuple[str, ...]:
     """Label each pole; the first failing test in this order wins:
-    unstable, real, overdamped (zeta > zeta_max), out-of-band, negligible."""
+    unstable, real, overdamped (zeta > zeta_max), out-of-band, negligible
+    (contribution < min_contribution or importance < min_importance)."""
     labels = []
     f = pole_frequency_hz(lam)
     zeta = pole_damping(lam)
@@ -197,7 +208,7 @@ def label_poles(
             labels.append("overdamped")
         elif not (band_hz[0] <= f[i] <= band_hz[1]):
             labels.append("out-of-band")
-        elif contribution[i] < min_contribution:
+        elif contribution[i] < min_contribution or importance[i] < min_importance:
             labels.append("negligible")
         else:
             labels.append("physical")

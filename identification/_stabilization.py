@@ -90,6 +90,7 @@ def stabilization(
     enforce_stability: bool = True,
     zeta_max: float = 0.2,
     min_contribution: float = 0.05,
+    min_importance: float = 1.0,
     tol_frequency: float = 0.005,
     tol_damping: float = 0.05,
     min_mac: float = 0.95,
@@ -124,7 +125,9 @@ def stabilization(
     prev: Identification | None = None
     prev_shapes = None
     for n in ords:
-        ident = _assemble(data, basis, sv, n, q, enforce_stability, zeta_max, min_contribution, refine=0)
+        ident = _assemble(
+            data, basis, sv, n, q, enforce_stability, zeta_max, min_contribution, min_importance, refine=0
+        )
         Am, Bm, Cm, blocks = real_modal_form(ident.model.A, ident.model.B, ident.model.C)
         sh, _ = block_modal(Am, Bm, Cm, blocks)
         sh = sh if len(blocks) else np.zeros((ident.model.n_out, 0), complex)
