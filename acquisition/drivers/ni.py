@@ -219,13 +219,15 @@ class NiDaqDriver:
                 sensitivity_units=c.ForceIEPESensorSensitivityUnits.MILLIVOLTS_PER_NEWTON, **excitation,
             )
             return 1.0
+        chan = ai.add_ai_voltage_chan(ch.physical, name_to_assign_to_channel=ch.name, terminal_config=terminal,
+                                      min_val=-ch.range_v, max_val=ch.range_v)
         if iepe:
-            raise ValueError(
-                f"channel {ch.name!r} ({ch.physical}): IEPE {ch.quantity} sensors are not supported; "
-                "map it as a voltage channel (iepe current 0) behind an external conditioner"
-            )
-        ai.add_ai_voltage_chan(ch.physical, name_to_assign_to_channel=ch.name, terminal_config=terminal,
-                               min_val=-ch.range_v, max_val=ch.range_v)
+            # an IEPE sensor of another quantity (velocity, a force sensor read as volts, ...):
+            # a voltage channel with current excitation and AC coupling, scaled in software
+            chan.ai_excit_voltage_or_current = c.ExcitationVoltageOrCurrent.USE_CURRENT
+            chan.ai_excit_src = c.ExcitationSource.INTERNAL
+            chan.ai_excit_val = float(ch.iepe_current_a)
+            chan.ai_coupling = c.Coupling.AC
         return 1.0 / ch.sensitivity
 
     def configure(self, channels: Sequence[ChannelSpec], sample_rate_hz: float | None) -> DriverInfo:

@@ -301,11 +301,23 @@ def test_restart_after_ramp_down_rearms_on_the_shared_clock(rig):
     assert block.t0_s == pytest.approx(round(0.01 * RATE) / RATE)  # bookkeeping restarted with the tasks
 
 
+def test_iepe_sensor_of_another_quantity_is_an_excited_ac_coupled_voltage_channel(rig):
+    dev, drv = rig
+    drv.configure([ChannelSpec("vel", "response", "velocity", "m/s", sensitivity=0.1, physical="Dev1/ai0",
+                               range_v=5.0, iepe_current_a=0.004)], RATE)
+    ai = dev.tasks["frfcal_ai"].ai_channels
+    ai.add_ai_voltage_chan.assert_called_once_with(
+        "Dev1/ai0", name_to_assign_to_channel="vel", terminal_config=c.TerminalConfiguration.PSEUDO_DIFF,
+        min_val=-5.0, max_val=5.0)
+    chan = ai.add_ai_voltage_chan.return_value
+    assert chan.ai_excit_voltage_or_current == c.ExcitationVoltageOrCurrent.USE_CURRENT
+    assert chan.ai_excit_src == c.ExcitationSource.INTERNAL and chan.ai_excit_val == 0.004
+    assert chan.ai_coupling == c.Coupling.AC
+    assert dev.tasks["frfcal_ao"].timing.cfg_samp_clk_timing.call_args.kwargs["source"] == "/Dev1/ai/SampleClock"
+
+
 def test_bad_channels_are_named(rig):
     _, drv = rig
-    with pytest.raises(ValueError, match="'vel'.*IEPE velocity"):
-        drv.configure([ChannelSpec("vel", "response", "velocity", "m/s", sensitivity=0.1, physical="Dev1/ai0",
-                                   iepe_current_a=0.004)], RATE)
     with pytest.raises(ValueError, match="'x'.*physical"):
         drv.configure([ChannelSpec("x", "response", "acceleration", "m/s^2")], RATE)
     with pytest.raises(ValueError, match="sample_rate_hz"):

@@ -13,9 +13,15 @@ import pytest
 pytest.importorskip("pyvisa")
 pytest.importorskip("pyvisa_py")
 
-from acquisition import ChannelSpec, DriverError, ModalPlant, ShakerModel, read_run  # noqa: E402
-from acquisition._controller import run_sweep  # noqa: E402
-from acquisition._plan import plan_from_dict  # noqa: E402
+from acquisition import (  # noqa: E402
+    ChannelSpec,
+    DriverError,
+    ModalPlant,
+    ShakerModel,
+    plan_from_dict,
+    read_run,
+    run_sweep,
+)
 from acquisition._scpi_server import loopback_visa_driver  # noqa: E402
 
 pytestmark = pytest.mark.timeout(120)
