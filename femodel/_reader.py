@@ -108,7 +108,19 @@ def read_bdf(path, *, units: str = "si", allow_unsupported: bool = False) -> FEM
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            bdf.read_bdf(str(path), xref=False, validate=False)
+            mode = _deck_kind(path)
+            if mode == "bulk-with-begin":
+                # bulk data with a BEGIN BULK line but no executive/case control:
+                # pyNastran wants either both or neither, so feed it without the line
+                import io
+
+                text = "".join(
+                    line for line in open(path, errors="replace") if not line.strip().upper().startswith("BEGIN")
+                )
+                bdf.include_dir = str(path.parent)
+                bdf.read_bdf(io.StringIO(text), xref=False, validate=False, punch=True)
+            else:
+                bdf.read_bdf(str(path), xref=False, validate=False, punch=(mode == "bulk"))
     except (SyntaxError, RuntimeError, ValueError, KeyError, IndexError, TypeError, AssertionError) as exc:
         raise ModelError(f"{path}: pyNastran could not parse the deck: {exc}") from None
 
@@ -127,6 +139,18 @@ def read_bdf(path, *, units: str = "si", allow_unsupported: bool = False) -> FEM
         warnings.warn(f"{path}: ignoring unsupported cards: {listing}", stacklevel=2)
 
     return _convert(bdf, path, us, unsupported)
+
+
+def _deck_kind(path: Path) -> str:
+    """"full" (CEND before BEGIN BULK), "bulk-with-begin" or "bulk" (no control sections)."""
+    with open(path, errors="replace") as f:
+        for line in f:
+            word = line.strip().upper()
+            if word.startswith("CEND"):
+                return "full"
+            if word.startswith("BEGIN") and "BULK" in word:
+                return "bulk-with-begin"
+    return "bulk"
 
 
 def _convert(bdf, path: Path, us: UnitSystem, ignored: dict) -> FEModel:
@@ -235,18 +259,23 @@ def _convert(bdf, path: Path, us: UnitSystem, ignored: dict) -> FEModel:
         e, g, nu = m.e, m.g, m.nu
         if e is None and g is None:
             raise ModelError(f"{where}: MAT1 {mid}: E and G both blank")
-        follows = False
+        # pyNastran fills blank fields (G = E/2/(1+NU) when G is blank, NU = E/(2G)-1
+        # when NU is blank); recover which one was derived to know whether G
+        # follows E (a parametric E then scales G too).
         if e is not None and g is None:
             nu = 0.0 if nu is None else nu
-            g = e / (2.0 * (1.0 + nu))
-            follows = True
+            g = e / 2.0 / (1 + nu)
         elif e is None:
             nu = 0.0 if nu is None else nu
-            e = 2.0 * (1.0 + nu) * g
+            e = 2 * (1 + nu) * g
         elif nu is None:
-            nu = e / (2.0 * g) - 1.0
-        if e <= 0 or g <= 0:
-            raise ModelError(f"{where}: MAT1 {mid}: E={e}, G={g} must be positive")
+            nu = e / (2 * g) - 1.0 if g else 0.0
+        if g and nu == e / (2 * g) - 1.0:
+            follows = False
+        else:
+            follows = g == e / 2.0 / (1 + nu)
+        if not e > 0 or g < 0:
+            raise ModelError(f"{where}: MAT1 {mid}: E={e} must be positive and G={g} non-negative")
         mids.append(mid)
         E.append(e * us.stress_pa)
         G.append(g * us.stress_pa)
