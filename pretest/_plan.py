@@ -210,19 +210,23 @@ def plan_pretest(model, config: PretestConfig | None = None, *, assembly=None, t
     import femodel
 
     cfg = config or PretestConfig()
+    # Everything that can be checked on the deck alone is checked before the eigensolution.
+    if cfg.include_grids:
+        _check_in_model(model, cfg.include_grids, "include")
+    if cfg.exclude_grids:
+        _check_in_model(model, cfg.exclude_grids, "exclude")
+    grids = candidate_grids(model, grids=cfg.candidate_grids, pids=cfg.candidate_pids, box_m=cfg.candidate_box_m)
+    if cfg.include_grids:
+        grids = np.union1d(grids, np.asarray(cfg.include_grids, dtype=np.int64))
+    n_avail = np.setdiff1d(grids, np.asarray(cfg.exclude_grids, dtype=np.int64)).size
+    if cfg.n_sensors > n_avail:
+        raise PretestError(f"asked for {cfg.n_sensors} sensors but the candidate set has only {n_avail} grid(s)")
+    direction = cfg.direction if isinstance(cfg.direction, str) else np.asarray(cfg.direction, dtype=float)
+    cands = candidate_set(model, grids, direction=direction, triax=cfg.triax)
     asm = assembly if assembly is not None else femodel.assemble(model)
     if target is None:
         target = compute_target_modes(asm, n_modes=cfg.n_modes, band_hz=cfg.band_hz,
                                       mode_numbers=cfg.mode_numbers, extra_modes=cfg.extra_modes)
-    if cfg.include_grids:
-        _check_in_model(model, cfg.include_grids, "--include")
-    if cfg.exclude_grids:
-        _check_in_model(model, cfg.exclude_grids, "--exclude")
-    grids = candidate_grids(model, grids=cfg.candidate_grids, pids=cfg.candidate_pids, box_m=cfg.candidate_box_m)
-    if cfg.include_grids:
-        grids = np.union1d(grids, np.asarray(cfg.include_grids, dtype=np.int64))
-    direction = cfg.direction if isinstance(cfg.direction, str) else np.asarray(cfg.direction, dtype=float)
-    cands = candidate_set(model, grids, direction=direction, triax=cfg.triax)
     phi = _phi_at(asm, cands, target.shapes)
     efi = effective_independence(
         phi,
