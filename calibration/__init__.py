@@ -1,8 +1,31 @@
 """calibration layer (see ARCHITECTURE.md)."""
 
+from calibration._crossval import CrossValidation, cross_validate, split_halves
+from calibration._ensemble import group_articles, pairwise_sd
 from calibration._errors import CalibrationError
+from calibration._executor import DaskExecutor, Executor, ProcessExecutor, SerialExecutor, make_executor
+from calibration._fit import (
+    Calibration,
+    CycleResult,
+    FitData,
+    Objective,
+    StartOutcome,
+    calibrate,
+    calibrate_cycles,
+    latin_hypercube_starts,
+    run_start,
+)
 from calibration._metric import log_deviation, square_deviation, stacked
 from calibration._sampling import half_bandwidth_frequencies
+from calibration._validation import (
+    IdentifiedModes,
+    Validation,
+    holdout_sd,
+    mac,
+    mapped_damping,
+    pair_modes,
+    validate,
+)
 from calibration._surrogate import (
     FRFModel,
     Surrogate,
@@ -16,6 +39,32 @@ from calibration._surrogate import (
 )
 
 __all__ = [
+    "CrossValidation",
+    "IdentifiedModes",
+    "Validation",
+    "cross_validate",
+    "group_articles",
+    "holdout_sd",
+    "mac",
+    "mapped_damping",
+    "pair_modes",
+    "pairwise_sd",
+    "split_halves",
+    "validate",
+    "Calibration",
+    "CycleResult",
+    "DaskExecutor",
+    "Executor",
+    "FitData",
+    "Objective",
+    "ProcessExecutor",
+    "SerialExecutor",
+    "StartOutcome",
+    "calibrate",
+    "calibrate_cycles",
+    "latin_hypercube_starts",
+    "make_executor",
+    "run_start",
     "CalibrationError",
     "FRFModel",
     "Surrogate",

@@ -1,0 +1,157 @@
+"""One executor interface for independent work (starts, CV realizations, ensemble members).
+
+Anything with ``map(fn, items) -> list`` (results in item order) is an
+executor. Three are provided: in-process serial, a local spawn-safe process
+pool (default; workers capped at ``os.cpu_count()``) and a Dask distributed
+cluster named by its scheduler address. ``fn`` must be a picklable
+module-level function and items picklable values.
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Callable, Iterable, Protocol, runtime_checkable
+
+from calibration._errors import CalibrationError
+
+
+@runtime_checkable
+class Executor(Protocol):
+    """Maps a function over independent items; returns the results in item order."""
+
+    def map(self, fn: Callable, items: Iterable) -> list: ...
+
+
+def _progress(iterable, total, label):
+    if label is None:
+        return iterable
+    try:
+        from tqdm import tqdm
+    except ImportError:  # pragma: no cover - tqdm is a core dependency
+        return iterable
+    return tqdm(iterable, total=total, desc=label, leave=False)
+
+
+class SerialExecutor:
+    """Runs everything in this process (debugging, tiny problems, nested use inside workers)."""
+
+    def __init__(self, progress: str | None = None):
+        self.progress = progress
+
+    def map(self, fn: Callable, items: Iterable) -> list:
+        items = list(items)
+        return [fn(x) for x in _progress(items, len(items), self.progress)]
+
+    def close(self) -> None:
+        return None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+class ProcessExecutor:
+    """Local process pool (``spawn`` start method, safe with threads and on every OS).
+
+    Parameters
+    ----------
+    max_workers : int, optional
+        Number of worker processes; default and cap is ``os.cpu_count()``.
+    progress : str, optional
+        Show a progress bar with this label on stderr.
+    """
+
+    def __init__(self, max_workers: int | None = None, progress: str | None = None):
+        n = os.cpu_count() or 1
+        if max_workers is not None and max_workers < 1:
+            raise CalibrationError(f"execution.workers must be >= 1, got {max_workers}")
+        self.max_workers = min(max_workers or n, n)
+        self.progress = progress
+        self._pool = None
+
+    def _get_pool(self):
+        if self._pool is None:
+            import multiprocessing as mp
+            from concurrent.futures import ProcessPoolExecutor
+
+            self._pool = ProcessPoolExecutor(self.max_workers, mp_context=mp.get_context("spawn"))
+        return self._pool
+
+    def map(self, fn: Callable, items: Iterable) -> list:
+        items = list(items)
+        if len(items) <= 1 or self.max_workers == 1:
+            return [fn(x) for x in _progress(items, len(items), self.progress)]
+        from concurrent.futures import as_completed
+
+        pool = self._get_pool()
+        futures = {pool.submit(fn, x): i for i, x in enumerate(items)}
+        out = [None] * len(items)
+        for fut in _progress(as_completed(futures), len(items), self.progress):
+            out[futures[fut]] = fut.result()
+        return out
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+class DaskExecutor:
+    """A Dask distributed cluster, by scheduler address (``tcp://host:8786``) or an existing Client.
+
+    Needs the ``dask`` extra (``pip install frfcal[dask]``).
+    """
+
+    def __init__(self, address=None, client=None, progress: str | None = None):
+        try:
+            from distributed import Client
+        except ImportError as exc:
+            raise CalibrationError(
+                "execution.scheduler needs dask.distributed: install the 'dask' extra (pip install frfcal[dask])"
+            ) from exc
+        if client is None:
+            if not address:
+                raise CalibrationError("DaskExecutor needs a scheduler address or a Client")
+            try:
+                client = Client(address, timeout="10s")
+            except OSError as exc:
+                raise CalibrationError(f"cannot reach Dask scheduler at {address}: {exc}") from exc
+            self._own = True
+        else:
+            self._own = False
+        self.client = client
+        self.progress = progress
+
+    def map(self, fn: Callable, items: Iterable) -> list:
+        items = list(items)
+        if not items:
+            return []
+        futures = self.client.map(fn, items, pure=False)
+        return self.client.gather(futures)
+
+    def close(self) -> None:
+        if self._own:
+            self.client.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def make_executor(scheduler: str | None = None, workers: int | None = None, progress: str | None = None):
+    """Dask when a scheduler address is given, else a local process pool (serial when workers == 1)."""
+    if scheduler:
+        return DaskExecutor(scheduler, progress=progress)
+    if workers == 1:
+        return SerialExecutor(progress=progress)
+    return ProcessExecutor(workers, progress=progress)

@@ -1,0 +1,476 @@
+"""Levenberg-Marquardt multi-start calibration on the surrogate (paper Sec. 2.2, 2.3.3).
+
+The residual is the real-stacked log-ratio deviation ``[Re eps; Im eps]/sqrt(N)``
+(so ``sum r^2`` is the square deviation delta of Eq. 2.5) over all data sets,
+with the exact Jacobian ``d eps/dp = (dH^A/dp) / (H^A ln 10)`` from
+:func:`surrogate_frf_jacobian`. Minimization is scipy's trust-region
+reflective least-squares (a bounded Levenberg-Marquardt) from the nominal
+point plus Latin-hypercube starts inside the bounds. Each start runs through
+the executor; every outcome is kept.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from calibration._errors import CalibrationError
+from calibration._executor import SerialExecutor
+from calibration._metric import LN10, log_deviation, square_deviation
+from calibration._surrogate import Surrogate, surrogate_frf, surrogate_frf_jacobian
+
+
+@dataclass(frozen=True)
+class FitData:
+    """Test FRFs that a model is fitted to / compared with.
+
+    Parameters
+    ----------
+    freq_hz : (n_f,) Hz
+    frf : (n_f, n_out, n_in) complex, SI, same quantity as the model evaluation
+    outputs : tuple of str
+        Output channel names (rows of ``frf``); they must be outputs of the surrogate.
+    inputs : tuple of str, optional
+        Drive names (columns); default: the surrogate's inputs in order.
+    mask : (n_f, n_out, n_in) bool, optional
+        Elements that take part (default all). Cross-validation splits use it.
+    article : str
+        Test article label, for reports.
+    """
+
+    freq_hz: np.ndarray
+    frf: np.ndarray
+    outputs: tuple
+    inputs: tuple = ()
+    mask: np.ndarray | None = None
+    article: str = ""
+
+    def __post_init__(self) -> None:
+        f = np.asarray(self.freq_hz, dtype=float)
+        H = np.asarray(self.frf, dtype=complex)
+        if H.ndim != 3 or H.shape[0] != f.size or H.shape[1] != len(self.outputs):
+            raise CalibrationError(
+                f"FitData{' ' + self.article if self.article else ''}: frf shape {H.shape} does not match "
+                f"{f.size} frequencies x {len(self.outputs)} outputs"
+            )
+        if f.size == 0:
+            raise CalibrationError(f"FitData {self.article}: no frequency lines in the band")
+        bad = ~np.isfinite(H)
+        if self.mask is not None:
+            bad &= np.asarray(self.mask, bool)
+        if bad.any():
+            fi, oi, _ = np.nonzero(bad)
+            raise CalibrationError(
+                f"test data{' of ' + self.article if self.article else ''}: NaN/inf at "
+                f"{f[fi[0]]:.3f} Hz on channel {self.outputs[oi[0]]!r} ({bad.sum()} values); "
+                "flag those lines invalid in the run file"
+            )
+        object.__setattr__(self, "freq_hz", f)
+        object.__setattr__(self, "frf", H)
+        object.__setattr__(self, "outputs", tuple(self.outputs))
+        if self.mask is not None:
+            m = np.asarray(self.mask, dtype=bool)
+            if m.shape != H.shape:
+                raise CalibrationError(f"FitData mask shape {m.shape} != frf shape {H.shape}")
+            object.__setattr__(self, "mask", m)
+
+    @property
+    def n_values(self) -> int:
+        return int(self.frf.size if self.mask is None else self.mask.sum())
+
+    def masked(self, mask: np.ndarray) -> "FitData":
+        """The same data restricted to ``mask`` (and'ed with the current mask)."""
+        m = np.asarray(mask, bool) if self.mask is None else (self.mask & np.asarray(mask, bool))
+        return FitData(self.freq_hz, self.frf, self.outputs, self.inputs, m, self.article)
+
+
+class Objective:
+    """Residual and Jacobian of the square deviation of a surrogate against data sets.
+
+    Parameters
+    ----------
+    surrogate : Surrogate
+    data : sequence of FitData
+    zeta0 : float
+        Uniform modal damping ratio of the model (the equalized test damping).
+    quantity : str
+        FRF quantity of the data ("accelerance", "mobility", "receptance").
+    """
+
+    def __init__(self, surrogate: Surrogate, data, zeta0: float = 0.01, quantity: str = "accelerance"):
+        self.sur = surrogate
+        self.data = list(data)
+        if not self.data:
+            raise CalibrationError("calibration needs at least one data set")
+        self.zeta0 = float(zeta0)
+        self.quantity = quantity
+        self._out = [surrogate.output_index(d.outputs) for d in self.data]
+        self._in = []
+        for d in self.data:
+            if d.inputs:
+                lookup = {n: i for i, n in enumerate(surrogate.input_names)}
+                missing = [n for n in d.inputs if n not in lookup]
+                if missing:
+                    raise CalibrationError(f"drives {missing} are not inputs of the model {list(surrogate.input_names)}")
+                self._in.append(np.array([lookup[n] for n in d.inputs]))
+            else:
+                if d.frf.shape[2] != surrogate.inputs.shape[1]:
+                    raise CalibrationError(
+                        f"data has {d.frf.shape[2]} drives, model has {surrogate.inputs.shape[1]}: name them"
+                    )
+                self._in.append(np.arange(d.frf.shape[2]))
+        self.n_values = sum(d.n_values for d in self.data)
+        if self.n_values == 0:
+            raise CalibrationError("no data values selected for calibration")
+        self._memo_p = None
+        self._memo = None
+
+    def deviation(self, p) -> list:
+        """eps per data set (complex, masked elements only)."""
+        out = []
+        for d, oi, ii in zip(self.data, self._out, self._in):
+            H = surrogate_frf(self.sur, p, d.freq_hz, self.zeta0, self.quantity, outputs=oi)[:, :, ii]
+            e = log_deviation(H, d.frf)
+            out.append(e if d.mask is None else e[d.mask])
+        return out
+
+    def sd(self, p) -> float:
+        return square_deviation(np.concatenate([e.ravel() for e in self.deviation(p)]))
+
+    def evaluate(self, p):
+        """(r, J): real residual (2N,) and Jacobian (2N, n_p)."""
+        p = np.asarray(p, dtype=float)
+        if self._memo_p is not None and np.array_equal(p, self._memo_p):
+            return self._memo
+        eps, deps = [], []
+        for d, oi, ii in zip(self.data, self._out, self._in):
+            H, dH = surrogate_frf_jacobian(self.sur, p, d.freq_hz, self.zeta0, self.quantity, outputs=oi)
+            H, dH = H[:, :, ii], dH[:, :, :, ii]
+            e = log_deviation(H, d.frf)
+            de = dH / (H[None] * LN10)
+            if d.mask is not None:
+                e, de = e[d.mask], de[:, d.mask]
+            eps.append(e.ravel())
+            deps.append(de.reshape(de.shape[0], -1))
+        e = np.concatenate(eps)
+        de = np.concatenate(deps, axis=1)
+        s = 1.0 / np.sqrt(e.size)
+        r = np.concatenate([e.real, e.imag]) * s
+        J = np.concatenate([de.real, de.imag], axis=1).T * s
+        self._memo_p, self._memo = p.copy(), (r, J)
+        return r, J
+
+    def residual(self, p):
+        return self.evaluate(p)[0]
+
+    def jacobian(self, p):
+        return self.evaluate(p)[1]
+
+
+@dataclass(frozen=True)
+class StartOutcome:
+    """What one start of the minimizer did.
+
+    Attributes
+    ----------
+    start, p : (n_p,) normalized parameters at the start and at the end
+    sd_start, sd : square deviation at the start and at the end
+    converged : bool (scipy status > 0)
+    message : str
+    iterations : int (Jacobian evaluations)
+    evaluations : int (residual evaluations)
+    jacobian_rank : int (numerical rank of the final Jacobian, rtol 1e-8)
+    condition : float (2-norm condition number of the final Jacobian)
+    time_s : float
+    """
+
+    start: np.ndarray
+    p: np.ndarray
+    sd_start: float
+    sd: float
+    converged: bool
+    message: str
+    iterations: int
+    evaluations: int
+    jacobian_rank: int
+    condition: float
+    time_s: float
+
+    def to_dict(self) -> dict:
+        return {
+            "start": self.start.tolist(),
+            "p": self.p.tolist(),
+            "sd_start": self.sd_start,
+            "sd": self.sd,
+            "converged": self.converged,
+            "message": self.message,
+            "iterations": self.iterations,
+            "evaluations": self.evaluations,
+            "jacobian_rank": self.jacobian_rank,
+            "condition": self.condition,
+            "time_s": self.time_s,
+        }
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """Outcome of a multi-start calibration.
+
+    Attributes
+    ----------
+    p : (n_p,) best normalized parameters
+    sd : float, square deviation at p (calibration data)
+    sd_nominal : float, square deviation at the first start (the nominal point)
+    outcomes : tuple of StartOutcome, nominal first
+    best : int, index of the chosen start
+    parameter_names : tuple of str
+    """
+
+    p: np.ndarray
+    sd: float
+    sd_nominal: float
+    outcomes: tuple
+    best: int
+    parameter_names: tuple
+
+    def to_dict(self) -> dict:
+        return {
+            "p": self.p.tolist(),
+            "sd": self.sd,
+            "sd_nominal": self.sd_nominal,
+            "best_start": self.best,
+            "parameter_names": list(self.parameter_names),
+            "starts": [o.to_dict() for o in self.outcomes],
+        }
+
+
+def latin_hypercube_starts(lower, upper, n: int, seed: int | None = 0) -> np.ndarray:
+    """``n`` Latin-hypercube points inside [lower, upper]: (n, n_p)."""
+    from scipy.stats import qmc
+
+    lower = np.asarray(lower, float)
+    upper = np.asarray(upper, float)
+    if n <= 0:
+        return np.zeros((0, lower.size))
+    u = qmc.LatinHypercube(d=lower.size, seed=seed).random(n)
+    return qmc.scale(u, lower, upper)
+
+
+def _check_bounds(lower, upper, n_p):
+    lower = np.asarray(lower, float)
+    upper = np.asarray(upper, float)
+    if lower.shape != (n_p,) or upper.shape != (n_p,):
+        raise CalibrationError(f"bounds must have {n_p} entries, got {lower.shape}, {upper.shape}")
+    if np.any(lower >= upper) or np.any(lower <= -1):
+        bad = np.flatnonzero((lower >= upper) | (lower <= -1)).tolist()
+        raise CalibrationError(f"parameter bounds invalid (need -1 < lower < upper) for parameters {bad}")
+    return lower, upper
+
+
+def run_start(args) -> StartOutcome:
+    """Minimize from one start (module-level so worker processes can run it).
+
+    ``args`` = (objectives, x0, lower, upper, max_nfev, xtol): ``objectives`` is
+    one Objective or a sequence run in turn (damping continuation), each
+    starting where the previous one stopped; the outcome reports the last.
+    """
+    from scipy.optimize import least_squares
+
+    objs, x0, lower, upper, max_nfev, xtol = args
+    if isinstance(objs, Objective):
+        objs = [objs]
+    t0 = time.perf_counter()
+    x0 = np.clip(np.asarray(x0, float), lower, upper)
+    x = x0
+    its = nfev = 0
+    res = None
+    try:
+        for obj in objs:
+            res = least_squares(
+                obj.residual,
+                x,
+                jac=obj.jacobian,
+                bounds=(lower, upper),
+                method="trf",
+                x_scale="jac",
+                xtol=xtol,
+                ftol=1e-12,
+                gtol=1e-12,
+                max_nfev=max_nfev,
+            )
+            x = np.asarray(res.x)
+            its += int(res.njev or 0)
+            nfev += int(res.nfev)
+    except CalibrationError as exc:  # e.g. reduced mass not definite far out
+        sd0 = float(np.sum(objs[-1].residual(x0) ** 2)) if res is None else np.inf
+        return StartOutcome(x0, x, sd0, np.inf, False, str(exc), its, nfev, 0, np.inf, time.perf_counter() - t0)
+    obj = objs[-1]
+    sd0 = float(np.sum(obj.residual(x0) ** 2))
+    J = obj.jacobian(x)
+    s = np.linalg.svd(J, compute_uv=False)
+    rank = int(np.sum(s > 1e-8 * s[0])) if s.size and s[0] > 0 else 0
+    cond = float(s[0] / s[-1]) if s.size and s[-1] > 0 else np.inf
+    return StartOutcome(
+        start=x0,
+        p=x,
+        sd_start=sd0,
+        sd=float(2 * res.cost),
+        converged=bool(res.status > 0),
+        message=str(res.message),
+        iterations=its,
+        evaluations=nfev,
+        jacobian_rank=rank,
+        condition=cond,
+        time_s=time.perf_counter() - t0,
+    )
+
+
+def calibrate(
+    surrogate: Surrogate,
+    data,
+    lower,
+    upper,
+    zeta0: float = 0.01,
+    n_starts: int = 20,
+    seed: int | None = 0,
+    executor=None,
+    quantity: str = "accelerance",
+    p_start=None,
+    max_nfev: int = 100,
+    xtol: float = 1e-10,
+    continuation=(),
+) -> Calibration:
+    """Multi-start bounded Levenberg-Marquardt on the surrogate.
+
+    Parameters
+    ----------
+    surrogate : Surrogate
+    data : sequence of FitData
+        Test FRFs (usually the damping-equalized identified model on the
+        half-bandwidth grid).
+    lower, upper : (n_p,) normalized bounds
+    zeta0 : float
+        Model modal damping (= the equalization damping).
+    n_starts : int
+        Number of Latin-hypercube starts besides ``p_start`` (paper: 20).
+    seed : int
+        Seed of the Latin hypercube.
+    executor : Executor, optional
+        Default: serial.
+    p_start : (n_p,), optional
+        The deterministic first start (default zeros, the nominal point).
+    max_nfev : int
+        Residual evaluations allowed per start (per stage).
+    continuation : sequence of (zeta, data)
+        Damping continuation: stages with larger damping run first from every
+        start (model damping ``zeta``, test data equalized to the same
+        ``zeta``, e.g. on a half-bandwidth grid for that ``zeta``). Wider
+        resonances make the log-ratio metric smooth over a wider basin, so
+        starts far from the optimum do not stall with a mode on the wrong
+        side of a test resonance; the final stage is (zeta0, data).
+
+    Returns
+    -------
+    Calibration
+    """
+    n_p = surrogate.n_params
+    lower, upper = _check_bounds(lower, upper, n_p)
+    objs = [Objective(surrogate, d, z, quantity) for z, d in continuation]
+    objs.append(Objective(surrogate, data, zeta0, quantity))
+    first = np.zeros(n_p) if p_start is None else np.asarray(p_start, float)
+    starts = np.vstack([first[None, :], latin_hypercube_starts(lower, upper, n_starts, seed)])
+    executor = executor or SerialExecutor()
+    outcomes = executor.map(run_start, [(objs, x0, lower, upper, max_nfev, xtol) for x0 in starts])
+    sds = np.array([o.sd for o in outcomes])
+    best = int(np.nanargmin(sds))
+    return Calibration(
+        p=outcomes[best].p,
+        sd=outcomes[best].sd,
+        sd_nominal=outcomes[0].sd_start,
+        outcomes=tuple(outcomes),
+        best=best,
+        parameter_names=surrogate.parameter_names,
+    )
+
+
+@dataclass(frozen=True)
+class CycleResult:
+    """Calibration with re-basis cycles.
+
+    Attributes
+    ----------
+    calibration : Calibration
+        The multi-start calibration of the first cycle (all start outcomes).
+    p : (n_p,) final normalized parameters
+    sd : float, final square deviation on the calibration data
+    surrogate : Surrogate built at the final basis point
+    cycles : tuple of dict, per cycle: p, sd, basis size, max parameter change, times
+    """
+
+    calibration: Calibration
+    p: np.ndarray
+    sd: float
+    surrogate: Surrogate
+    cycles: tuple
+
+    def to_dict(self) -> dict:
+        return {"p": self.p.tolist(), "sd": self.sd, "cycles": list(self.cycles), **{
+            "multistart": self.calibration.to_dict()}}
+
+
+def calibrate_cycles(
+    model,
+    data,
+    band_hz,
+    lower,
+    upper,
+    zeta0: float = 0.01,
+    n_starts: int = 20,
+    seed: int | None = 0,
+    executor=None,
+    quantity: str = "accelerance",
+    max_cycles: int = 4,
+    tol: float = 1e-4,
+    basis_factor: float = 2.0,
+    surrogate: Surrogate | None = None,
+    log=None,
+    continuation=(),
+) -> CycleResult:
+    """Calibrate; re-build the basis at the calibrated point and refine until p stops moving.
+
+    Cycle 1 is the full multi-start on a basis at the nominal point (or the
+    given ``surrogate``). Each further cycle recomputes the basis at the
+    current p and runs one start from it; cycles stop when
+    ``max |dp| < tol`` or after ``max_cycles``. ``continuation`` applies to
+    cycle 1 (see :func:`calibrate`).
+    """
+    from calibration._surrogate import build_surrogate
+
+    say = log or (lambda msg: None)
+    t0 = time.perf_counter()
+    if surrogate is None:
+        surrogate, _ = build_surrogate(model, np.zeros(model.n_params), band_hz, basis_factor)
+    t1 = time.perf_counter()
+    say(f"cycle 1: basis {surrogate.size} ({len(surrogate.basis_frequencies_hz)} modes), {n_starts + 1} starts")
+    cal = calibrate(surrogate, data, lower, upper, zeta0, n_starts, seed, executor, quantity,
+                    continuation=continuation)
+    t2 = time.perf_counter()
+    cycles = [{"cycle": 1, "p": cal.p.tolist(), "sd": cal.sd, "basis_size": surrogate.size,
+               "basis_s": t1 - t0, "fit_s": t2 - t1, "max_dp": float(np.max(np.abs(cal.p)))}]
+    p, sd = cal.p, cal.sd
+    for k in range(2, max_cycles + 1):
+        ta = time.perf_counter()
+        surrogate, _ = build_surrogate(model, p, band_hz, basis_factor)
+        tb = time.perf_counter()
+        sub = calibrate(surrogate, data, lower, upper, zeta0, 0, seed, None, quantity, p_start=p)
+        tc = time.perf_counter()
+        dp = float(np.max(np.abs(sub.p - p)))
+        cycles.append({"cycle": k, "p": sub.p.tolist(), "sd": sub.sd, "basis_size": surrogate.size,
+                       "basis_s": tb - ta, "fit_s": tc - tb, "max_dp": dp})
+        say(f"cycle {k}: sd {sub.sd:.4g}, max |dp| {dp:.2e}")
+        p, sd = sub.p, sub.sd
+        if dp < tol:
+            break
+    return CycleResult(cal, p, sd, surrogate, tuple(cycles))
