@@ -35,6 +35,7 @@ from acquisition._plan import (
 )
 from acquisition._plant import ModalPlant, PlantError
 from acquisition._simlab import Fault, ShakerModel, SimLabError, SimulatedLab
+from acquisition._uff import UffError, export_uff, import_uff
 from acquisition.runfile import (
     LineQuality,
     Run,
@@ -49,6 +50,9 @@ from acquisition.runfile import (
 
 __all__ += [
     "AcquisitionAbort",
+    "UffError",
+    "export_uff",
+    "import_uff",
     "LimitBreach",
     "OverloadAbort",
     "Plan",

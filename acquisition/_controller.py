@@ -248,8 +248,8 @@ class _Sweep:
         return _LineResult(frf=H, quality=q, norm=float(np.linalg.norm(H)))
 
 
-def _peak(fs: np.ndarray, norms: np.ndarray) -> tuple[float, float] | None:
-    """Resonance frequency and damping from three lines around a peak (1/|H|^2 is quadratic in f near it)."""
+def _parabola(fs: np.ndarray, norms: np.ndarray) -> tuple[float, float] | None:
+    """Resonance and damping from 1/|H|^2, quadratic in f within a few bandwidths of an isolated mode."""
     y = 1.0 / norms**2
     a, b, c = np.polyfit(fs, y, 2)
     if a <= 0:
@@ -258,8 +258,61 @@ def _peak(fs: np.ndarray, norms: np.ndarray) -> tuple[float, float] | None:
     ymin = c - b * b / (4 * a)
     if not (fs.min() <= fr <= fs.max()) or ymin <= 0:
         return None
-    zeta = math.sqrt(ymin / a) / fr
-    return fr, float(np.clip(zeta, 1e-4, 0.1))
+    return float(fr), float(np.clip(math.sqrt(ymin / a) / fr, 1e-4, 0.1))
+
+
+def _v_estimate(pts: list[tuple[float, float]]) -> float:
+    """Resonance from the peak line and its neighbour across the peak (1/|H| ~ |f - f_r| on the skirts)."""
+    (fa, na), (fb, nb), (fc, nc) = pts
+    fr = (fa * na + fc * nc) / (na + nc)
+    if fr > fb:
+        return (fb * nb + fc * nc) / (nb + nc)
+    return (fa * na + fb * nb) / (na + nb)
+
+
+class _PeakSearch:
+    """Locate a resonance bracketed by three lines: probe the estimated peak until the
+    bracket is about a bandwidth wide, then return (f_r, zeta) for dense lines."""
+
+    def __init__(self, pts, zeta_assumed: float, max_probes: int = 6):
+        self.pts = sorted(pts)
+        self.zeta = zeta_assumed
+        self.probes = 0
+        self.max_probes = max_probes
+
+    def _bracket(self):
+        k = int(np.argmax([n for _, n in self.pts]))
+        k = min(max(k, 1), len(self.pts) - 2)
+        return self.pts[k - 1 : k + 2]
+
+    def next_probe(self) -> float | None:
+        """Next frequency to measure, or None when the peak is located."""
+        br = self._bracket()
+        fs = np.array([f for f, _ in br])
+        ns = np.array([n for _, n in br])
+        bw = 2 * self.zeta * fs[1]
+        if fs[2] - fs[0] <= 3 * bw or self.probes >= self.max_probes:
+            return None
+        est = _parabola(fs, ns)
+        fr = est[0] if est is not None and fs[2] - fs[0] <= 10 * bw else _v_estimate(list(zip(fs, ns)))
+        fr = float(np.clip(fr, fs[0] + 0.25 * bw, fs[2] - 0.25 * bw))
+        if min(abs(f - fr) for f, _ in self.pts) < 0.25 * bw:
+            # already measured there: halve the wider side of the bracket instead
+            fr = 0.5 * (fs[0] + fs[1]) if fs[1] - fs[0] > fs[2] - fs[1] else 0.5 * (fs[1] + fs[2])
+        self.probes += 1
+        return fr
+
+    def add(self, f: float, norm: float) -> None:
+        self.pts = sorted(self.pts + [(f, norm)])
+
+    def result(self) -> tuple[float, float]:
+        br = self._bracket()
+        fs = np.array([f for f, _ in br])
+        ns = np.array([n for _, n in br])
+        est = _parabola(fs, ns)
+        if est is not None:
+            return est
+        return float(fs[int(np.argmax(ns))]), self.zeta
 
 
 def run_sweep(
@@ -330,6 +383,8 @@ def run_sweep(
     found: list[tuple[float, float]] = []
     dense_regions = [(p.frequency_hz, p.damping) for p in plan.lines.poles]
     added = 0
+    search: _PeakSearch | None = None
+    probe = None
     status, reason = "aborted", "interrupted"
     bar = None
     if progress:
@@ -356,26 +411,37 @@ def run_sweep(
             if bar is not None:
                 bar.update(1)
                 bar.set_postfix(f=f"{f:.2f}Hz", F=f"{q.force_n[0]:.3f}N", settle=f"{q.settle_time_s:.2f}s")
-            in_dense = any(abs(f - fr) <= (plan.lines.span_bandwidths + 1) * 2 * z * fr for fr, z in dense_regions)
-            if plan.refine.enabled and not in_dense:
+            if search is not None and f == probe:
+                search.add(f, res.norm)
+            elif plan.refine.enabled and not any(
+                abs(f - fr) <= (plan.lines.span_bandwidths + 1) * 2 * z * fr for fr, z in dense_regions
+            ):
                 history.append((f, res.norm))
-                if len(history) >= 3:
+                if search is None and len(history) >= 3:
                     (fa, na), (fb, nb), (fc, nc) = history[-3:]
                     if fa < fb < fc and nb > plan.refine.peak_ratio * max(na, nc):
-                        pk = _peak(np.array([fa, fb, fc]), np.array([na, nb, nc]))
-                        if pk is not None and not any(abs(pk[0] - fr) < 2 * z * fr for fr, z in dense_regions):
-                            found.append(pk)
-                            dense_regions.append(pk)
-                            new = dense_lines([], [Pole(frequency_hz=pk[0], damping=pk[1])],
-                                              plan.refine.lines_per_bandwidth, plan.refine.span_bandwidths,
-                                              plan.lines.start_hz, plan.lines.stop_hz)
-                            arr = np.asarray(done + queue)
-                            new = [x for x in new if np.min(np.abs(arr - x)) > 1e-3 * 2 * pk[1] * pk[0]]
-                            queue = sorted(new) + queue
-                            added += len(new)
-                            if bar is not None:
-                                bar.total += len(new)
-                                bar.refresh()
+                        search = _PeakSearch(history[-3:], plan.settle.assumed_damping)
+            if search is not None:
+                probe = search.next_probe()
+                if probe is not None:
+                    queue.insert(0, probe)
+                    added += 1
+                else:
+                    pk = search.result()
+                    search = None
+                    found.append(pk)
+                    dense_regions.append(pk)
+                    new = dense_lines([], [Pole(frequency_hz=pk[0], damping=pk[1])],
+                                      plan.refine.lines_per_bandwidth, plan.refine.span_bandwidths,
+                                      plan.lines.start_hz, plan.lines.stop_hz)
+                    arr = np.asarray(done + queue)
+                    spacing = 2 * pk[1] * pk[0] / plan.refine.lines_per_bandwidth
+                    new = [x for x in new if np.min(np.abs(arr - x)) > 0.3 * spacing]
+                    queue = sorted(new) + queue
+                    added += len(new)
+                if bar is not None:
+                    bar.total = len(done) + len(queue)
+                    bar.refresh()
         status, reason = "completed", "all lines measured"
     except AcquisitionAbort as exc:
         reason = str(exc)
