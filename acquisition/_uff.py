@@ -195,7 +195,7 @@ def import_uff(path, out, *, article: str | None = None, overwrite: bool = False
         fd = fd if fd is not None else _code_dir(int(s["ref_dir"]))
         axis = "XYZ"
         rname = names[0] if len(names) == 2 and names[0] else f"n{int(s['rsp_node'])}{'+-'[int(s['rsp_dir']) < 0]}{axis[abs(int(s['rsp_dir'])) - 1]}"
-        fname = names[1] if len(names) == 2 and names[1] else f"n{int(s['ref_node'])}{'+-'[int(s['ref_dir']) < 0]}{axis[abs(int(s['ref_dir'])) - 1]}"
+        fname = names[1] if len(names) == 2 and names[1] else f"ref_n{int(s['ref_node'])}{'+-'[int(s['ref_dir']) < 0]}{axis[abs(int(s['ref_dir'])) - 1]}"
         outs.setdefault(rname, (int(s["rsp_node"]), rd))
         ins.setdefault(fname, (int(s["ref_node"]), fd))
         entries.append((rname, fname, np.asarray(s["data"], dtype=complex) * scale))
