@@ -100,6 +100,7 @@ class _Lockin:
     role: str  # "force" or "response"
     index: int
     sensitivity_v_per_unit: float = 1.0
+    conditioner_gain: float = 1.0
     sens: int = 26
     oflt: int = 10
     ofsl: int = 1
@@ -142,7 +143,7 @@ class LoopbackLab:
     shaker : acquisition.ShakerModel, optional
         Electrodynamic shaker loading the drive point (see :meth:`shaker_gain`).
     noise_v_per_rthz : float
-        Input noise density of each lock-in channel (V/sqrt(Hz)).
+        Noise density of each channel referred to the sensor output (V/sqrt(Hz)).
     drive_input : int
         The plant input the shaker drives.
     seed : int
@@ -260,10 +261,15 @@ class LoopbackLab:
             return f"lockin_resp{k}"
         raise ValueError(f"channel {channel.name!r}: the loopback lab cannot measure {phys!r}")
 
-    def set_sensitivity(self, instrument: str, sensitivity_v_per_unit: float) -> None:
-        """The sensor behind a lock-in: volts per SI unit (as the user maps it)."""
+    def set_sensitivity(self, instrument: str, sensitivity_v_per_unit: float, conditioner_gain: float = 1.0) -> None:
+        """The sensor behind a lock-in: volts per SI unit at the lock-in input (sensor x conditioner).
+
+        ``conditioner_gain`` is the part of it due to the signal conditioner;
+        the noise density is referred to the sensor, so it scales with it.
+        """
         with self._lock:
             self.lockins[instrument].sensitivity_v_per_unit = float(sensitivity_v_per_unit)
+            self.lockins[instrument].conditioner_gain = float(conditioner_gain)
 
     # ------------------------------------------------------------ faults
     def inject(self, instrument: str, kind: str, match: str = "", *, skip: int = 0, count: int = 1,
@@ -366,7 +372,7 @@ class LoopbackLab:
         """X + iY in V rms at the filter output, with noise over the filter ENBW."""
         n_stages = SR830_SLOPES_DB[li.ofsl] // 6
         value = li.stages[n_stages - 1] / math.sqrt(2.0)
-        sigma = self.noise_v_per_rthz * math.sqrt(enbw_hz(SR830_TIME_CONSTANTS_S[li.oflt], SR830_SLOPES_DB[li.ofsl]))
+        sigma = self.noise_v_per_rthz * li.conditioner_gain * math.sqrt(enbw_hz(SR830_TIME_CONSTANTS_S[li.oflt], SR830_SLOPES_DB[li.ofsl]))
         value += complex(*self._rng.normal(0.0, sigma, 2))
         if abs(value) > SR830_SENSITIVITIES_V[li.sens]:
             li.status |= LIAS_OUTPUT_OVERLOAD
@@ -606,10 +612,15 @@ def loopback_visa_driver(plant, *, lab_options: dict | None = None, **driver_opt
                     next_out += 1
                 name = self.lab.lockin_for(ch)
                 gain = min(1.0, 1.0 / ch.range_v)  # the signal conditioner in front of the lock-in
-                self.lab.set_sensitivity(name, ch.sensitivity * gain)
+                self.lab.set_sensitivity(name, ch.sensitivity * gain, gain)
                 mapped.append(replace(ch, physical=self.lab.resource(name), sensitivity=ch.sensitivity * gain,
                                       range_v=ch.range_v * gain))
             return super().configure(mapped, sample_rate_hz)
+
+        @property
+        def drive_amplitude_v(self) -> float:
+            """The generator's actual output (peak V, 0 when off), read from the instrument model."""
+            return self.lab.drive_v_peak
 
         def close(self):
             try:
@@ -627,3 +638,19 @@ def loopback_visa_driver(plant, *, lab_options: dict | None = None, **driver_opt
         raise
     driver.lab = lab
     return driver
+
+
+def make_visa_driver(plant, **options):
+    """Factory ``plant -> Driver`` for the controller suite and ``frfcal acquire --driver visa --loopback``.
+
+    A :func:`loopback_visa_driver` with the simulated lab's electrodynamic
+    shaker. ``options`` go to the lab (``noise_v_per_rthz``, ``seed``,
+    ``shaker``, ``lifetime_s``...) except the driver's own keywords
+    (``timeout_ms``, ``tc_fraction``, ``filter_slope_db``, ``max_drive_v``).
+    """
+    from acquisition._simlab import ShakerModel
+
+    driver_keys = {"timeout_ms", "tc_fraction", "filter_slope_db", "max_drive_v", "ramp_step_s"}
+    driver_options = {k: v for k, v in options.items() if k in driver_keys}
+    lab_options = {"shaker": ShakerModel()} | {k: v for k, v in options.items() if k not in driver_keys}
+    return loopback_visa_driver(plant, lab_options=lab_options, **driver_options)

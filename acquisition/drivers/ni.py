@@ -405,6 +405,11 @@ class NiDaqDriver:
     def time_s(self) -> float:
         return 0.0 if not self._rate else self._read / self._rate
 
+    @property
+    def drive_amplitude_v(self) -> float:
+        """Amplitude of the drive being streamed (peak V; 0 when not streaming)."""
+        return self._gen.amplitude if (self._running and self._gen is not None) else 0.0
+
     # ------------------------------------------------------------------ safety
     def ramp_down(self, duration_s: float = 0.5) -> None:
         """Ramp the streamed drive to zero, stop both tasks and hold the AO at 0 V.

@@ -367,6 +367,11 @@ class VisaDriver:
     def time_s(self) -> float:
         return self.clock.now()
 
+    @property
+    def drive_amplitude_v(self) -> float:
+        """The drive amplitude last commanded (peak V; 0 with the output off)."""
+        return self._amplitude_v if self._output_on else 0.0
+
     # ------------------------------------------------------------------ safety
     def ramp_down(self, duration_s: float = 0.5) -> None:
         """Step the amplitude to the minimum over ``duration_s``, then switch the output off.
