@@ -131,6 +131,13 @@ class ParametricModel:
         """dM/dp_j at p (exact), (n_a, n_a)."""
         return self._mpat.combine(self.M.coefficient_jacobian(p)[:, self._j(j)], self.M.matrices)
 
+    def modes(self, p, n_modes: int, **kwargs):
+        """Normal modes of K(p), M(p) (:func:`femodel.normal_modes`; shapes on the a-set)."""
+        from femodel._modes import normal_modes
+
+        kwargs.setdefault("dofs", self.aset)
+        return normal_modes(self.stiffness(p), self.mass(p), n_modes, **kwargs)
+
     def _j(self, j) -> int:
         if isinstance(j, str):
             return self.parameters.index(j)
