@@ -11,14 +11,19 @@ Formulation (chosen to behave like Nastran's QUAD4/TRIA3, never copied from it):
   ``-h n`` (``h`` the signed distance of the grid from the mean plane), the
   usual rigid-link warping correction; rigid-body motion stays exactly
   stress-free.
-* **Membrane.** Quad: bilinear isoparametric, 2x2 Gauss for the normal
-  strains and the in-plane shear strain sampled at the centroid (selective
-  reduced integration written as a B-bar, so a full anisotropic ``dm`` is
-  honoured).  Triangle: constant strain.
+* **Membrane.** Quad: bilinear isoparametric plus the two incompatible
+  bubble modes per direction (Wilson's QM6 in Taylor's patch-test-passing
+  form), 2x2 Gauss, condensed.  On a rectangle this reproduces a Nastran
+  QUAD4 membrane stiffness published by reverse engineering to 4 digits.
+  Triangle: constant strain.
 * **Bending / transverse shear.** Reissner-Mindlin plate with independent
   rotations; quad: bilinear rotations, 2x2 Gauss bending, MITC4 assumed
   transverse shear strains (Bathe & Dvorkin 1985); triangle: constant
-  curvature, MITC3 assumed shear (Lee & Bathe 2004).
+  curvature, MITC3 assumed shear (Lee & Bathe 2004).  The transverse shear
+  flexibility is augmented by MacNeal's residual bending flexibility
+  ``L^2 / (12 D)`` (see ``RESIDUAL_BENDING_COEFF``), which removes the excess
+  stiffness of the linear plate and reproduces Nastran's coarse-mesh
+  frequencies.
 * **Drilling.** Penalty ``1e-6 K6ROT dm[2,2] * integral (theta_z - omega)^2 dA``
   with ``omega = (dv/dx - du/dy)/2`` the in-plane rotation of the membrane
   field (the K6ROT definition of the Nastran manuals); 2x2 Gauss (quad) /
@@ -275,22 +280,37 @@ def _polygon_area(xy: np.ndarray) -> np.ndarray:
     return 0.5 * np.sum(x * np.roll(y, -1, axis=1) - np.roll(x, -1, axis=1) * y, axis=1)
 
 
-def _effective_shear(ds: np.ndarray, db: np.ndarray, area: np.ndarray, coeff: float) -> np.ndarray:
+def _bending_lengths(xy: np.ndarray) -> np.ndarray:
+    """(n, 2) element lengths along the element x and y axes [m].
+
+    Quad: mean of the two sides G1G2/G4G3 and G1G4/G2G3; triangle: extent of
+    the projected nodes along x and y.
+    """
+    if xy.shape[1] == 4:
+        a = 0.5 * (np.linalg.norm(xy[:, 1] - xy[:, 0], axis=1) + np.linalg.norm(xy[:, 2] - xy[:, 3], axis=1))
+        b = 0.5 * (np.linalg.norm(xy[:, 3] - xy[:, 0], axis=1) + np.linalg.norm(xy[:, 2] - xy[:, 1], axis=1))
+        return np.stack([a, b], axis=1)
+    return xy.max(axis=1) - xy.min(axis=1)
+
+
+def _effective_shear(ds: np.ndarray, db: np.ndarray, lengths: np.ndarray, coeff: float) -> np.ndarray:
     """Transverse shear stiffness in series with the residual bending flexibility.
 
-    ``ds_eff = (ds^-1 + coeff * A / 12 * diag(1/D11, 1/D22))^-1``.  Infinite
-    entries of ``ds`` mean shear-rigid; elements without bending stiffness
-    get no transverse shear stiffness.
+    ``ds_eff = (ds^-1 + coeff / 12 * diag(a^2 / D11, b^2 / D22))^-1`` with
+    ``a, b`` the element lengths along x and y.  With ``coeff = 1`` a linear
+    (Timoshenko) element with a hinged end reproduces the exact cubic
+    (Euler-Bernoulli) stiffness: this is MacNeal's residual bending
+    flexibility.  Infinite entries of ``ds`` mean shear-rigid; elements
+    without bending stiffness get no transverse shear stiffness.
     """
     n = ds.shape[0]
     out = np.zeros((n, 2, 2))
     dbd = np.stack([db[:, 0, 0], db[:, 1, 1]], axis=1)
     plate = np.all(dbd > 0, axis=1)
     rigid = ~np.all(np.isfinite(ds), axis=(1, 2))
-    extra = np.zeros((n, 2, 2))
-    extra[plate, 0, 0] = coeff * area[plate] / (12.0 * dbd[plate, 0])
-    extra[plate, 1, 1] = coeff * area[plate] / (12.0 * dbd[plate, 1])
-    flex = extra.copy()
+    flex = np.zeros((n, 2, 2))
+    flex[plate, 0, 0] = coeff * lengths[plate, 0] ** 2 / (12.0 * dbd[plate, 0])
+    flex[plate, 1, 1] = coeff * lengths[plate, 1] ** 2 / (12.0 * dbd[plate, 1])
     soft = plate & ~rigid
     if soft.any():
         flex[soft] += np.linalg.inv(ds[soft])
@@ -298,8 +318,8 @@ def _effective_shear(ds: np.ndarray, db: np.ndarray, area: np.ndarray, coeff: fl
     out[ok] = np.linalg.inv(flex[ok])
     # shear-rigid plate without the residual term: a stiff penalty (1e4 x bending scale)
     pen = plate & ~ok
-    out[pen, 0, 0] = 1e4 * 12.0 * dbd[pen, 0] / area[pen]
-    out[pen, 1, 1] = 1e4 * 12.0 * dbd[pen, 1] / area[pen]
+    out[pen, 0, 0] = 1e4 * 12.0 * dbd[pen, 0] / lengths[pen, 0] ** 2
+    out[pen, 1, 1] = 1e4 * 12.0 * dbd[pen, 1] / lengths[pen, 1] ** 2
     keep = ~plate
     out[keep] = np.where(np.isfinite(ds[keep]), ds[keep], 0.0)
     return out
@@ -322,11 +342,12 @@ def _to_basic(rot: np.ndarray, h: np.ndarray) -> np.ndarray:
     return t
 
 
-RESIDUAL_BENDING_COEFF = 0.7
-"""Coefficient of the residual bending flexibility added in series to the
-transverse shear (MacNeal's correction of the too-stiff bilinear plate); 0.7
-with L^2 = element area reproduces Nastran's femap_exhaust and dakota_cylinder
-eigenvalues to about 0.2 % (docs/validation.md, Shells and solids)."""
+RESIDUAL_BENDING_COEFF = 1.0
+"""Coefficient of the residual bending flexibility put in series with the
+transverse shear (MacNeal's correction of the too-stiff linear plate; 1 makes
+a hinged linear element exact for a linearly varying moment).  With it the
+shell decks femap_exhaust, dakota_cylinder and nx_sine_solids agree with
+Nastran within 1 % (docs/validation.md, Shells and solids)."""
 
 
 def shell_stiffness(xyz, dm, db, ds, k6rot, ids=None, residual_bending=True) -> dict[str, np.ndarray]:
@@ -351,13 +372,13 @@ def shell_stiffness(xyz, dm, db, ds, k6rot, ids=None, residual_bending=True) -> 
     ids : array_like of int, shape (n,), optional
         Element ids used in error messages.
     residual_bending : bool, default True
-        Put the residual bending flexibility ``RESIDUAL_BENDING_COEFF * A /
-        (12 D_ii)`` in series with the transverse shear (as Nastran's QUAD4
-        does in spirit; needed to match its frequencies within 0.5 %).  With it
+        Put the residual bending flexibility ``RESIDUAL_BENDING_COEFF * L_i^2 /
+        (12 D_ii)`` (L_i the element length along axis i) in series with the transverse shear (as Nastran's QUAD4
+        does in spirit; without it coarse meshes are 2-120 % too stiff).  With it
         the ``shear`` term depends on ``ds`` and ``db`` (homogeneous of degree
         one in both together, e.g. exact under scaling of E, but not a
         monomial in the thickness); False makes it exactly linear in ``ds``
-        at the price of a 1-3 % stiffer coarse-mesh plate.
+        at the price of a much stiffer coarse-mesh plate.
 
     Returns
     -------
@@ -384,7 +405,7 @@ def shell_stiffness(xyz, dm, db, ds, k6rot, ids=None, residual_bending=True) -> 
         raise ValueError(f"PARAM,K6ROT must be >= 0, got {k6rot}")
     rot, xy, h = shell_frames(xyz, ids)
     coeff = RESIDUAL_BENDING_COEFF if residual_bending else 0.0
-    ds = _effective_shear(ds, db, np.abs(_polygon_area(xy)), coeff)
+    ds = _effective_shear(ds, db, _bending_lengths(xy), coeff)
     kdrill = 1e-6 * k6rot * dm[:, 2, 2]
     local = (_quad_local if nn == 4 else _tri_local)(xy, dm, db, ds, kdrill, ids)
     t = _to_basic(rot, h)
