@@ -654,3 +654,106 @@ def make_visa_driver(plant, **options):
     driver_options = {k: v for k, v in options.items() if k in driver_keys}
     lab_options = {"shaker": ShakerModel()} | {k: v for k, v in options.items() if k not in driver_keys}
     return loopback_visa_driver(plant, lab_options=lab_options, **driver_options)
+
+
+def _plan_plant(plan):
+    """The plant of a plan's ``[sim]`` section (inline modes or a ``.npz`` model), as ``--driver sim`` builds it."""
+    from acquisition._plant import ModalPlant
+
+    sim = plan.sim
+    if sim is None:
+        raise ValueError("the plan has no [sim] section: the loopback lab needs the plant ([sim.modes] or sim.model)")
+    if sim.modes is not None:
+        m = sim.modes
+        return ModalPlant(np.asarray(m.frequencies_hz, float), np.asarray(m.damping, float),
+                          np.asarray(m.shapes_out, float), np.asarray(m.shapes_in, float))
+    path = plan.resolve(sim.model)
+    try:
+        with np.load(path) as z:
+            arrays = [np.asarray(z[k], float) for k in ("frequencies_hz", "damping", "shapes_out", "shapes_in")]
+    except FileNotFoundError:
+        raise ValueError(f"sim.model: file {path} not found") from None
+    except KeyError as exc:
+        raise ValueError(f"sim.model {path}: missing array {exc}") from None
+    return ModalPlant(*arrays)
+
+
+def serve_plan(plan, *, drive: str | None = None, clock=None, noise_v_per_rthz: float = 20e-9,
+               lifetime_s: float = 3600.0) -> tuple[LoopbackLab, str]:
+    """Start a loopback lab for a plan and return it with the text of a matching hardware TOML file.
+
+    One lock-in per response channel of the plan, one on the force sensor of
+    ``drive`` (the drive point the shaker is on; default the first) and one,
+    mapped as ``gen_loopback``, on the generator output. Sensitivities and
+    ranges are the plan's, with the loopback signal conditioner
+    (``min(1, 1 V / range_v)``) folded in.
+    """
+    from acquisition._controller import plan_channels
+    from acquisition._simlab import ShakerModel
+    from acquisition.drivers.visa import WallClock
+
+    sensors, drives = plan_channels(plan)
+    names = [d.name for d in drives]
+    drive = drive or names[0]
+    if drive not in names:
+        raise ValueError(f"--drive {drive!r} is not a drive of the plan (have {names})")
+    plant = _plan_plant(plan)
+    if len(sensors) != plant.n_out or len(drives) != plant.n_in:
+        raise ValueError(f"the plan has {len(sensors)} sensors and {len(drives)} drives, the [sim] plant "
+                         f"{plant.n_out} outputs and {plant.n_in} inputs")
+    shaker = ShakerModel() if plan.sim.shaker == "electrodynamic" else None
+    lab = LoopbackLab(plant, clock=clock or WallClock(), shaker=shaker, noise_v_per_rthz=noise_v_per_rthz,
+                      drive_input=names.index(drive), lifetime_s=lifetime_s, seed=plan.sim.seed).start()
+    text = ['driver = "visa"', "", "[visa]", f'generator = "{lab.generator_resource}"', "timeout_ms = 3000", ""]
+    wiring = [(s, f"lockin_resp{k}") for k, s in enumerate(sensors)]
+    wiring.append((drives[names.index(drive)], f"lockin_force{names.index(drive)}"))
+    for spec, inst in wiring:
+        gain = min(1.0, 1.0 / spec.range_v)
+        lab.set_sensitivity(inst, spec.sensitivity * gain, gain)
+        text += [f"[channels.{spec.name}]", f'physical = "{lab.resource(inst)}"',
+                 f"sensitivity_mv_per_unit = {spec.sensitivity * gain * 1000:.12g}",
+                 f"range_v = {spec.range_v * gain:.12g}", ""]
+    text += ["[channels.gen_loopback]", f'physical = "{lab.resource("lockin_drive")}"',
+             "sensitivity_mv_per_unit = 1000", ""]
+    return lab, "\n".join(text)
+
+
+def main(argv=None) -> int:
+    """``python -m acquisition._scpi_server PLAN.toml --hardware-out hw.toml``: a lab to dry-run against."""
+    import argparse
+    import os
+    import time
+    from pathlib import Path
+
+    from acquisition._plan import load_plan
+
+    ap = argparse.ArgumentParser(
+        prog="python -m acquisition._scpi_server",
+        description="Serve a loopback generator and lock-ins on 127.0.0.1 answering from a plan's [sim] plant "
+                    "(wall clock), and write a hardware TOML file pointing at them.")
+    ap.add_argument("plan", help="sweep plan TOML with a [sim] section")
+    ap.add_argument("--hardware-out", required=True, help="hardware TOML file to write")
+    ap.add_argument("--drive", help="drive point the shaker is on (default: the plan's first)")
+    ap.add_argument("--lifetime-s", type=float, default=3600.0, help="stop after this many seconds (default 3600)")
+    ap.add_argument("--noise-v-per-rthz", type=float, default=20e-9, help="sensor noise density, V/sqrt(Hz)")
+    args = ap.parse_args(argv)
+    lab, text = serve_plan(load_plan(args.plan), drive=args.drive, noise_v_per_rthz=args.noise_v_per_rthz,
+                           lifetime_s=args.lifetime_s)
+    out = Path(args.hardware_out)
+    tmp = out.with_name(out.name + ".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, out)  # appears complete or not at all
+    print(f"loopback lab: generator {lab.generator_resource}; hardware file {out}; "
+          f"stops after {args.lifetime_s:g} s or Ctrl-C", flush=True)
+    try:
+        while lab._servers:
+            time.sleep(0.2)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        lab.stop()
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover - exercised through a subprocess in the tests
+    raise SystemExit(main())
