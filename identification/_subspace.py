@@ -161,14 +161,6 @@ def real_modal_form(A: np.ndarray, B: np.ndarray | None, C: np.ndarray):
     return Am, Bm, C @ T, blocks
 
 
-def _lstsq_real(R: np.ndarray, Y: np.ndarray) -> np.ndarray:
-    """Real least squares with column equilibration, rank-revealing (LAPACK gelsy)."""
-    norms = np.linalg.norm(R, axis=0)
-    norms[norms == 0] = 1.0
-    X = sla.lstsq(R / norms, Y, lapack_driver="gelsy", check_finite=False)[0]
-    return X / norms[:, None]
-
-
 def _separable(W: np.ndarray):
     """``(a, c)`` if ``W[k, i, j] == a[i] * c[j]`` for every line ``k``, else None."""
     w0 = W[0]
@@ -195,16 +187,18 @@ def _solve_normal(N: np.ndarray, rhs: np.ndarray) -> np.ndarray:
 
 
 class _NormalSystem:
-    """Structured normal equations of the ``B, D`` fit for output weights ``a``.
+    """Structured normal equations of the ``B, D`` least-squares fit.
 
     In a diagonalizing basis ``A = X diag(lam) X^-1`` the regressor of line k
-    is ``C X diag(g_k) X^-1`` with ``g_k = 1/(i omega_k - lam)``, so the
-    normal matrix is ``X^-H [(X^H C^T a^2 C X) .* (G^H G)] X^-1``: O(n_f n^2)
-    work instead of O(n_f n_out n^2) for a QR of the stacked regressor.
-    Unknowns are ordered ``[B (n rows); D (p rows)]``, one column per input.
+    is ``C X diag(g_k) X^-1`` with ``g_k = 1/(i omega_k - lam)``. With output
+    weights ``a`` (same on every line) the normal matrix is
+    ``X^-H [(X^H C^T a^2 C X) .* (G^H G)] X^-1``: O(n_f n^2) work instead of
+    O(n_f n_out n^2) for a QR of the stacked regressor. With per-line weights
+    ``w (n_f, p)`` it is one complex GEMM of the weighted regressor. Unknowns
+    are ``[B (n rows); D (p rows)]``, one column per input sharing the weights.
     """
 
-    def __init__(self, omega, a, A, C):
+    def __init__(self, omega, A, C, a=None, w=None):
         nf = omega.size
         p, n = C.shape
         lam, X = np.linalg.eig(A)
@@ -212,22 +206,30 @@ class _NormalSystem:
         self.Xi = np.linalg.inv(X)
         self.Ct = C @ X  # (p, n)
         self.G = 1.0 / (1j * omega[:, None] - lam[None, :])  # (nf, n)
-        self.a2 = a**2
-        self.V = self.Ct.conj().T * self.a2[None, :]  # (n, p) = X^H C^T A^2
-        Nbb = self.Xi.conj().T @ ((self.V @ self.Ct) * (self.G.conj().T @ self.G)) @ self.Xi
-        Nbd = self.Xi.conj().T @ (self.G.sum(axis=0).conj()[:, None] * self.V)
+        if w is None:
+            self.w2 = np.broadcast_to((a**2)[None, :], (nf, p))
+            V = self.Ct.conj().T * (a**2)[None, :]
+            Nbb = (V @ self.Ct) * (self.G.conj().T @ self.G)
+        else:
+            self.w2 = w**2
+            Phi = (w[:, :, None] * self.Ct[None, :, :] * self.G[:, None, :]).reshape(nf * p, n)
+            Nbb = Phi.conj().T @ Phi
+        Nbb = self.Xi.conj().T @ Nbb @ self.Xi
+        P = self.G.conj().T @ self.w2  # (n, p): sum_k conj(g_kr) w_ki^2
+        Nbd = self.Xi.conj().T @ (self.Ct.conj().T * P)
         N = np.zeros((n + p, n + p))
         N[:n, :n] = Nbb.real
         N[:n, n:] = Nbd.real
         N[n:, :n] = Nbd.real.T
-        N[n:, n:] = np.diag(nf * self.a2)
+        N[n:, n:] = np.diag(self.w2.sum(axis=0))
         self.N = N
 
     def rhs(self, E):
         """``Re(J^H E)`` for data or residual ``E`` (nf, p, m)."""
-        VE = np.einsum("rp,kpm->krm", self.V, E, optimize=True)
-        rb = self.Xi.conj().T @ np.einsum("kr,krm->rm", self.G.conj(), VE, optimize=True)
-        rd = self.a2[:, None] * E.sum(axis=0)
+        WE = self.w2[:, :, None] * E  # (nf, p, m)
+        Q = np.einsum("kr,kpm->rpm", self.G.conj(), WE, optimize=True)  # (n, p, m)
+        rb = self.Xi.conj().T @ np.einsum("pr,rpm->rm", self.Ct.conj(), Q, optimize=True)
+        rd = WE.sum(axis=0)
         return np.vstack([rb.real, rd.real])
 
     def model(self, x):
@@ -243,7 +245,7 @@ class _NormalSystem:
 
 def _fit_bd_separable(omega, H, a, A, C):
     """Fast ``B, D`` fit for output weights ``a`` (same on every line and input)."""
-    ns = _NormalSystem(omega, a, A, C)
+    ns = _NormalSystem(omega, A, C, a=a)
     x = ns.solve(H)
     return x[: ns.n], x[ns.n :]
 
@@ -264,7 +266,7 @@ def importance(omega: np.ndarray, H: np.ndarray, a: np.ndarray, A: np.ndarray, C
     ndarray (n_blocks,)
         ``dSSR / SSR``; >> 1 for a pole the data need, << 1 for one fitting noise.
     """
-    ns = _NormalSystem(omega, a, A, C)
+    ns = _NormalSystem(omega, A, C, a=a)
     x = ns.solve(H)
     res = (H - ns.model(x)) * a[None, :, None]
     ssr = float(np.sum(np.abs(res) ** 2))
@@ -298,27 +300,20 @@ def fit_bd(omega: np.ndarray, H: np.ndarray, W: np.ndarray, A: np.ndarray, C: np
     -----
     Weights that factor as ``W[k, i, j] = a[i] c[j]`` (per-output noise
     levels, the default) use fast structured normal equations; general
-    per-line weights use a QR least-squares solve of the stacked regressor.
+    per-line weights build the normal matrix with one GEMM per input.
     """
     nf, p, m = H.shape
     n = A.shape[0]
     sep = _separable(W)
     if sep is not None:
         return _fit_bd_separable(omega, H, sep[0], A, C)
-    lam, X = np.linalg.eig(A)
-    Xi = np.linalg.inv(X)
-    G = 1.0 / (1j * omega[:, None] - lam[None, :])  # (nf, n)
-    Phi = ((C @ X)[None, :, :] * G[:, None, :]) @ Xi  # (nf, p, n)
     B = np.empty((n, m))
     D = np.empty((p, m))
-    eye = np.broadcast_to(np.eye(p)[None], (nf, p, p))
     for j in range(m):
-        w = W[:, :, j][:, :, None]
-        R = np.concatenate([Phi * w, eye * w], axis=2).reshape(nf * p, n + p)
-        rhs = (H[:, :, j] * W[:, :, j]).reshape(nf * p, 1)
-        X = _lstsq_real(np.vstack([R.real, R.imag]), np.vstack([rhs.real, rhs.imag]))
-        B[:, j] = X[:n, 0]
-        D[:, j] = X[n:, 0]
+        ns = _NormalSystem(omega, A, C, w=W[:, :, j])
+        x = ns.solve(H[:, :, j : j + 1])
+        B[:, j] = x[:n, 0]
+        D[:, j] = x[n:, 0]
     return B, D
 
 
