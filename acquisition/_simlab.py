@@ -93,6 +93,8 @@ class SimulatedLab:
         Return raw :class:`SampleBlock` s (a DAQ) or :class:`PhasorBlock` s (lock-in amplifiers).
     n_harmonics : int
         Harmonics reported in demodulating mode.
+    amplitude_ramp_s : float
+        Amplitude changes ramp linearly over this time (the response to the ramp is exact too).
     """
 
     def __init__(
@@ -108,6 +110,7 @@ class SimulatedLab:
         seed: int = 0,
         kind: str = "sampling",
         n_harmonics: int = 5,
+        amplitude_ramp_s: float = 0.01,
     ):
         if not isinstance(plant, ModalPlant):
             raise SimLabError(f"plant must be a ModalPlant, got {type(plant).__name__}")
@@ -126,6 +129,7 @@ class SimulatedLab:
         self.faults = tuple(faults)
         self.kind = kind
         self.n_harmonics = n_harmonics
+        self.amplitude_ramp_s = float(amplitude_ramp_s)
         self._rng = np.random.default_rng(seed)
         self._build_coupled(gain_n_per_v)
         self._configured = False
@@ -133,6 +137,9 @@ class SimulatedLab:
         self._rate = None
         self._freq = 0.0
         self._amp = 0.0
+        self._target = 0.0
+        self._ramp_left = 0
+        self._slope = 0.0
         self._phase = 0.0
         self._w = np.zeros_like(self._p)
         self._faulted = False
@@ -237,38 +244,77 @@ class SimulatedLab:
         if not np.isfinite(amplitude_v) or amplitude_v < 0:
             raise DriverError(f"drive amplitude must be finite and >= 0, got {amplitude_v}")
         self._freq = float(frequency_hz)
-        self._amp = float(amplitude_v)
-        self.drive_log.append((self.time_s(), self._freq, self._amp))
+        self._start_ramp(float(amplitude_v), self.amplitude_ramp_s)
+        self.drive_log.append((self.time_s(), self._freq, float(amplitude_v)))
+
+    def _start_ramp(self, target: float, duration_s: float) -> None:
+        n = int(round(duration_s * self._rate)) if self._rate else 0
+        self._target = target
+        if n <= 0 or target == self._amp:
+            self._amp = target
+            self._ramp_left = 0
+            return
+        self._ramp_left = n
+        self._slope = (target - self._amp) / (n / self._rate)
 
     @property
     def drive_amplitude_v(self) -> float:
-        """Present drive amplitude (peak V)."""
+        """Present drive amplitude (peak V); the target once a ramp has finished."""
         return self._amp
 
-    def _advance(self, n: int) -> np.ndarray:
-        """Exact response over the next ``n`` samples: (n_rows, n) noise-free engineering units."""
+    def _segment(self, m: int, slope: float) -> tuple[np.ndarray, np.ndarray]:
+        """Exact response over ``m`` samples to ``(A0 + slope*t) cos(phase0 + w t)``."""
         rate = self._rate
         w = 2 * np.pi * self._freq
-        tau = np.arange(n) / rate
+        tau = np.arange(m) / rate
         phase = self._phase + w * tau
+        amp = self._amp + slope * tau
         p = self._p
-        coef_p = self._b * (0.5 * self._amp) / (1j * w - p)  # e^{+i phi} part of steady states
-        coef_m = self._b * (0.5 * self._amp) / (-1j * w - p)
-        wp0 = coef_p * np.exp(1j * self._phase) + coef_m * np.exp(-1j * self._phase)
-        h0 = self._w - wp0
-        E = np.exp(np.outer(p, tau))
-        S = self._C @ coef_p + (self._C @ coef_m).conj()  # steady state: Re(S e^{i phi})
+        gp = 1.0 / (1j * w - p)
+        gm = 1.0 / (-1j * w - p)
+        hb = 0.5 * self._b
+
+        def zp(a, ph):  # particular (forced) solution for a linearly ramped sinusoid
+            return hb * (np.exp(1j * ph) * (a * gp - slope * gp**2) + np.exp(-1j * ph) * (a * gm - slope * gm**2))
+
+        h0 = self._w - zp(self._amp, self._phase)
+        S1 = self._C @ (hb * gp) + (self._C @ (hb * gm)).conj()
+        S2 = self._C @ (hb * gp**2) + (self._C @ (hb * gm**2)).conj()
         c, sn = np.cos(phase), np.sin(phase)
-        y = np.outer(S.real, c) - np.outer(S.imag, sn)
-        y += ((self._C * h0) @ E).real
-        y += np.outer(self._D, self._amp * c)
-        drive = self._amp * c
-        t_end = n / rate
+        y = np.outer(S1.real, amp * c) - np.outer(S1.imag, amp * sn)
+        if slope:
+            y -= slope * (np.outer(S2.real, c) - np.outer(S2.imag, sn))
+        y += ((self._C * h0) @ np.exp(np.outer(p, tau))).real
+        drive = amp * c
+        y += np.outer(self._D, drive)
+        t_end = m / rate
         ph_end = self._phase + w * t_end
-        self._w = coef_p * np.exp(1j * ph_end) + coef_m * np.exp(-1j * ph_end) + h0 * np.exp(p * t_end)
+        a_end = self._amp + slope * t_end
+        self._w = zp(a_end, ph_end) + h0 * np.exp(p * t_end)
         self._phase = float(np.mod(ph_end, 2 * np.pi))
-        self._n += n
+        self._amp = a_end
+        self._n += m
         return y, drive
+
+    def _advance(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """Exact response over the next ``n`` samples: (n_rows, n) noise-free engineering units, drive (n,) V."""
+        ys, ds = [], []
+        while n > 0:
+            if self._ramp_left > 0:
+                m = min(n, self._ramp_left)
+                y, d = self._segment(m, self._slope)
+                self._ramp_left -= m
+                if self._ramp_left == 0:
+                    self._amp = self._target
+            else:
+                m = n
+                y, d = self._segment(m, 0.0)
+            ys.append(y)
+            ds.append(d)
+            n -= m
+        if not ys:
+            return np.zeros((self._C.shape[0], 0)), np.zeros(0)
+        return np.hstack(ys), np.concatenate(ds)
 
     def _sensor(self, y: np.ndarray, drive: np.ndarray, t0: float) -> tuple[np.ndarray, np.ndarray]:
         rows = self._rows
@@ -315,15 +361,12 @@ class SimulatedLab:
         )
 
     def ramp_down(self, duration_s: float = 0.5) -> None:
-        """Ramp the drive amplitude to zero in 20 steps over ``duration_s`` of virtual time."""
-        if self._amp > 0 and self._rate and self._freq > 0:
-            n_steps = 20
-            n = max(int(duration_s * self._rate / n_steps), 1)
-            a0 = self._amp
-            for j in range(1, n_steps + 1):
-                self._amp = a0 * (1 - j / n_steps)
-                self._advance(n)
-        self._amp = 0.0
+        """Ramp the drive amplitude linearly to zero over ``duration_s`` of virtual time."""
+        if self._rate and self._freq > 0 and (self._amp > 0 or self._ramp_left):
+            self._start_ramp(0.0, duration_s)
+            self._advance(self._ramp_left)
+        self._amp = self._target = 0.0
+        self._ramp_left = 0
         self.drive_log.append((self.time_s(), self._freq, 0.0))
 
     def close(self) -> None:
