@@ -47,6 +47,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sensor-mass-g", type=float, default=0.5, help="mass of one sensor, g (default 0.5)")
     parser.add_argument("--drive-mass-g", type=float, default=5.0, help="force sensor + stinger mass, g (default 5)")
     parser.add_argument("--no-figures", action="store_true", help="do not write the PNG figures")
+    parser.add_argument("--evaluate", metavar="LAYOUT.json",
+                        help="do not plan: print the metrics of this existing layout for the target modes")
 
 
 def run(args) -> int:
@@ -82,6 +84,8 @@ def run(args) -> int:
         drive_mass_kg=args.drive_mass_g * 1e-3,
     )
     model = femodel.read_bdf(args.model, units=args.units)
+    if args.evaluate:
+        return _evaluate(args, cfg, model)
     res = pretest.plan_pretest(model, cfg)
     out = Path(args.out)
     pretest.write_layout(out, res, model_path=args.model, units=args.units)
@@ -125,4 +129,57 @@ def run(args) -> int:
     for n, g in zip(res.drive_names, res.drives.grids):
         print(f"{n}: grid {g}")
     print(f"wrote {out}" + "".join(f"\nwrote {f}" for f in figures))
+    return 0
+
+
+def _evaluate(args, cfg, model) -> int:
+    """Metrics, drive ranking and mass loading of an existing layout file."""
+    import json
+
+    import numpy as np
+
+    import femodel
+    import pretest
+
+    lay = pretest.read_layout(args.evaluate)
+    asm = femodel.assemble(model)
+    for which in ("channels", "drives"):
+        grids = lay.grids(which)
+        missing = np.setdiff1d(grids, model.grid_ids)
+        if missing.size:
+            raise pretest.PretestError(f"{args.evaluate}: {which} grid(s) {missing.tolist()[:10]} not in {args.model}")
+    target = pretest.compute_target_modes(asm, n_modes=cfg.n_modes, band_hz=cfg.band_hz, mode_numbers=cfg.mode_numbers)
+    m = pretest.evaluate_channels(asm, lay.grids(), lay.directions(), target)
+    c = femodel.sensor_matrix(asm, lay.grids(), lay.directions())
+    rk = pretest.rank_drive_points(np.asarray(c @ target.shapes), target.frequencies_hz, criterion=cfg.drive_criterion)
+    sensor_grids = np.unique(lay.grids())
+    load_grids = np.concatenate([sensor_grids, lay.grids("drives")])
+    masses = np.concatenate([np.full(sensor_grids.size, cfg.sensor_mass_kg), np.full(len(lay.drives), cfg.drive_mass_kg)])
+    g3 = np.repeat(load_grids, 3)
+    u = np.asarray(femodel.sensor_matrix(asm, g3, np.tile(np.eye(3), (load_grids.size, 1))) @ target.shapes)
+    ml = pretest.mass_loading_shifts(target.frequencies_hz, u.reshape(load_grids.size, 3, -1), masses)
+    out = {
+        "layout": str(args.evaluate),
+        "target_modes_hz": [float(f) for f in target.frequencies_hz],
+        "target_mode_numbers": [int(i) + 1 for i in target.indices],
+        "metrics": m.as_dict(),
+        "channel_drive_ranking": [
+            {"name": lay.channels[i].name, "weakest_participation": float(rk.weakest[i]),
+             "adpr_normalized": float(rk.adpr_normalized[i])} for i in rk.order.tolist()
+        ],
+        "mass_loading_shift_hz": [float(v) for v in ml.shift_hz],
+    }
+    if args.json:
+        print(json.dumps(out))
+        return 0
+    i, j = m.automac_worst_pair
+    print(f"layout {args.evaluate}: {len(lay.channels)} channels, {len(lay.drives)} drive(s) on {args.model}")
+    print(f"target: {target.indices.size} modes, {target.frequencies_hz[0]:.2f}-{target.frequencies_hz[-1]:.2f} Hz")
+    print(f"Fisher information: log10 det {m.fim_log10_det:.3f}, condition number {m.fim_condition:.4g}")
+    print(f"autoMAC: largest off-diagonal {m.automac_max_offdiag:.4f} "
+          f"(modes {target.indices[i] + 1} and {target.indices[j] + 1})")
+    print(" mode   f (Hz)  independence  mass-load shift (Hz)")
+    for k in range(target.indices.size):
+        print(f" {target.indices[k] + 1:4d} {target.frequencies_hz[k]:9.2f} {m.mode_independence[k]:12.3f} "
+              f"{ml.shift_hz[k]:12.4f}")
     return 0

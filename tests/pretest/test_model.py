@@ -198,6 +198,13 @@ def test_cli_json_and_errors(subframe, tmp_path, capsys):
     assert len(data["target_modes_hz"]) == 8 and len(data["metrics"]["drive_candidates"]) == 3
     assert out.exists() and all((tmp_path / "cli" / f).exists() for f in ("layout_layout.png", "layout_automac.png"))
     assert json.loads(out.read_text())["channels"] == data["channels"]
+    # the same layout evaluated from its file reproduces the planner's metrics
+    rc = main(["pretest", str(ex.bdf), "--units", "mm-t-s", "--modes", "8", "--evaluate", str(out), "--json"])
+    assert rc == 0
+    ev = json.loads(capsys.readouterr().out)
+    assert ev["metrics"]["fim_condition"] == pytest.approx(data["metrics"]["fim_condition"], rel=1e-8)
+    assert ev["metrics"]["automac_max_offdiag"] == pytest.approx(data["metrics"]["automac_max_offdiag"], rel=1e-8)
+    assert ev["mass_loading_shift_hz"] == pytest.approx(data["metrics"]["mass_loading"]["shift_hz"], rel=1e-8)
     rc = main(["pretest", str(ex.bdf), "--units", "mm-t-s", "--include", "99999999", "--out", str(out)])
     assert rc == 2
     assert "99999999" in capsys.readouterr().err
