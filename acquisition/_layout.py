@@ -32,6 +32,10 @@ class Layout:
     xyz_m: dict
 
 
+#: Nominal sensitivities (V per SI unit) used when the layout gives none: 100 mV/g
+#: accelerometers and 22.5 mV/N force sensors; the hardware configuration replaces them.
+NOMINAL_SENSITIVITY = {"acceleration": 0.100 / 9.80665, "force": 0.0225}
+
 _UNITS = {"acceleration": "m/s^2", "velocity": "m/s", "displacement": "m", "force": "N", "voltage": "V"}
 
 
@@ -56,7 +60,7 @@ def _channel(path: str, entry: dict, where: str, default_role: str) -> tuple[Cha
     d = d / norm
     try:
         grid = int(entry.get("grid", 0))
-        sensitivity = float(entry.get("sensitivity_v_per_unit", entry.get("sensitivity", 1.0)))
+        sensitivity = float(entry.get("sensitivity_v_per_unit", NOMINAL_SENSITIVITY.get(quantity, 1.0)))
         range_v = float(entry.get("range_v", 10.0))
     except (TypeError, ValueError) as exc:
         raise LayoutError(f"{path}: {where} ({name}): bad numeric field: {exc}") from None
@@ -86,7 +90,8 @@ def read_layout(path) -> Layout:
     path : str or Path
         File with ``{"format": "frfcal-layout", "version": 1, "channels": [...], "drives": [...]}``;
         each entry has name, role, quantity, unit, grid, direction and optionally
-        ``sensitivity_v_per_unit``, ``range_v``, ``serial``, ``physical``, ``iepe_current_a``.
+        ``sensitivity_v_per_unit`` (default: nominal 100 mV/g or 22.5 mV/N), ``range_v``,
+        ``serial``, ``physical``, ``iepe_current_a``.
 
     Returns
     -------
