@@ -103,8 +103,9 @@ def plot_layout(model, result, path, *, title: str | None = None) -> Path:
             ax.scatter(d.xyz_m[:, i], d.xyz_m[:, j], c="tab:red", s=90, marker="*", zorder=5)
             for n, p in zip(result.drive_names, d.xyz_m):
                 ax.annotate(n, (p[i], p[j]), fontsize=8, color="tab:red", xytext=(4, -10), textcoords="offset points")
-        ax.set_xlim(lo[i] - 0.05 * extent, hi[i] + 0.05 * extent)
-        ax.set_ylim(lo[j] - 0.05 * extent, hi[j] + 0.05 * extent)
+        pad = 0.05 * extent + 1.1 * arrow  # room for the arrows pointing off the mesh
+        ax.set_xlim(lo[i] - pad, hi[i] + pad)
+        ax.set_ylim(lo[j] - pad, hi[j] + pad)
         ax.set_aspect("equal")
         ax.set_xlabel("xyz"[i] + " (m)")
         ax.set_ylabel("xyz"[j] + " (m)")
