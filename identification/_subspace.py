@@ -95,12 +95,13 @@ def subspace_basis(z: np.ndarray, H: np.ndarray, block_rows: int) -> tuple[np.nd
     """
     nf, p, m = H.shape
     q = int(block_rows)
-    zp = z[None, :] ** np.arange(q)[:, None]  # (q, nf), |z| = 1: well conditioned
-    Y = (zp[:, :, None, None] * H[None]).transpose(0, 2, 1, 3).reshape(q * p, nf * m)
-    U = (zp[:, :, None, None] * np.eye(m)[None, None]).transpose(0, 2, 1, 3).reshape(q * m, nf * m)
-    Z = np.vstack([U, Y])
-    Zr = np.hstack([Z.real, Z.imag])
-    R = np.linalg.qr(Zr.T, mode="r")  # (q(m+p), q(m+p)); Q is never formed
+    zp = z[:, None] ** np.arange(q)[None, :]  # (nf, q), |z| = 1: well conditioned
+    # [U; Y]^T built directly: rows (line, input), columns (block row, input | output)
+    ZT = np.empty((2, nf, m, q * (m + p)))
+    for part, take in ((0, np.real), (1, np.imag)):
+        ZT[part, :, :, : q * m] = take(zp[:, None, :, None] * np.eye(m)[None, :, None, :]).reshape(nf, m, q * m)
+        ZT[part, :, :, q * m :] = take(zp[:, None, :, None] * H.transpose(0, 2, 1)[:, :, None, :]).reshape(nf, m, q * p)
+    R = np.linalg.qr(ZT.reshape(2 * nf * m, q * (m + p)), mode="r")  # Q is never formed
     L22 = R[q * m :, q * m :].T
     basis, sv, _ = np.linalg.svd(L22, full_matrices=False)
     return basis, sv

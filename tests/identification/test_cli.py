@@ -16,7 +16,7 @@ from tests.identification.synthetic import ring
 
 @pytest.fixture(scope="module")
 def run_file(tmp_path_factory):
-    t = ring(n_lines=600, seed=3)
+    t = ring(n_lines=300, seed=3)
     path = tmp_path_factory.mktemp("id") / "ring.h5"
     sensors = [ChannelSpec(f"acc{i}", "response", "acceleration", "m/s^2", grid=i + 1) for i in range(20)]
     drives = [ChannelSpec(f"force{j}", "force", "force", "N", grid=j + 1) for j in range(2)]
