@@ -26,6 +26,14 @@ from acquisition._driver import ChannelSpec, DriverError, DriverInfo, PhasorBloc
 from acquisition._plant import ModalPlant
 
 
+def _exp_grid(p: np.ndarray, m: int, rate: float, chunk: int = 64) -> np.ndarray:
+    """``exp(p_s k / rate)`` for k < m, ``(n_s, m)``, as products of two short exponential tables."""
+    n_j = -(-m // chunk)
+    lo = np.exp(np.outer(p, np.arange(chunk) / rate))
+    hi = np.exp(np.outer(p, np.arange(n_j) * chunk / rate))
+    return (hi[:, :, None] * lo[:, None, :]).reshape(p.size, -1)[:, :m]
+
+
 class SimLabError(ValueError):
     """Bad simulated-lab set-up (channel mapping, parameters)."""
 
@@ -281,12 +289,14 @@ class SimulatedLab:
         S1 = self._C @ (hb * gp) + (self._C @ (hb * gm)).conj()
         S2 = self._C @ (hb * gp**2) + (self._C @ (hb * gm**2)).conj()
         c, sn = np.cos(phase), np.sin(phase)
-        y = np.outer(S1.real, amp * c) - np.outer(S1.imag, amp * sn)
-        if slope:
-            y -= slope * (np.outer(S2.real, c) - np.outer(S2.imag, sn))
-        y += ((self._C * h0) @ np.exp(np.outer(p, tau))).real
         drive = amp * c
-        y += np.outer(self._D, drive)
+        basis = [drive, amp * sn]
+        coef = [S1.real + self._D, -S1.imag]
+        if slope:
+            basis += [c, sn]
+            coef += [-slope * S2.real, slope * S2.imag]
+        y = np.stack(coef, axis=1) @ np.stack(basis)
+        y += ((self._C * h0) @ _exp_grid(p, m, rate)).real
         t_end = m / rate
         ph_end = self._phase + w * t_end
         a_end = self._amp + slope * t_end
@@ -317,20 +327,27 @@ class SimulatedLab:
         return np.hstack(ys), np.concatenate(ds)
 
     def _sensor(self, y: np.ndarray, drive: np.ndarray, t0: float) -> tuple[np.ndarray, np.ndarray]:
+        """Sensor chain: noise (EU), sensitivity to volts, clipping at the range (overload), ADC LSB."""
         rows = self._rows
-        data = np.where(rows[:, None] >= 0, y[np.maximum(rows, 0)], drive[None, :])
-        data = data + self._noise[:, None] * self._rng.standard_normal(data.shape)
+        data = y[np.maximum(rows, 0)]
+        if np.any(rows < 0):
+            data[rows < 0] = drive
+        if np.any(self._noise > 0):
+            data += self._noise[:, None] * self._rng.standard_normal(data.shape, dtype=np.float32)
         for f in self.faults:
             if f.kind == "overload":
                 k = int(round((f.at_s - t0) * self._rate))
                 if 0 <= k < data.shape[1] and 0 <= f.channel < data.shape[0]:
                     data[f.channel, k] += 3 * self._range[f.channel] / self._sens[f.channel]
-        volts = data * self._sens[:, None]
-        overload = np.any(np.abs(volts) > self._range[:, None], axis=1)
-        volts = np.clip(volts, -self._range[:, None], self._range[:, None])
         lsb = 2 * self._range / 2**self.adc_bits
-        volts = np.round(volts / lsb[:, None]) * lsb[:, None]
-        return volts / self._sens[:, None], overload
+        # in ADC counts: volts / lsb = data * sens / lsb
+        data *= (self._sens / lsb)[:, None]
+        full = (self._range / lsb)[:, None]
+        overload = np.max(np.abs(data), axis=1) > full[:, 0]
+        np.clip(data, -full, full, out=data)
+        np.rint(data, out=data)
+        data *= (lsb / self._sens)[:, None]
+        return data, overload
 
     def read_block(self, n_cycles: int) -> SampleBlock | PhasorBlock:
         if not self._configured:
