@@ -26,6 +26,7 @@ correlation of large space structures", J. Guidance, Control, and Dynamics
 from __future__ import annotations
 
 import itertools
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -314,8 +315,10 @@ class _BlockState:
 
     def _compact(self, ids: np.ndarray) -> None:
         self.ids = ids
-        self.prot = self.protected[ids]
         self.p = np.ascontiguousarray(self.phi_pad[ids])  # (n_w, k, m)
+        # 0 for deletable groups, -inf for protected (must-include) and deleted ones
+        self.penalty = np.where(self.protected[ids], -np.inf, 0.0)
+        self.n_alive = ids.size
 
     def refresh(self) -> None:
         """Recompute Q^-1 and every E block exactly from the active rows."""
@@ -337,8 +340,14 @@ class _BlockState:
         k = self.e.shape[0]
         e = self.e
         if k == 1:
-            score = 1.0 - e[0, 0]
-        elif k == 3:
+            score = self.penalty - e[0, 0]  # retention 1 - E_D, shifted by -1
+            best = score.max()
+            cand = np.flatnonzero(score >= best - _TIE_RTOL * max(abs(1.0 + best), 1.0))
+            if cand.size == 1:
+                return int(self.ids[cand[0]])
+            ids = self.ids[cand]
+            return int(ids[np.argmin(key_rank[ids])])
+        if k == 3:
             a00, a11, a22 = 1.0 - e[0, 0], 1.0 - e[1, 1], 1.0 - e[2, 2]
             score = (
                 a00 * (a11 * a22 - e[1, 2] * e[2, 1])
@@ -347,7 +356,7 @@ class _BlockState:
             )
         else:
             score = _det_i_minus(np.moveaxis(e, -1, 0))
-        score[~self.alive | self.prot] = -np.inf
+        score += self.penalty
         best = score.max()
         cand = np.flatnonzero(score >= best - _TIE_RTOL * max(abs(best), 1.0))
         if cand.size == 1:
@@ -359,6 +368,8 @@ class _BlockState:
         self.active[g] = False
         w_idx = int(np.searchsorted(self.ids, g))
         self.alive[w_idx] = False
+        self.penalty[w_idx] = -np.inf
+        self.n_alive -= 1
         b = self.p[w_idx]  # (k, m)
         n_w, k, m = self.p.shape
         if k == 1:
@@ -389,15 +400,32 @@ class _BlockState:
                     self.e[a, c] += upd
                     if c != a:
                         self.e[c, a] += upd
-        if self.alive.sum() < 0.6 * self.alive.size:
+        if self.n_alive < 0.6 * self.alive.size:
             keep = self.alive
             self._compact(self.ids[keep])
             self.e = np.ascontiguousarray(self.e[:, :, keep])
             self.alive = np.ones(self.ids.size, dtype=bool)
 
 
+@contextmanager
+def _one_blas_thread():
+    """The deletion loop is thousands of tiny BLAS calls: threads only add sync cost."""
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:
+        yield
+        return
+    with threadpool_limits(limits=1, user_api="blas"):
+        yield
+
+
 def _backward_deletion(phi_pad, active, protected, n_keep, key_rank, refresh_every) -> list[int]:
     """Greedy backward EfI deletion; returns the deleted groups in order."""
+    with _one_blas_thread():
+        return _backward_deletion_loop(phi_pad, active, protected, n_keep, key_rank, refresh_every)
+
+
+def _backward_deletion_loop(phi_pad, active, protected, n_keep, key_rank, refresh_every) -> list[int]:
     state = _BlockState(phi_pad, active.copy(), protected)
     n_modes = phi_pad.shape[2]
     if state.qinv is None:
