@@ -312,9 +312,7 @@ class NiDaqDriver:
             self._writer.write_many_sample(np.ascontiguousarray(data), timeout=self.timeout_s)
         except nidaqmx.errors.DaqError as exc:
             raise self._daq_error(exc, "the AO write") from exc
-        keep_from = max(self._history_start, self._read - int(self.buffer_s * self._rate))
-        self._history = np.concatenate([self._history[keep_from - self._history_start:], data])
-        self._history_start = keep_from
+        self._history = np.concatenate([self._history, data])  # trimmed by read_block
         self._written += n
 
     def _top_up(self) -> None:
@@ -400,6 +398,9 @@ class NiDaqDriver:
         except _nidaqmx().errors.DaqError as exc:
             raise self._daq_error(exc, "the overload query") from exc
         drive = self._history[start - self._history_start:start - self._history_start + n].copy()
+        # samples before the next block will never be asked for again
+        self._history = self._history[self._read - self._history_start:]
+        self._history_start = self._read
         return SampleBlock(t0_s=start / self._rate, rate_hz=self._rate, samples=data, overload=overload, drive=drive)
 
     def time_s(self) -> float:

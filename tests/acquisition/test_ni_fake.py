@@ -44,9 +44,12 @@ CHANNELS = (
 class FakeDevice:
     """Hardware behind the autospecced nidaqmx objects (one shared sample clock)."""
 
-    def __init__(self):
+    def __init__(self, respond=None):
+        #: ``respond(generated, n0, k) -> (n_channels, k)``: the inputs over samples n0..n0+k
+        self.respond = respond or self._respond
         self.events: list[str] = []
-        self.generated = np.zeros(0)  # every AO sample clocked out so far
+        self._gen = np.zeros(1 << 16)  # every AO sample clocked out so far (grown by doubling)
+        self._n = 0
         self.fifo = np.zeros(0)  # AO samples written but not yet generated
         self.underflow = False
         self.tasks = {}
@@ -98,14 +101,21 @@ class FakeDevice:
         self.fifo = np.concatenate([self.fifo, data])
         return data.size
 
+    @property
+    def generated(self) -> np.ndarray:
+        return self._gen[: self._n]
+
     def _clock(self, k: int) -> None:
-        if self.fifo.size < k:
+        """k ticks of the shared sample clock: k AO samples leave the FIFO (zeros once it is dry)."""
+        while self._n + k > self._gen.size:
+            self._gen = np.concatenate([self._gen, np.zeros(self._gen.size)])
+        m = min(k, self.fifo.size)
+        self._gen[self._n:self._n + m] = self.fifo[:m]
+        self._gen[self._n + m:self._n + k] = 0.0
+        self._n += k
+        self.fifo = self.fifo[m:]
+        if m < k:
             self.underflow = True
-            self.generated = np.concatenate([self.generated, self.fifo, np.zeros(k - self.fifo.size)])
-            self.fifo = np.zeros(0)
-        else:
-            self.generated = np.concatenate([self.generated, self.fifo[:k]])
-            self.fifo = self.fifo[k:]
 
     def pause(self, n_samples: int) -> None:
         """The host stalls while the hardware keeps clocking."""
@@ -113,19 +123,20 @@ class FakeDevice:
 
     def _read(self, data, number_of_samples_per_channel=-1, timeout=10.0):
         k = number_of_samples_per_channel
-        assert data.shape == (3, k) and data.dtype == np.float64
+        assert data.shape[1] == k and data.dtype == np.float64 and data.flags.c_contiguous
         self._clock(k)
         if self.underflow:
             raise nidaqmx.errors.DaqError("The generation has stopped to prevent the regeneration of old samples.",
                                           -200290)
-        g = self.generated
-        n0 = g.size - k
-        idx = np.arange(n0, g.size)
-        delayed = np.where(idx - DELAY >= 0, g[np.maximum(idx - DELAY, 0)], 0.0)
-        data[0] = 2.0 * g[n0:]
-        data[1] = 3.0 * delayed
-        data[2] = g[n0:]  # raw volts: the driver divides by the 0.5 V/V sensitivity
+        data[:] = self.respond(self.generated, self.generated.size - k, k)
         return k
+
+    @staticmethod
+    def _respond(g, n0, k):
+        idx = np.arange(n0, n0 + k)
+        delayed = np.where(idx - DELAY >= 0, g[np.maximum(idx - DELAY, 0)], 0.0)
+        # force 2 N/V; acceleration 3 (m/s^2)/V delayed; raw volts (the driver divides by 0.5 V/V)
+        return np.vstack([2.0 * g[n0:n0 + k], 3.0 * delayed, g[n0:n0 + k]])
 
 
 @pytest.fixture
