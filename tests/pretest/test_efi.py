@@ -145,3 +145,28 @@ def test_thousands_of_candidates_agree_with_exact_projector():
     ed = np.einsum("im,mn,in->i", sel, np.linalg.inv(sel.T @ sel), sel)
     np.testing.assert_allclose(res.effective_independence, ed, rtol=1e-8)
     assert res.deletion_order.size == phi.shape[0] - 20
+
+
+def test_property_random_problems_match_textbook():
+    """Woodbury-updated deletion equals the from-scratch algorithm on random problems (sizes, groups)."""
+    pytest.importorskip("hypothesis")
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
+
+    @settings(max_examples=15, deadline=None)
+    @given(
+        seed=st.integers(0, 10_000),
+        n_groups=st.integers(6, 30),
+        k=st.sampled_from([1, 2, 3]),
+        m=st.integers(1, 6),
+        keep_extra=st.integers(0, 5),
+    )
+    def check(seed, n_groups, k, m, keep_extra):
+        rng = np.random.default_rng(seed)
+        phi = rng.standard_normal((n_groups * k, m)) * rng.uniform(0.1, 10.0, size=m)
+        groups = np.repeat(np.arange(n_groups), k)
+        n_keep = min(n_groups - 1, -(-m // k) + keep_extra)
+        res = effective_independence(phi, n_keep, group_labels=groups, refresh_every=7)
+        np.testing.assert_array_equal(res.groups, naive_efi(phi, n_keep, groups))
+
+    check()
