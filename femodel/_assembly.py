@@ -17,7 +17,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from femodel._dofs import DofMap
-from femodel._model import FEModel, ModelError
+from femodel._model import FEModel, ModelError, Table
 
 Factors = tuple
 
@@ -63,7 +63,8 @@ class Assembly:
     autospc : DofMap
         DOF removed because they had neither stiffness nor mass.
     timings : dict
-        Seconds spent in element evaluation, scatter and constraints.
+        Seconds: "elements_s" (kernels and block scatter), "merge_s" (summing
+        terms with equal factors), "constraints_s" (T and AUTOSPC), "total_s".
     """
 
     model: FEModel
@@ -73,6 +74,7 @@ class Assembly:
     aset: DofMap
     autospc: DofMap
     timings: dict = field(default_factory=dict)
+    selection: np.ndarray | None = None
 
     def _sum(self, kind: str) -> sp.csr_matrix:
         n = len(self.gset)
@@ -100,6 +102,11 @@ class Assembly:
 
     def reduce(self, matrix_g) -> sp.csr_matrix:
         """T^T A T for a g-set matrix, symmetrized."""
+        if self.selection is not None:
+            a = sp.csr_matrix(matrix_g)
+            r = a[self.selection][:, self.selection].tocsr()
+            r.sort_indices()
+            return r
         r = (self.T.T @ (matrix_g @ self.T)).tocsr()
         return (0.5 * (r + r.T)).tocsr()
 
@@ -124,41 +131,129 @@ class Assembly:
         return self.T @ u_a
 
 
+class BlockPattern:
+    """Fixed CSR pattern of a set of elements and the scatter map into it.
+
+    The pattern is built once on the grid level (unique grid pairs of the
+    elements, n_el * nn^2 keys); the map takes every entry of the stacked
+    element matrices (n_el, nn*dpn, nn*dpn) straight to its slot in the CSR
+    data array, so summing a term is a single ``np.bincount`` and every term
+    on the same elements shares ``indices``/``indptr``.
+
+    Parameters
+    ----------
+    nodes : (n_el, nn) int
+        Grid row indices of the element nodes.
+    n_grids : int
+    dof_per_node : int
+        6 (T1..R3) or 3 (T1..T3; solids).
+    """
+
+    def __init__(self, nodes: np.ndarray, n_grids: int, dof_per_node: int = 6):
+        self.nodes = np.asarray(nodes, dtype=np.int64)
+        self.n_grids = int(n_grids)
+        self.dpn = int(dof_per_node)
+        self._subsets: dict = {}
+        self.map = None  # built on first use
+
+    def _build(self) -> None:
+        d = self.dpn
+        n, nn = self.nodes.shape
+        keys = (self.nodes[:, :, None] * self.n_grids + self.nodes[:, None, :]).ravel()
+        ublocks, inv = np.unique(keys, return_inverse=True)
+        brow = ublocks // self.n_grids
+        bcol = ublocks % self.n_grids
+        nb = ublocks.size
+        bptr = np.concatenate([[0], np.cumsum(np.bincount(brow, minlength=self.n_grids))])
+        cnt = np.diff(bptr)
+        row_len = np.zeros((self.n_grids, 6), np.int64)
+        row_len[:, :d] = (cnt * d)[:, None]
+        self.indptr = np.concatenate([[0], np.cumsum(row_len.ravel())])
+        self.nnz = int(self.indptr[-1])
+        idx_t = np.int32 if self.nnz < 2**31 - 1 else np.int64
+        k = np.arange(nb)
+        i = np.arange(d)
+        # slot of (block k, local row i, local col j) in the CSR data
+        pos = (
+            self.indptr[(6 * brow)[:, None, None] + i[None, :, None]]
+            + ((k - bptr[brow]) * d)[:, None, None]
+            + i[None, None, :]
+        ).astype(idx_t)
+        self.indices = np.empty(self.nnz, idx_t)
+        self.indices[pos.ravel()] = np.broadcast_to((6 * bcol)[:, None, None] + i[None, None, :], pos.shape).ravel()
+        emap = pos[inv.reshape(n, nn, nn)]  # (n, nn, nn, d, d)
+        self.map = np.ascontiguousarray(emap.transpose(0, 1, 3, 2, 4)).ravel()
+
+    def subset(self, sel) -> "BlockPattern":
+        """The pattern of the selected elements (boolean mask or slice), cached."""
+        if isinstance(sel, slice):
+            start, stop, step = sel.indices(self.nodes.shape[0])
+            if start == 0 and stop == self.nodes.shape[0] and step == 1:
+                return self
+            key = ("slice", start, stop, step)
+        else:
+            sel = np.asarray(sel)
+            if sel.dtype == bool and sel.all():
+                return self
+            key = hash(sel.tobytes())
+        if key not in self._subsets:
+            self._subsets[key] = BlockPattern(self.nodes[sel], self.n_grids, self.dpn)
+        return self._subsets[key]
+
+    def matrix(self, ke: np.ndarray) -> sp.csr_matrix:
+        """Sum element matrices ke (n_el, nn*dpn, nn*dpn) into an (n_g, n_g) CSR matrix."""
+        if self.map is None:
+            self._build()
+        data = np.bincount(self.map, weights=np.ascontiguousarray(ke, dtype=float).ravel(), minlength=self.nnz)
+        n_g = 6 * self.n_grids
+        return sp.csr_matrix((data, self.indices, self.indptr), shape=(n_g, n_g))
+
+
 class _Collector:
-    """Accumulates COO triplets per (kind, factors) and labels."""
+    """Accumulates term matrices per (kind, factors) and their labels."""
 
     def __init__(self, n: int):
         self.n = n
         self.parts: dict[tuple, list] = {}
         self.labels: dict[tuple, list] = {}
 
-    def add(self, kind: str, factors, label: str, ke: np.ndarray, dofs: np.ndarray, scale=None):
-        """ke (n_el, d, d), dofs (n_el, d) g-set indices, scale (n_el,) or None."""
-        if ke.shape[0] == 0:
-            return
-        factors = tuple(sorted(factors))
-        if scale is not None:
-            ke = ke * np.asarray(scale, dtype=float)[:, None, None]
-        d = dofs.shape[1]
-        rows = np.broadcast_to(dofs[:, :, None], (dofs.shape[0], d, d)).astype(np.int32).ravel()
-        cols = np.broadcast_to(dofs[:, None, :], (dofs.shape[0], d, d)).astype(np.int32).ravel()
-        key = (kind, factors)
-        self.parts.setdefault(key, []).append((rows, cols, ke.ravel()))
+    def _store(self, kind, factors, label, m):
+        key = (kind, tuple(sorted(factors)))
+        self.parts.setdefault(key, []).append(m)
         lab = self.labels.setdefault(key, [])
         if label not in lab:
             lab.append(label)
+
+    def add(self, kind: str, factors, label: str, ke: np.ndarray, pattern: "BlockPattern", scale=None):
+        """Element matrices ke (n_el, d, d) on ``pattern`` (same elements), scaled per element."""
+        if ke.shape[0] == 0:
+            return
+        if scale is not None:
+            ke = ke * np.asarray(scale, dtype=float)[:, None, None]
+        ke = 0.5 * (ke + np.swapaxes(ke, 1, 2))
+        self._store(kind, factors, label, pattern.matrix(ke))
+
+    def add_dofs(self, kind: str, factors, label: str, ke: np.ndarray, dofs: np.ndarray, scale=None):
+        """Element matrices ke (n_el, d, d) on explicit g-set DOF (n_el, d) (scalar springs)."""
+        if scale is not None:
+            ke = ke * np.asarray(scale, dtype=float)[:, None, None]
+        d = dofs.shape[1]
+        rows = np.broadcast_to(dofs[:, :, None], (dofs.shape[0], d, d)).ravel()
+        cols = np.broadcast_to(dofs[:, None, :], (dofs.shape[0], d, d)).ravel()
+        m = sp.csr_matrix((ke.ravel(), (rows, cols)), shape=(self.n, self.n))
+        m.sum_duplicates()
+        self._store(kind, factors, label, m)
 
     def terms(self) -> tuple:
         out = []
         for key in sorted(self.parts, key=lambda k: (k[0], str(k[1]))):
             kind, factors = key
             parts = self.parts[key]
-            r = np.concatenate([p[0] for p in parts])
-            c = np.concatenate([p[1] for p in parts])
-            v = np.concatenate([p[2] for p in parts])
-            m = sp.csr_matrix((v, (r, c)), shape=(self.n, self.n))
-            m.sum_duplicates()
-            m = (0.5 * (m + m.T)).tocsr()
+            m = parts[0]
+            for extra in parts[1:]:
+                m = m + extra
+            m = m.tocsr()
+            m.sort_indices()
             fac = ", ".join(f"{a[0]} {a[1]} {a[2]}" + (f"^{e}" if e != 1 else "") for a, e in factors) or "constant"
             out.append(MatrixTerm(kind, factors, m, f"{kind} ~ {fac}: " + "; ".join(self.labels[key])))
         return tuple(out)
@@ -251,7 +346,7 @@ def assemble(model: FEModel) -> Assembly:
     n = len(gset)
     kg = sp.csr_matrix((n, n)) if kg is None else kg.tocsr()
     mg = sp.csr_matrix((n, n)) if mg is None else mg.tocsr()
-    T, aset, auto = constraint_transformation(model, gset, kg, mg)
+    T, aset, auto, selection = constraint_transformation(model, gset, kg, mg)
     t3 = time.perf_counter()
     asm = Assembly(
         model=model,
@@ -260,7 +355,8 @@ def assemble(model: FEModel) -> Assembly:
         T=T,
         aset=aset,
         autospc=auto,
-        timings={"elements_s": t1 - t0, "scatter_s": t2 - t1, "constraints_s": t3 - t2, "total_s": t3 - t0},
+        timings={"elements_s": t1 - t0, "merge_s": t2 - t1, "constraints_s": t3 - t2, "total_s": t3 - t0},
+        selection=selection,
     )
     # seed the cached sums with the matrices already formed
     asm.__dict__["_kg"] = kg
@@ -291,7 +387,7 @@ def _add_bars(model, col, cd_axes, wt):
             prop["A"][pr], prop["I1"][pr], prop["I2"][pr], prop["J"][pr], E, G, prop["k1"][pr], prop["k2"][pr],
             coupled=model.coupmass, torsion_inertia=(card == "CBEAM"), ids=tab.ids, what=card,
         )
-        dofs = _dofs(nodes)
+        pat = BlockPattern(nodes, model.n_grids)
         kE = _to_cd(out["stiffness_E"], nodes, cd_axes, 6)
         kG = _to_cd(out["stiffness_G"], nodes, cd_axes, 6)
         mu = _to_cd(out["mass_unit"], nodes, cd_axes, 6)
@@ -304,13 +400,13 @@ def _add_bars(model, col, cd_axes, wt):
             sel = pids == pid
             mid = int(mids[sel][0])
             lab = f"{card} {pcard[sel][0]} {int(pid)}"
-            col.add("K", [(("MAT1", mid, "E"), 1)], lab + " axial+bending", kE[sel], dofs[sel], E[sel])
-            col.add("K", [_g_factor(mid, bool(follows[sel][0]))], lab + " torsion", kG[sel], dofs[sel], G[sel])
-            col.add("M", [(("MAT1", mid, "RHO"), 1)], lab + " mass", mu[sel], dofs[sel], wt * rho[sel] * A[sel])
+            col.add("K", [(("MAT1", mid, "E"), 1)], lab + " axial+bending", kE[sel], pat.subset(sel), E[sel])
+            col.add("K", [_g_factor(mid, bool(follows[sel][0]))], lab + " torsion", kG[sel], pat.subset(sel), G[sel])
+            col.add("M", [(("MAT1", mid, "RHO"), 1)], lab + " mass", mu[sel], pat.subset(sel), wt * rho[sel] * A[sel])
             if mt is not None:
-                col.add("M", [(("MAT1", mid, "RHO"), 1)], lab + " torsional inertia", mt[sel], dofs[sel], wt * rho[sel])
+                col.add("M", [(("MAT1", mid, "RHO"), 1)], lab + " torsional inertia", mt[sel], pat.subset(sel), wt * rho[sel])
             if np.any(nsm[sel] != 0):
-                col.add("M", [], lab + " NSM", mu[sel], dofs[sel], wt * nsm[sel])
+                col.add("M", [], lab + " NSM", mu[sel], pat.subset(sel), wt * nsm[sel])
 
 
 def _add_rods(model, col, cd_axes, wt):
@@ -338,7 +434,7 @@ def _add_rods(model, col, cd_axes, wt):
         E, G, _, rho, follows = _mat(model, mids, card)
         nodes = model.grid_index(tab["nodes"].ravel(), what=f"{card} grid").reshape(-1, 2)
         out = rod_matrices(model.xyz[nodes[:, 0]], model.xyz[nodes[:, 1]], A, J, coupled=model.coupmass, ids=tab.ids)
-        dofs = _dofs(nodes)
+        pat = BlockPattern(nodes, model.n_grids)
         kE = _to_cd(out["stiffness_E"], nodes, cd_axes, 6)
         kG = _to_cd(out["stiffness_G"], nodes, cd_axes, 6)
         mu = _to_cd(out["mass_unit"], nodes, cd_axes, 6)
@@ -346,12 +442,12 @@ def _add_rods(model, col, cd_axes, wt):
         for mid in np.unique(mids):
             sel = mids == mid
             lab = ", ".join(sorted({pname(g) for g in groups[sel]})[:3]) + (" ..." if len(set(groups[sel].tolist())) > 3 else "")
-            col.add("K", [(("MAT1", int(mid), "E"), 1)], lab + " axial", kE[sel], dofs[sel], E[sel])
+            col.add("K", [(("MAT1", int(mid), "E"), 1)], lab + " axial", kE[sel], pat.subset(sel), E[sel])
             if np.any(J[sel] != 0):
-                col.add("K", [_g_factor(int(mid), bool(follows[sel][0]))], lab + " torsion", kG[sel], dofs[sel], G[sel])
-            col.add("M", [(("MAT1", int(mid), "RHO"), 1)], lab + " mass", mu[sel], dofs[sel], wt * rho[sel] * A[sel])
+                col.add("K", [_g_factor(int(mid), bool(follows[sel][0]))], lab + " torsion", kG[sel], pat.subset(sel), G[sel])
+            col.add("M", [(("MAT1", int(mid), "RHO"), 1)], lab + " mass", mu[sel], pat.subset(sel), wt * rho[sel] * A[sel])
             if np.any(nsm[sel] != 0):
-                col.add("M", [], lab + " NSM", mu[sel], dofs[sel], wt * nsm[sel])
+                col.add("M", [], lab + " NSM", mu[sel], pat.subset(sel), wt * nsm[sel])
 
 
 def _add_springs(model, col):
@@ -377,7 +473,7 @@ def _add_springs(model, col):
                 fac, lab = [(("PELAS", pid, "K1"), 1)], f"CELAS1 PELAS {pid}"
             else:
                 fac, lab = [(("CELAS2", int(tab.ids[i]), "K"), 1)], f"CELAS2 {int(tab.ids[i])}"
-            col.add("K", fac, lab, ke, np.array([dofs]), np.array([k[i]]))
+            col.add_dofs("K", fac, lab, ke, np.array([dofs]), np.array([k[i]]))
 
 
 def _add_bushes(model, col, cd_axes):
@@ -399,7 +495,7 @@ def _add_bushes(model, col, cd_axes):
     nb = np.where(grounded, na, model.grid_index(np.where(grounded, raw[:, 0], raw[:, 1]), what="CBUSH grid"))
     nodes = np.column_stack([na, nb])
     kk = bush_matrices(model.xyz[na], model.xyz[nb], tab["axes"], tab["s"], grounded)
-    dofs = _dofs(nodes)
+    pat = BlockPattern(nodes, model.n_grids)
     kvals = prop["k"][pr]
     pids = tab["pid"]
     for i in range(6):
@@ -407,7 +503,7 @@ def _add_bushes(model, col, cd_axes):
         for pid in np.unique(pids):
             sel = (pids == pid) & (kvals[:, i] != 0)
             if np.any(sel):
-                col.add("K", [(("PBUSH", int(pid), f"K{i + 1}"), 1)], f"CBUSH PBUSH {int(pid)} K{i + 1}", ke[sel], dofs[sel], kvals[sel, i])
+                col.add("K", [(("PBUSH", int(pid), f"K{i + 1}"), 1)], f"CBUSH PBUSH {int(pid)} K{i + 1}", ke[sel], pat.subset(sel), kvals[sel, i])
 
 
 def _add_conm2(model, col, cd_axes, wt):
@@ -420,12 +516,13 @@ def _add_conm2(model, col, cd_axes, wt):
     m_unit, mi = conm2_matrices(tab["offset"], tab["inertia"])
     m_unit = _to_cd(m_unit, nodes, cd_axes, 6)
     mi = _to_cd(mi, nodes, cd_axes, 6)
-    dofs = _dofs(nodes)
+    pat = BlockPattern(nodes, model.n_grids)
     mass = tab["mass"]
     for i, eid in enumerate(tab.ids.tolist()):
-        col.add("M", [(("CONM2", eid, "M"), 1)], f"CONM2 {eid} mass", m_unit[i : i + 1], dofs[i : i + 1], [wt * mass[i]])
+        one = pat.subset(slice(i, i + 1))
+        col.add("M", [(("CONM2", eid, "M"), 1)], f"CONM2 {eid} mass", m_unit[i : i + 1], one, [wt * mass[i]])
         if np.any(mi[i] != 0):
-            col.add("M", [], f"CONM2 {eid} inertia", mi[i : i + 1], dofs[i : i + 1], [wt])
+            col.add("M", [], f"CONM2 {eid} inertia", mi[i : i + 1], one, [wt])
 
 
 def _plane_stress(E, nu):
@@ -450,6 +547,10 @@ def _add_shells(model, col, cd_axes, wt):
         raise ModelError(f"{'/'.join(cards)} elements but no PSHELL defined")
     for card in cards:
         tab = model.elements[card]
+        perm = np.argsort(tab["pid"], kind="stable")
+        if np.any(perm != np.arange(len(tab))):
+            # group elements by property so that each group is a contiguous slice (views, no copies)
+            tab = Table(tab.card, tab.ids[perm], {key: v[perm] for key, v in tab.fields.items()})
         try:
             pr = prop.rows(tab["pid"])
         except ModelError as exc:
@@ -491,32 +592,32 @@ def _add_shells(model, col, cd_axes, wt):
             ds[rigid_shear] = np.eye(2)[None] * (1e3 * G2r * t[rigid_shear])[:, None, None]
         k = shell_stiffness(xyz, dm, db, ds, model.k6rot, ids=tab.ids)
         mu_unit = shell_mass(xyz, np.ones(n), model.coupmass, ids=tab.ids)
-        dofs = _dofs(nodes)
+        pat = BlockPattern(nodes, model.n_grids)
         for key in k:
             k[key] = _to_cd(k[key], nodes, cd_axes, 6)
         mu_unit = _to_cd(mu_unit, nodes, cd_axes, 6)
         pids = tab["pid"]
         mat = model.materials.get("MAT1")
-        for pid in np.unique(pids):
-            sel = pids == pid
-            i0 = np.flatnonzero(sel)[0]
+        upids, first, counts = np.unique(pids, return_index=True, return_counts=True)
+        for pid, i0, cnt in zip(upids, first, counts):
+            sel = slice(int(i0), int(i0 + cnt))
             lab = f"{card} PSHELL {int(pid)}"
             T = ("PSHELL", int(pid), "T")
             if m1[i0] > 0:
                 f = [(("MAT1", int(m1[i0]), "E"), 1), (T, 1)]
-                col.add("K", f, lab + " membrane", k["membrane"][sel], dofs[sel])
-                col.add("K", f, lab + " drilling", k["drill"][sel], dofs[sel])
-                col.add("M", [(("MAT1", int(m1[i0]), "RHO"), 1), (T, 1)], lab + " mass", mu_unit[sel], dofs[sel], wt * rho[sel] * t[sel])
+                col.add("K", f, lab + " membrane", k["membrane"][sel], pat.subset(sel))
+                col.add("K", f, lab + " drilling", k["drill"][sel], pat.subset(sel))
+                col.add("M", [(("MAT1", int(m1[i0]), "RHO"), 1), (T, 1)], lab + " mass", mu_unit[sel], pat.subset(sel), wt * rho[sel] * t[sel])
             if m2[i0] > 0:
-                col.add("K", [(("MAT1", int(m2[i0]), "E"), 1), (T, 3)], lab + " bending", k["bending"][sel], dofs[sel])
+                col.add("K", [(("MAT1", int(m2[i0]), "E"), 1), (T, 3)], lab + " bending", k["bending"][sel], pat.subset(sel))
                 if m3[i0] > 0:
                     r3 = mat.rows([m3[i0]])[0]
                     gf = _g_factor(int(m3[i0]), bool(mat["g_follows_e"][r3]))
-                    col.add("K", [gf, (T, 1)], lab + " transverse shear", k["shear"][sel], dofs[sel])
+                    col.add("K", [gf, (T, 1)], lab + " transverse shear", k["shear"][sel], pat.subset(sel))
                 else:
-                    col.add("K", [(("MAT1", int(m2[i0]), "E"), 1), (T, 1)], lab + " transverse shear (rigid penalty)", k["shear"][sel], dofs[sel])
+                    col.add("K", [(("MAT1", int(m2[i0]), "E"), 1), (T, 1)], lab + " transverse shear (rigid penalty)", k["shear"][sel], pat.subset(sel))
             if np.any(nsm[sel] != 0):
-                col.add("M", [], lab + " NSM", mu_unit[sel], dofs[sel], wt * nsm[sel])
+                col.add("M", [], lab + " NSM", mu_unit[sel], pat.subset(sel), wt * nsm[sel])
 
 
 def _iso_c(E, nu):
@@ -555,9 +656,9 @@ def _add_solids(model, col, cd_axes, wt):
         m = solid_mass(xyz, np.ones(len(tab)), model.coupmass, ids=tab.ids)
         k = _to_cd(k, nodes, cd_axes, 3)
         m = _to_cd(m, nodes, cd_axes, 3)
-        dofs = _dofs(nodes, (0, 1, 2))
+        pat = BlockPattern(nodes, model.n_grids, 3)
         for mid in np.unique(mids):
             sel = mids == mid
             lab = f"{tab.card} PSOLID {','.join(str(int(p)) for p in np.unique(tab['pid'][sel])[:3])}"
-            col.add("K", [(("MAT1", int(mid), "E"), 1)], lab + " stiffness", k[sel], dofs[sel], E[sel])
-            col.add("M", [(("MAT1", int(mid), "RHO"), 1)], lab + " mass", m[sel], dofs[sel], wt * rho[sel])
+            col.add("K", [(("MAT1", int(mid), "E"), 1)], lab + " stiffness", k[sel], pat.subset(sel), E[sel])
+            col.add("M", [(("MAT1", int(mid), "RHO"), 1)], lab + " mass", m[sel], pat.subset(sel), wt * rho[sel])

@@ -127,7 +127,8 @@ def rigid_rows(model: FEModel, cd_axes=None):
 
 
 def constraint_transformation(model: FEModel, gset: DofMap, kg, mg):
-    """T (n_g, n_a), the independent DofMap, and the DofMap of AUTOSPC'd DOF.
+    """T (n_g, n_a), the independent DofMap, the DofMap of AUTOSPC'd DOF, and the
+    g-set indices of the a-set when T is a plain selection (no rigid elements), else None.
 
     Raises
     ------
@@ -179,10 +180,14 @@ def constraint_transformation(model: FEModel, gset: DofMap, kg, mg):
     keep = ~spc[indep]
 
     # AUTOSPC: independent DOF with neither stiffness nor mass
-    Tk = T[:, keep] if not np.all(keep) else T
-    kd = np.asarray((Tk.multiply(kg @ Tk)).sum(axis=0)).ravel()
-    md = np.asarray((Tk.multiply(mg @ Tk)).sum(axis=0)).ravel()
     kept_idx = indep[keep]
+    if dep.size == 0:
+        kd = kg.diagonal()[kept_idx]
+        md = mg.diagonal()[kept_idx]
+    else:
+        Tk = T[:, keep] if not np.all(keep) else T
+        kd = np.asarray((Tk.multiply(kg @ Tk)).sum(axis=0)).ravel()
+        md = np.asarray((Tk.multiply(mg @ Tk)).sum(axis=0)).ravel()
     is_rot = gset.component[kept_idx] >= 4
     empty = np.zeros(kept_idx.size, bool)
     for sel in (is_rot, ~is_rot):
@@ -197,7 +202,8 @@ def constraint_transformation(model: FEModel, gset: DofMap, kg, mg):
     final = np.flatnonzero(keep)[~empty]
     T = T[:, final].tocsr()
     aset = gset.subset(indep[final])
-    return T, aset, auto
+    selection = indep[final] if dep.size == 0 else None
+    return T, aset, auto, selection
 
 
 def _sparse_solve(A, B):
