@@ -86,6 +86,11 @@ class Poles:
         return pole_damping(self.eigenvalues)
 
     @property
+    def label(self) -> tuple[str, ...]:
+        """Alias of :attr:`labels` (one label per pole)."""
+        return self.labels
+
+    @property
     def physical(self) -> np.ndarray:
         """Boolean mask of the poles labelled ``"physical"``."""
         return np.array([s == "physical" for s in self.labels], dtype=bool)
