@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 import time
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
@@ -57,7 +57,6 @@ class Modes:
     n_threads: int | None = None
     rigid_tol_hz: float = RIGID_TOL_HZ
     dofs: DofMap | None = None
-    extra: dict = field(default_factory=dict)
 
     @property
     def n_modes(self) -> int:
@@ -165,7 +164,7 @@ def normal_modes(K, M, n_modes: int, *, shift_hz=None, solver: str = "auto", n_t
     k = min(int(n_modes), n)
     with _limit_threads(n_threads) as nt:
         t0 = time.perf_counter()
-        if solver == "dense" or n <= DENSE_MAX_DOF:
+        if solver == "dense" or n <= DENSE_MAX_DOF or k >= n - 1:
             import scipy.linalg as sl
 
             A = (K - sigma * M).toarray()
