@@ -12,7 +12,7 @@ vectors: no reassembly, no sparse-matrix algebra.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +22,7 @@ from femodel._affine import AffineMatrix
 from femodel._params import ParameterError, ParameterSet, read_parameters
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class _Pattern:
     """Shared CSR pattern and, per term, where its entries go in it."""
 
@@ -66,6 +66,68 @@ def _canonical(m) -> sp.csr_matrix:
 
 
 @dataclass(frozen=True)
+class SeriesAffineMatrix(AffineMatrix):
+    """An :class:`AffineMatrix` whose terms may be two monomials in series.
+
+    Term k scales with
+
+        c_k(p) = (1 + r_k) u v / (v + r_k u),   u = prod_j (1 + p_j)^a_kj,
+                                                v = prod_j (1 + p_j)^b_kj,
+
+    i.e. the stiffness of two springs in series, 1/c = (1/u + r/v)/(1 + r),
+    normalized so that c_k(0) = 1. With r_k = 0 the term is the monomial u.
+    Shell transverse shear with the residual bending flexibility is such a
+    term: u ~ G t (shear), v ~ E t^3 / L^2 (residual bending), r = u0/v0.
+
+    Parameters
+    ----------
+    matrices, exponents
+        As :class:`AffineMatrix` (``exponents`` holds a_kj).
+    series_exponents : (n_terms, n_params) array
+        b_kj (ignored where r_k = 0).
+    series_ratio : (n_terms,) array
+        r_k >= 0.
+    """
+
+    series_exponents: np.ndarray = None
+    series_ratio: np.ndarray = None
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        n = len(self.matrices)
+        b = self.exponents.copy() if self.series_exponents is None else np.asarray(self.series_exponents, float)
+        r = np.zeros(n) if self.series_ratio is None else np.asarray(self.series_ratio, float)
+        if b.shape != self.exponents.shape or r.shape != (n,) or np.any(r < 0):
+            raise ValueError("SeriesAffineMatrix: series_exponents must match exponents and series_ratio be (n_terms,) >= 0")
+        object.__setattr__(self, "series_exponents", b)
+        object.__setattr__(self, "series_ratio", r)
+
+    def _uv(self, p):
+        q = (1.0 + p)[None, :]
+        return np.prod(q**self.exponents, axis=1), np.prod(q**self.series_exponents, axis=1)
+
+    def coefficients(self, p) -> np.ndarray:
+        p = self._check(p)
+        u, v = self._uv(p)
+        r = self.series_ratio
+        return (1.0 + r) * u * v / (v + r * u)
+
+    def coefficient_jacobian(self, p) -> np.ndarray:
+        p = self._check(p)
+        u, v = self._uv(p)
+        r = self.series_ratio
+        c = (1.0 + r) * u * v / (v + r * u)
+        # dc/dp_j = c^2/(1+r) (a_j/u + r b_j/v) / (1 + p_j)
+        g = (self.exponents / u[:, None] + (r / v)[:, None] * self.series_exponents) / (1.0 + p)[None, :]
+        return (c**2 / (1.0 + r))[:, None] * g
+
+    def projected(self, basis) -> "SeriesAffineMatrix":
+        reduced = AffineMatrix.projected(self, basis)
+        return SeriesAffineMatrix(reduced.matrices, self.exponents.copy(), self.series_exponents.copy(),
+                                  self.series_ratio.copy())
+
+
+@dataclass(frozen=True, eq=False)
 class ParametricModel:
     """K(p) and M(p) of a deck as exact functions of normalized parameters.
 
@@ -92,14 +154,14 @@ class ParametricModel:
     parameters: ParameterSet
     nominal: np.ndarray
     nominal_values: tuple
-    K: AffineMatrix
-    M: AffineMatrix
-    aset: object
-    assembly: object
-    bdf: Path
-    units: str
-    _kpat: _Pattern
-    _mpat: _Pattern
+    K: AffineMatrix = field(repr=False)
+    M: AffineMatrix = field(repr=False)
+    aset: object = field(repr=False)
+    assembly: object = field(repr=False)
+    bdf: Path = None
+    units: str = "si"
+    _kpat: _Pattern = field(default=None, repr=False)
+    _mpat: _Pattern = field(default=None, repr=False)
 
     @property
     def n_params(self) -> int:
@@ -243,13 +305,131 @@ def _nominal_from_model(params: ParameterSet, fe, source) -> list[np.ndarray]:
     return out
 
 
-def _grouped_terms(assembly, params: ParameterSet, kind: str, source):
-    """Sum g-set terms of one kind by exponent row; reduce each sum by T once."""
+def _key_index(params: ParameterSet) -> dict:
     key_index = params.key_to_index()
     # a MAT1 E parameter also moves G (G follows E, or is scaled with it on write-back)
     for (card, cid, fld), j in list(key_index.items()):
         if card == "MAT1" and fld == "E":
             key_index.setdefault(("MAT1", cid, "G"), j)
+    return key_index
+
+
+def _shell_shear_series(assembly, params: ParameterSet, key_index: dict):
+    """Exact parametric form of shell transverse shear with residual bending flexibility.
+
+    The shell kernel puts the transverse shear stiffness G ts t of each element
+    in series with the residual bending flexibility L_i^2 / (12 D_ii), so the
+    shear term is a rational function of t (and of E when the bending and
+    shear materials carry different parameters) rather than a monomial. For
+    the elements where it matters this returns
+
+    * ``corrections``: (exponent row, g-set matrix) pairs that remove the
+      nominal shear from the assembly's monomial terms, and
+    * ``series``: (a row, b row, ratio, g-set matrix) terms with the exact
+      coefficient of :class:`SeriesAffineMatrix`, elements grouped by equal
+      (rows, ratio) per direction.
+    """
+    from femodel._assembly import _dofs, _to_cd
+    from femodel._elements_shell import RESIDUAL_BENDING_COEFF, _bending_lengths, shell_frames, shell_stiffness
+
+    fe = assembly.model
+    coeff = float(RESIDUAL_BENDING_COEFF)
+    prop = fe.properties.get("PSHELL")
+    mat = fe.materials.get("MAT1")
+    n_par = len(params)
+    if coeff == 0.0 or prop is None or mat is None:
+        return [], []
+    cd_axes = fe.cd_axes() if np.any(fe.cd != 0) else None
+    n_g = len(assembly.gset)
+    corrections, series = [], []
+    for card in ("CQUAD4", "CTRIA3"):
+        tab = fe.elements.get(card)
+        if tab is None or len(tab) == 0:
+            continue
+        pr = prop.rows(tab["pid"])
+        m2, m3 = prop["mid2"][pr], prop["mid3"][pr]
+        pids = tab["pid"]
+
+        def jrow(keys):
+            return np.array([key_index.get(k, -1) for k in keys], dtype=np.int64)
+
+        jt = jrow([("PSHELL", int(q), "T") for q in pids])
+        jb = jrow([("MAT1", int(m), "E") for m in m2])
+        ja = np.where(m3 > 0, jrow([("MAT1", int(m), "E") for m in m3]), jb)
+        need = (m2 > 0) & ((jt >= 0) | (ja != jb))
+        if not np.any(need):
+            continue
+        idx = np.flatnonzero(need)
+        n = idx.size
+        t_p = prop["t"][pr][idx]
+        t_el = tab["t"][idx]
+        t = np.where(np.all(np.isnan(t_el), axis=1), t_p,
+                     np.nanmean(np.where(np.isnan(t_el), t_p[:, None], t_el), axis=1))
+        rows2 = mat.rows(m2[idx])
+        E2, nu2 = mat["E"][rows2], mat["NU"][rows2]
+        dbd = E2 / (1.0 - nu2**2) * prop["bending_ratio"][pr][idx] * t**3 / 12.0
+        has3 = m3[idx] > 0
+        a0 = np.empty(n)
+        if np.any(has3):
+            rows3 = mat.rows(m3[idx][has3])
+            a0[has3] = mat["G"][rows3] * prop["ts_t"][pr][idx][has3] * t[has3]
+        if np.any(~has3):  # MID3 blank: the assembly's stiff shear penalty, 1e3 G2 t
+            a0[~has3] = 1e3 * mat["G"][rows2[~has3]] * t[~has3]
+        nodes = fe.grid_index(tab["nodes"][idx].ravel()).reshape(n, -1)
+        xyz = fe.xyz[nodes]
+        _, xy, _ = shell_frames(xyz, tab.ids[idx])
+        L = _bending_lengths(xy)
+        zero_m = np.broadcast_to(np.eye(3), (n, 3, 3))  # membrane is computed but not used
+        unit_b = np.broadcast_to(np.eye(3), (n, 3, 3))
+        k11 = shell_stiffness(xyz, zero_m, unit_b, np.broadcast_to(np.eye(2), (n, 2, 2)), 0.0,
+                              ids=tab.ids[idx], residual_bending=False)["shear"]
+        k12 = shell_stiffness(xyz, zero_m, unit_b, np.broadcast_to(np.diag([1.0, 2.0]), (n, 2, 2)), 0.0,
+                              ids=tab.ids[idx], residual_bending=False)["shear"]
+        unit = (_to_cd(2.0 * k11 - k12, nodes, cd_axes, 6), _to_cd(k12 - k11, nodes, cd_axes, 6))
+        del k11, k12
+        dofs = _dofs(nodes)
+        nd = dofs.shape[1]
+        rr = np.repeat(dofs, nd, axis=1).ravel()
+        cc = np.tile(dofs, (1, nd)).ravel()
+        ea = np.zeros((n, n_par))
+        eb = np.zeros((n, n_par))
+        for e_, j_, w_ in ((ea, jt, 1), (ea, ja, 1), (eb, jt, 3), (eb, jb, 1)):
+            ok = j_[idx] >= 0
+            np.add.at(e_, (np.flatnonzero(ok), j_[idx][ok]), w_)
+        nominal = np.zeros((n, nd, nd))
+        for i in range(2):
+            b0 = 12.0 * dbd / (coeff * L[:, i] ** 2)
+            w0 = 1.0 / (1.0 / a0 + 1.0 / b0)
+            ratio = a0 / b0
+            contrib = unit[i] * w0[:, None, None]
+            nominal += contrib
+            # group (element, direction) pairs with equal exponent rows and ratio
+            key = np.column_stack([ea, eb, np.round(np.log(ratio), 12)])
+            ukeys, inv = np.unique(key, axis=0, return_inverse=True)
+            inv = inv.ravel()
+            for g in range(ukeys.shape[0]):
+                sel = inv == g
+                m = sp.csr_matrix((contrib[sel].ravel(), (rr.reshape(n, -1)[sel].ravel(), cc.reshape(n, -1)[sel].ravel())),
+                                  shape=(n_g, n_g))
+                series.append((ea[sel][0], eb[sel][0], float(np.mean(ratio[sel])), m))
+        # remove the nominal shear from the monomial term it was assembled in (exponent row a)
+        urows, inv = np.unique(ea, axis=0, return_inverse=True)
+        inv = inv.ravel()
+        for g in range(urows.shape[0]):
+            sel = inv == g
+            m = sp.csr_matrix((-nominal[sel].ravel(), (rr.reshape(n, -1)[sel].ravel(), cc.reshape(n, -1)[sel].ravel())),
+                              shape=(n_g, n_g))
+            corrections.append((urows[g], m))
+    return corrections, series
+
+
+def _grouped_terms(assembly, params: ParameterSet, kind: str, source, extra=(), series=()):
+    """Sum g-set terms of one kind by exponent row; reduce each sum by T once.
+
+    ``extra`` holds (exponent row, g-set matrix) additions to the monomial
+    groups; ``series`` holds (a row, b row, ratio, g-set matrix) series terms.
+    """
+    key_index = _key_index(params)
     groups: dict[tuple, object] = {}
     for term in assembly.terms:
         if term.kind != kind:
@@ -261,11 +441,22 @@ def _grouped_terms(assembly, params: ParameterSet, kind: str, source):
                 e[j] += int(expo)
         row = tuple(e.tolist())
         groups[row] = term.matrix if row not in groups else groups[row] + term.matrix
+    for erow, m in extra:
+        row = tuple(int(x) for x in erow)
+        groups[row] = m if row not in groups else groups[row] + m
     if not groups:
         groups[tuple([0] * len(params))] = sp.csr_matrix((assembly.T.shape[0],) * 2)
     rows = sorted(groups)
     mats = [_canonical(assembly.reduce(groups[r])) for r in rows]
-    return mats, np.array(rows, dtype=float).reshape(len(rows), len(params))
+    a = np.array(rows, dtype=float).reshape(len(rows), len(params))
+    b = a.copy()
+    ratio = np.zeros(len(rows))
+    if series:
+        mats += [_canonical(assembly.reduce(m)) for _, _, _, m in series]
+        a = np.vstack([a, np.array([s_[0] for s_ in series])])
+        b = np.vstack([b, np.array([s_[1] for s_ in series])])
+        ratio = np.concatenate([ratio, [s_[2] for s_ in series]])
+    return mats, a, b, ratio
 
 
 def parametric_model(params, bdf=None, *, units: str | None = None, allow_unsupported: bool = False,
@@ -326,10 +517,11 @@ def parametric_model(params, bdf=None, *, units: str | None = None, allow_unsupp
                 "no element uses it"
             )
 
-    kmats, kexp = _grouped_terms(assembly, params, "K", source)
-    mmats, mexp = _grouped_terms(assembly, params, "M", source)
-    K = AffineMatrix(tuple(kmats), kexp)
-    M = AffineMatrix(tuple(mmats), mexp)
+    corrections, series = _shell_shear_series(assembly, params, _key_index(params))
+    kmats, ka, kb, kr = _grouped_terms(assembly, params, "K", source, corrections, series)
+    mmats, ma, _, _ = _grouped_terms(assembly, params, "M", source)
+    K = SeriesAffineMatrix(tuple(kmats), ka, kb, kr) if series else AffineMatrix(tuple(kmats), ka)
+    M = AffineMatrix(tuple(mmats), ma)
     return ParametricModel(
         parameters=params,
         nominal=np.array([v[0] for v in nominal_values]),

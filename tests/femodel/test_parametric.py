@@ -270,3 +270,16 @@ def test_bad_parameters(springs, tmp_path):
         pm.stiffness(np.full(8, -1.0))
     with pytest.raises(ParameterError, match="no parameter named 'zz'"):
         pm.dK(np.zeros(8), "zz")
+
+
+def test_in_lbf_s_deck_with_wtmass_round_trips(tmp_path):
+    deck = SPRINGS_DECK.replace("BEGIN BULK\n", "BEGIN BULK\nPARAM,WTMASS,0.00259\n") + SPRINGS_DECK_END
+    (tmp_path / "springs.bdf").write_text(deck)
+    (tmp_path / "p.toml").write_text(SPRINGS_PARAMS.replace('units = "mm-t-s"', 'units = "in-lbf-s"'))
+    pm = parametric_model(tmp_path / "p.toml")
+    slinch = 4.4482216152605 / 0.0254  # kg per lbf s^2/in
+    assert pm.nominal[3] == pytest.approx(0.002 * 0.00259 * slinch, rel=1e-14)  # CONM2 M, SI kg
+    assert pm.nominal[1] == pytest.approx(7.85e-9 * 0.00259 * slinch / 0.0254**3, rel=1e-14)
+    p = RNG.uniform(pm.lower, pm.upper)
+    asm, K, M = fresh(pm.write_bdf(tmp_path / "o.bdf", p), "in-lbf-s")
+    assert rel(pm.stiffness(p), K) < 1e-13 and rel(pm.mass(p), M) < 1e-13
