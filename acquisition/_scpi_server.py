@@ -213,8 +213,12 @@ class LoopbackLab:
     def stop(self) -> None:
         """Stop serving and close every connection (idempotent)."""
         servers, self._servers = self._servers, {}
+        stoppers = [threading.Thread(target=server.shutdown) for server in servers.values()]
+        for t in stoppers:  # in parallel: each waits up to one poll interval
+            t.start()
+        for t in stoppers:
+            t.join()
         for server in servers.values():
-            server.shutdown()
             server.server_close()
             server.close_connections()
         if self._timer is not None:

@@ -178,3 +178,19 @@ def test_missing_and_invalid_files(tmp_path):
     bad.write_text("driver = \n")
     with pytest.raises(HardwareConfigError, match="bad.toml: not valid TOML"):
         read_hardware_config(bad)
+
+
+def test_the_documented_example_is_valid():
+    """docs/hardware.md's example file parses and maps as the text says."""
+    import re
+    import tomllib
+    from pathlib import Path
+
+    doc = (Path(__file__).resolve().parents[2] / "docs" / "hardware.md").read_text()
+    block = re.search(r"```toml\n(.*?)```", doc, re.S).group(1)
+    hw = hardware_config_from_dict(tomllib.loads(block), "docs/hardware.md")
+    assert hw.driver == "ni" and hw.ni["ao_channel"] == "cDAQ1Mod4/ao0"
+    (acc, force) = hw.mapped([ChannelSpec("acc01", "response", "acceleration", "m/s^2"),
+                              ChannelSpec("drive1", "force", "force", "N")])
+    assert acc.sensitivity == pytest.approx(0.1002 / G0) and acc.iepe_current_a == pytest.approx(0.004)
+    assert force.sensitivity == pytest.approx(0.0225) and force.physical == "cDAQ1Mod1/ai3"
