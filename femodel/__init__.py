@@ -15,7 +15,7 @@ from femodel._units import UNIT_SYSTEMS, UnitSystem, unit_system
 from femodel._elements_shell import ElementGeometryError, shell_mass, shell_stiffness
 from femodel._elements_solid import solid_mass, solid_stiffness
 from femodel._params import Parameter, ParameterError, ParameterSet, read_parameters
-from femodel._parametric import ParametricModel, parametric_model
+from femodel._parametric import ParametricModel, SeriesAffineMatrix, parametric_model
 from femodel._writeback import write_bdf
 from femodel._example import SubframeExample, example_subframe
 
@@ -25,5 +25,5 @@ __all__ = [
     "Modes", "normal_modes", "solve_modes", "read_bdf", "MassProperties", "mass_properties",
     "rigid_body_vectors", "sensor_matrix", "UNIT_SYSTEMS", "UnitSystem", "unit_system",
     "AffineMatrix", "ElementGeometryError", "shell_stiffness", "shell_mass", "solid_stiffness", "solid_mass",
-    "Parameter", "ParameterError", "ParameterSet", "read_parameters", "ParametricModel", "parametric_model",
+    "Parameter", "ParameterError", "ParameterSet", "read_parameters", "ParametricModel", "SeriesAffineMatrix", "parametric_model",
     "write_bdf", "SubframeExample", "example_subframe"]

@@ -283,3 +283,18 @@ def test_in_lbf_s_deck_with_wtmass_round_trips(tmp_path):
     p = RNG.uniform(pm.lower, pm.upper)
     asm, K, M = fresh(pm.write_bdf(tmp_path / "o.bdf", p), "in-lbf-s")
     assert rel(pm.stiffness(p), K) < 1e-13 and rel(pm.mass(p), M) < 1e-13
+
+
+def test_projection_stays_exact_in_p(subframe):
+    """V^T K(p) V from the projected terms equals projecting K(p): the surrogate is exact in p."""
+    _, _, pm = subframe
+    assert isinstance(pm.K, femodel.SeriesAffineMatrix) and np.any(pm.K.series_ratio > 0)
+    V = np.random.default_rng(5).standard_normal((pm.K.shape[0], 6))
+    Kr, Mr = pm.K.projected(V), pm.M.projected(V)
+    for p in (np.zeros(17), RNG.uniform(pm.lower, pm.upper)):
+        for red, full in ((Kr, pm.stiffness(p)), (Mr, pm.mass(p))):
+            ref = V.T @ (full @ V)
+            np.testing.assert_allclose(red.at(p), 0.5 * (ref + ref.T), rtol=0, atol=1e-12 * np.abs(ref).max())
+        j = 4  # a thickness: series terms
+        ref = V.T @ (pm.dK(p, j) @ V)
+        np.testing.assert_allclose(Kr.derivative(p, j), 0.5 * (ref + ref.T), rtol=0, atol=1e-12 * np.abs(ref).max())
