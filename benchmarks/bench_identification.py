@@ -148,7 +148,7 @@ def bench_brb(EMA):
         if EMA is not None:
             t0 = time.perf_counter()
             try:
-                ef, ez = _ema_fit(EMA, H[None], f, f[0], f[-1], 6, "receptance", [80.3], 1.0)
+                ef, ez = _ema_fit(EMA, H[None], f, f[0], f[-1], 6, "receptance", [80.3], 50)
                 if ef.size and np.isfinite(ef[0]) and ef[0] > 0:  # 0 means select_closest_poles failed
                     row["ema_f_hz"], row["ema_zeta"] = float(ef[0]), float(ez[0])
             except Exception as exc:  # sdypy-EMA fails on some tests (see README): report, don't stop
@@ -194,6 +194,9 @@ def main() -> int:
                 f"{_fmt(r['ours_zeta'], '10.3e')} {_fmt(r['ema_zeta'], '10.3e')} "
                 f"{_fmt(1e3 * r['ours_time_s'], '8.1f')} {_fmt(None if r['ema_time_s'] is None else 1e3 * r['ema_time_s'], '8.1f')}"
             )
+        failed = [r["data"][-3:] for r in brb if r.get("ema_error") or (EMA is not None and r["ema_f_hz"] is None)]
+        if EMA is not None and failed:
+            print(f"  sdypy-EMA LSCF gave no pole for {', '.join(failed)} (error text in the JSON)")
     out = {
         "machine": {"python": platform.python_version(), "platform": platform.platform(), "numpy": np.__version__},
         "sdypy_ema": getattr(EMA, "__version__", None) if EMA is not None else None,
