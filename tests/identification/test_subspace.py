@@ -227,3 +227,29 @@ def test_bad_input_names_the_argument(truth):
         identify(f[:5], H[:5], 30)
     with pytest.raises(IdentificationError, match="zeta0"):
         equalized(StateSpace(np.zeros((0, 0)), np.zeros((0, 1)), np.zeros((1, 0)), np.zeros((1, 1))), 1.5)
+
+
+def test_unstable_pole_is_reflected_and_labelled():
+    sys = _random_stable(real_pole=False, seed=3)
+    Am, Bm, Cm = sys.A, sys.B, sys.C
+    lam, X = np.linalg.eig(Am)
+    k = int(np.argmax(lam.imag))  # make the top mode unstable (negative damping)
+    lam_u = lam.copy()
+    for i in range(lam.size):
+        if np.isclose(lam[i], lam[k]) or np.isclose(lam[i], np.conj(lam[k])):
+            lam_u[i] = complex(-lam[i].real, lam[i].imag)
+    Au = (X @ np.diag(lam_u) @ np.linalg.inv(X)).real
+    bad = StateSpace(Au, Bm, Cm, sys.D)
+    f = np.linspace(100, 600, 400)
+    H = bad.frf(f)
+    free = identify(f, H, bad.n_states, enforce_stability=False)
+    assert free.poles.count("unstable") == 1
+    assert np.max(free.model.poles().real) > 0
+    np.testing.assert_allclose(free.model.frf(f), H, rtol=1e-6)
+    forced = identify(f, H, bad.n_states)
+    assert forced.poles.count("unstable") == 1 and forced.settings["n_reflected"] == 1
+    assert np.max(forced.model.poles().real) < 0
+    i = forced.poles.labels.index("unstable")
+    # reflection keeps the oscillation frequency and flips the sign of the real part
+    assert abs(forced.poles.eigenvalues[i] - lam[k]) < 1e-6 * abs(lam[k])
+    assert forced.modal.n_modes == bad.n_states // 2 - 1  # the unstable pole is not a mode
