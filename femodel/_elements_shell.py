@@ -284,13 +284,15 @@ def _bending_lengths(xy: np.ndarray) -> np.ndarray:
     """(n, 2) element lengths along the element x and y axes [m].
 
     Quad: mean of the two sides G1G2/G4G3 and G1G4/G2G3; triangle: extent of
-    the projected nodes along x and y.
+    the projected nodes along x and y divided by sqrt(2) (a triangle covers
+    half its bounding box; with this length MITC3 converges at second order on
+    the simply supported plate instead of locking or over-softening).
     """
     if xy.shape[1] == 4:
         a = 0.5 * (np.linalg.norm(xy[:, 1] - xy[:, 0], axis=1) + np.linalg.norm(xy[:, 2] - xy[:, 3], axis=1))
         b = 0.5 * (np.linalg.norm(xy[:, 3] - xy[:, 0], axis=1) + np.linalg.norm(xy[:, 2] - xy[:, 1], axis=1))
         return np.stack([a, b], axis=1)
-    return xy.max(axis=1) - xy.min(axis=1)
+    return (xy.max(axis=1) - xy.min(axis=1)) / np.sqrt(2.0)
 
 
 def _effective_shear(ds: np.ndarray, db: np.ndarray, lengths: np.ndarray, coeff: float) -> np.ndarray:
