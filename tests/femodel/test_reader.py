@@ -1,0 +1,61 @@
+"""Reader details: SPC set selection, PS, CORD1R, CONM2 CID=-1, free/large field."""
+
+from __future__ import annotations
+
+import numpy as np
+
+import femodel
+
+BULK = (
+    "MAT1,1,2.e11,,0.3,7800.\nPBAR,1,1,1.e-3,1.e-7,1.e-7,2.e-7\n"
+    "GRID,1,,0.,0.,0.\nGRID,2,,1.,0.,0.\nGRID,3,,2.,0.,0.,,345\n"
+    "CBAR,1,1,1,2,0.,1.,0.\nCBAR,2,1,2,3,0.,1.,0.\n"
+    "SPC1,1,123456,1\nSPC1,2,123,1\nSPC1,2,2,3\n"
+)
+
+
+def test_case_control_selects_the_spc_set(tmp_path):
+    p = tmp_path / "a.bdf"
+    p.write_text("SOL 103\nCEND\nSUBCASE 1\n  SPC = 2\nBEGIN BULK\n" + BULK + "ENDDATA\n")
+    m = femodel.read_bdf(p)
+    got = sorted(zip(m.spc_grid.tolist(), m.spc_component.tolist()))
+    assert got == [(1, 1), (1, 2), (1, 3), (3, 2)]
+    asm = femodel.assemble(m)
+    # GRID 3 PS=345 and SPC 3-T2 removed; grid 1 keeps its rotations
+    assert not np.any((asm.aset.grid == 3) & np.isin(asm.aset.component, [2, 3, 4, 5]))
+    assert np.sum(asm.aset.grid == 1) == 3
+
+
+def test_without_case_control_all_spc_sets_apply(tmp_path):
+    p = tmp_path / "b.bdf"
+    p.write_text("BEGIN BULK\n" + BULK + "ENDDATA\n")
+    m = femodel.read_bdf(p)
+    assert len(m.spc_grid) == 6 + 3 + 1
+
+
+def test_spcadd_is_expanded(tmp_path):
+    p = tmp_path / "c.bdf"
+    p.write_text("SOL 103\nCEND\nSPC = 9\nBEGIN BULK\n" + BULK + "SPCADD,9,1,2\nENDDATA\n")
+    m = femodel.read_bdf(p)
+    assert len(m.spc_grid) == 10
+
+
+def test_cord1r_large_field_and_conm2_cid_minus_one(tmp_path):
+    p = tmp_path / "d.bdf"
+    p.write_text(
+        "BEGIN BULK\n"
+        "GRID*                 10                              1.              2.\n"
+        "*                     0.\n"
+        "GRID,11,,1.,2.,1.\nGRID,12,,2.,2.,0.\n"
+        "CORD1R,4,10,11,12\n"
+        "GRID,13,4,0.,0.,3.\n"
+        "CONM2,1,13,-1,5.,1.,2.,4.\n"
+        "ENDDATA\n"
+    )
+    m = femodel.read_bdf(p)
+    np.testing.assert_allclose(m.xyz[m.grid_index(13)[0]], [1.0, 2.0, 3.0], atol=1e-14)
+    t = m.elements["CONM2"]
+    np.testing.assert_allclose(t["offset"][0], [0.0, 0.0, 1.0], atol=1e-14)
+    mp = femodel.mass_properties(femodel.assemble(m))
+    np.testing.assert_allclose(mp.cg, [1.0, 2.0, 4.0], atol=1e-12)
+    assert mp.mass == 5.0
