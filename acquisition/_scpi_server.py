@@ -45,6 +45,7 @@ import numpy as np
 from acquisition._scpi import (
     LIAS_INPUT_OVERLOAD,
     LIAS_OUTPUT_OVERLOAD,
+    LIAS_UNLOCK,
     SR830_SENSITIVITIES_V,
     SR830_SLOPES_DB,
     SR830_TIME_CONSTANTS_S,
@@ -109,6 +110,7 @@ class _Lockin:
     stages: np.ndarray = field(default_factory=lambda: np.zeros(4, complex))
     target: complex = 0j
     t_s: float = 0.0
+    unlocked_until: float = -math.inf
 
 
 def _advance_stages(stages: np.ndarray, target: complex, x: float) -> np.ndarray:
@@ -146,6 +148,10 @@ class LoopbackLab:
         Noise density of each channel referred to the sensor output (V/sqrt(Hz)).
     drive_input : int
         The plant input the shaker drives.
+    relock_cycles : float
+        After a frequency change every lock-in reports reference unlock
+        (``LIAS?`` bit 3, latched) until this many cycles of the new frequency
+        have passed; 0 (default) re-locks instantly.
     seed : int
     lifetime_s : float
         Wall-clock seconds after which the servers stop by themselves.
@@ -161,6 +167,7 @@ class LoopbackLab:
         shaker=None,
         noise_v_per_rthz: float = 20e-9,
         drive_input: int = 0,
+        relock_cycles: float = 0.0,
         seed: int = 0,
         lifetime_s: float = 600.0,
     ):
@@ -171,6 +178,7 @@ class LoopbackLab:
         self.shaker = shaker
         self.noise_v_per_rthz = float(noise_v_per_rthz)
         self.drive_input = int(drive_input)
+        self.relock_cycles = float(relock_cycles)
         self.lifetime_s = float(lifetime_s)
         self._rng = np.random.default_rng(seed)
         self._lock = threading.RLock()
@@ -462,6 +470,12 @@ class LoopbackLab:
         if head == "FREQ":
             v = number(1e-6, 30e6)
             if v is not None:
+                if v != g.frequency_hz and self.relock_cycles > 0:
+                    # the lock-ins' reference PLLs re-lock onto the new sync frequency
+                    until = self.clock.now() + self.relock_cycles / v
+                    for li in self.lockins.values():
+                        li.unlocked_until = until
+                        li.status |= LIAS_UNLOCK
                 g.frequency_hz = v  # phase-continuous on a 33500B: no transient to model
             return None
         if head == "FREQ?":
@@ -508,6 +522,8 @@ class LoopbackLab:
             return f"{self.generator.frequency_hz:.6f}"
         if head == "LIAS?":
             status, li.status = li.status, 0
+            if self.clock.now() < li.unlocked_until:
+                li.status |= LIAS_UNLOCK  # still re-locking: latched again
             return str(status)
         if head in ("SNAP?", "OUTP?"):
             z = self._reading(li)
@@ -648,7 +664,8 @@ def make_visa_driver(plant, **options):
     """Factory ``plant -> Driver`` for the controller suite and ``frfcal acquire --driver visa --loopback``.
 
     A :func:`loopback_visa_driver` with the simulated lab's electrodynamic
-    shaker. ``options`` go to the lab (``noise_v_per_rthz``, ``seed``,
+    shaker and lock-ins that take 3 cycles to re-lock after a frequency step
+    (so the driver discards the first block of every line). ``options`` go to the lab (``noise_v_per_rthz``, ``seed``,
     ``shaker``, ``lifetime_s``...) except the driver's own keywords
     (``timeout_ms``, ``tc_fraction``, ``filter_slope_db``, ``max_drive_v``).
     """
@@ -656,7 +673,8 @@ def make_visa_driver(plant, **options):
 
     driver_keys = {"timeout_ms", "tc_fraction", "filter_slope_db", "max_drive_v", "ramp_step_s"}
     driver_options = {k: v for k, v in options.items() if k in driver_keys}
-    lab_options = {"shaker": ShakerModel()} | {k: v for k, v in options.items() if k not in driver_keys}
+    lab_options = {"shaker": ShakerModel(), "relock_cycles": 3.0} | {
+        k: v for k, v in options.items() if k not in driver_keys}
     return loopback_visa_driver(plant, lab_options=lab_options, **driver_options)
 
 

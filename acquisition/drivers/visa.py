@@ -45,8 +45,8 @@ from acquisition._scpi import (
     rms_to_peak,
 )
 
-#: Status bits that make a lock-in reading untrustworthy (flagged as overload).
-LIAS_BAD = LIAS_INPUT_OVERLOAD | LIAS_FILTER_OVERLOAD | LIAS_OUTPUT_OVERLOAD | LIAS_UNLOCK
+#: Status bits flagged as overload in the block.
+LIAS_OVERLOADS = LIAS_INPUT_OVERLOAD | LIAS_FILTER_OVERLOAD | LIAS_OUTPUT_OVERLOAD
 
 
 def _pyvisa():
@@ -193,6 +193,9 @@ class VisaDriver:
         Largest drive amplitude accepted by :meth:`set_drive`, peak volts.
     ramp_step_s : float
         Interval between amplitude steps while ramping down, s.
+    max_unlocked_blocks : int
+        Blocks in a row a lock-in may report reference unlock (``LIAS?`` bit 3)
+        before :class:`DriverError`; unlocked blocks are discarded and re-measured.
     resource_manager : pyvisa.ResourceManager, optional
         Shared manager; one is opened (and closed again) otherwise.
     """
@@ -208,6 +211,7 @@ class VisaDriver:
         filter_slope_db: int = 24,
         max_drive_v: float = 10.0,
         ramp_step_s: float = 0.05,
+        max_unlocked_blocks: int = 5,
         resource_manager=None,
     ):
         if not generator:
@@ -222,6 +226,7 @@ class VisaDriver:
         self.filter_slope_db = int(filter_slope_db)
         self.max_drive_v = float(max_drive_v)
         self.ramp_step_s = float(ramp_step_s)
+        self.max_unlocked_blocks = int(max_unlocked_blocks)
         self.gen_vocab = GeneratorVocabulary()
         self.lockin_vocab = LockinVocabulary()
         LockinVocabulary().slope(self.filter_slope_db)  # validates the slope early
@@ -352,17 +357,25 @@ class VisaDriver:
                 if got != oflt:
                     raise DriverError(f"{ch.inst.name} ({ch.inst.resource}): time constant index {got} after 'OFLT {oflt}'")
                 ch.oflt = oflt
-        t0 = self.clock.now()
-        self.clock.sleep(duration)
-        values = np.empty((len(self._channels), 1), complex)
-        overload = np.zeros(len(self._channels), bool)
-        for k, ch in enumerate(self._channels):
-            xy = ch.inst.query(self.lockin_vocab.snap_query, self.lockin_vocab.parse_snap)
-            status = ch.inst.query(self.lockin_vocab.status_query, self.lockin_vocab.parse_status)
-            values[k, 0] = rms_to_peak(xy) / ch.spec.sensitivity
-            overload[k] = bool(status & LIAS_BAD)
-        return PhasorBlock(t0_s=t0, frequency_hz=self._frequency_hz, duration_s=duration,
-                           harmonics=values, overload=overload)
+        for _ in range(self.max_unlocked_blocks + 1):
+            t0 = self.clock.now()
+            self.clock.sleep(duration)
+            values = np.empty((len(self._channels), 1), complex)
+            status = np.zeros(len(self._channels), int)
+            for k, ch in enumerate(self._channels):
+                xy = ch.inst.query(self.lockin_vocab.snap_query, self.lockin_vocab.parse_snap)
+                status[k] = ch.inst.query(self.lockin_vocab.status_query, self.lockin_vocab.parse_status)
+                values[k, 0] = rms_to_peak(xy) / ch.spec.sensitivity
+            # a lock-in whose reference PLL lost lock during the block (e.g. re-locking after a
+            # frequency step) read garbage: the block is discarded and measured again
+            if not np.any(status & LIAS_UNLOCK):
+                return PhasorBlock(t0_s=t0, frequency_hz=self._frequency_hz, duration_s=duration,
+                                   harmonics=values, overload=(status & LIAS_OVERLOADS) != 0)
+        names = [ch.spec.name for ch, st in zip(self._channels, status) if st & LIAS_UNLOCK]
+        raise DriverError(
+            f"lock-in(s) {names}: reference unlocked for {self.max_unlocked_blocks + 1} blocks at "
+            f"{self._frequency_hz:g} Hz: check the generator's sync output and the reference cables"
+        )
 
     def time_s(self) -> float:
         return self.clock.now()

@@ -153,3 +153,33 @@ def test_unreachable_instrument_is_a_driver_error():
             d.configure(CHANNELS, None)
     finally:
         d.close()
+
+
+def test_blocks_during_reference_relock_are_discarded_and_remeasured():
+    d = loopback_visa_driver(plant(), lab_options={"lifetime_s": 60, "relock_cycles": 30.0})
+    try:
+        d.configure(CHANNELS, None)
+        d.set_drive(200.0, 0.2)
+        n = len(d.lab.transcript)
+        block = d.read_block(20)  # 30 cycles to re-lock: blocks 1 and 2 (20 cycles each) are discarded
+        snaps = [c for i, c, _ in d.lab.transcript[n:] if i == "lockin_resp0" and c.startswith("SNAP?")]
+        assert len(snaps) == 3
+        assert block.t0_s == pytest.approx(2 * 20 / 200.0)
+        assert not block.overload.any()
+        d.set_drive(200.0, 0.3)  # amplitude only: no re-lock, one block
+        n = len(d.lab.transcript)
+        d.read_block(20)
+        assert sum(c.startswith("SNAP?") for i, c, _ in d.lab.transcript[n:] if i == "lockin_resp0") == 1
+    finally:
+        d.close()
+
+
+def test_reference_that_never_locks_is_a_driver_error():
+    d = loopback_visa_driver(plant(), lab_options={"lifetime_s": 60, "relock_cycles": 1e6}, max_unlocked_blocks=2)
+    try:
+        d.configure(CHANNELS, None)
+        d.set_drive(200.0, 0.2)
+        with pytest.raises(DriverError, match=r"\['force', 'acc1', 'acc2'\]: reference unlocked for 3 blocks at 200 Hz"):
+            d.read_block(20)
+    finally:
+        d.close()
