@@ -241,6 +241,22 @@ def default_block_rows(order: int, n_out: int) -> int:
     return int(max(int(np.ceil(2 * n / p)), int(np.ceil(n / p)) + 2, min(n, 16)))
 
 
+def _choose_block_rows(data: _Data, order: int, block_rows: int | None) -> int:
+    """``block_rows`` or the default, capped by the number of lines; checked against the order."""
+    nf, p, m = data.H.shape
+    if block_rows is None:
+        q = default_block_rows(order, p)
+        q_max = (2 * nf * m) // (m + p)  # the QR needs at least as many rows as columns
+        q = max(min(q, q_max), int(order) // p + 1)
+    else:
+        q = int(block_rows)
+    if q * p <= order:
+        raise IdentificationError(
+            f"block_rows={q} too small for order {order} with {p} outputs: need block_rows * {p} > {order}"
+        )
+    return q
+
+
 def _basis(data: _Data, block_rows: int):
     z = unit_circle(data.omega, data.alpha)
     Hs = data.H * data.out_scale[None, :, None]
@@ -395,12 +411,7 @@ def identify(
     if n < 1 or n != order:
         raise IdentificationError(f"order must be a positive integer, got {order!r}")
     data = _prepare(freq_hz, H, band_hz=band_hz, weights=weights, valid=valid, quantity=quantity)
-    p = data.H.shape[1]
-    q = default_block_rows(n, p) if block_rows is None else int(block_rows)
-    if q * p <= n:
-        raise IdentificationError(
-            f"block_rows={q} too small for order {n} with {p} outputs: need block_rows * {p} > {n}"
-        )
+    q = _choose_block_rows(data, n, block_rows)
     basis, sv = _basis(data, q)
     return _assemble(data, basis, sv, n, q, enforce_stability, zeta_max, min_contribution, min_importance, refine)
 

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ._errors import IdentificationError
-from ._identify import Identification, _assemble, _basis, _prepare, block_modal, default_block_rows
+from ._identify import Identification, _assemble, _basis, _choose_block_rows, _prepare, block_modal
 from ._poles import Poles, mac
 from ._subspace import real_modal_form
 
@@ -116,10 +116,7 @@ def stabilization(
     if not ords or any(o < 1 for o in ords) or any(b <= a for a, b in zip(ords, ords[1:])):
         raise IdentificationError(f"orders must be increasing positive integers, got {list(orders)!r}")
     data = _prepare(freq_hz, H, band_hz=band_hz, weights=weights, valid=valid, quantity=quantity)
-    p = data.H.shape[1]
-    q = default_block_rows(ords[-1], p) if block_rows is None else int(block_rows)
-    if q * p <= ords[-1]:
-        raise IdentificationError(f"block_rows={q} too small for order {ords[-1]} with {p} outputs")
+    q = _choose_block_rows(data, ords[-1], block_rows)
     basis, sv = _basis(data, q)
     poles, shapes, sf, sd, ss = [], [], [], [], []
     prev: Identification | None = None
