@@ -201,6 +201,8 @@ class LoopbackLab:
         self._threads: list[threading.Thread] = []
         self._timer: threading.Timer | None = None
         self._frf_cache: dict[float, np.ndarray] = {}
+        #: Set once every server is shut down and its sockets are closed.
+        self.stopped = threading.Event()
 
     # ------------------------------------------------------------ lifecycle
     def start(self) -> "LoopbackLab":
@@ -231,7 +233,8 @@ class LoopbackLab:
             server.close_connections()
         if self._timer is not None:
             self._timer.cancel()
-        self.servers_stopped = True
+        if servers:
+            self.stopped.set()
 
     def __enter__(self) -> "LoopbackLab":
         return self.start() if not self._servers else self
@@ -288,12 +291,18 @@ class LoopbackLab:
                message: str = '-222,"Data out of range"') -> None:
         """Arm a fault on the next command(s) of ``instrument`` starting with ``match``.
 
-        ``skip`` matching commands pass first; the fault then fires ``count`` times.
+        ``skip`` matching commands pass first; the fault then fires ``count``
+        times. ``"timeout"`` and ``"garble"`` act on queries (a command without
+        a reply is unaffected), ``"error"`` pushes ``message`` on the
+        generator's error queue after the command, ``"drop"`` closes the
+        connection instead of executing the command.
         """
         if kind not in FAULT_KINDS:
             raise ValueError(f"fault kind must be one of {FAULT_KINDS}, got {kind!r}")
         if instrument != "generator" and instrument not in self.lockins:
             raise ValueError(f"no instrument {instrument!r}; have generator, {', '.join(self.lockins)}")
+        if kind == "error" and instrument != "generator":
+            raise ValueError("only the generator has an error queue (SYST:ERR?); inject 'error' there")
         with self._lock:
             self._faults.append(_Fault(instrument, kind, match.upper(), skip, count, message))
 
@@ -768,8 +777,7 @@ def main(argv=None) -> int:
     print(f"loopback lab: generator {lab.generator_resource}; hardware file {out}; "
           f"stops after {args.lifetime_s:g} s or Ctrl-C", flush=True)
     try:
-        while lab._servers:
-            time.sleep(0.2)
+        lab.stopped.wait()
     except KeyboardInterrupt:
         pass
     finally:
