@@ -228,3 +228,27 @@ def read_hardware_config(path) -> HardwareConfig:
     except tomllib.TOMLDecodeError as exc:
         raise HardwareConfigError(f"{path}: not valid TOML: {exc}") from None
     return hardware_config_from_dict(data, source=str(path))
+
+
+def hardware_template(specs: Sequence[ChannelSpec], driver: str = "ni") -> str:
+    """A hardware TOML skeleton with one ``[channels.<name>]`` table per layout channel.
+
+    ``physical`` is left empty (the file is rejected until every channel is
+    mapped); sensitivities, serials, ranges and IEPE currents already in the
+    specs are carried over.
+    """
+    if driver not in DRIVERS:
+        raise HardwareConfigError(f"driver must be one of {DRIVERS}, got {driver!r}")
+    lines = [f'driver = "{driver}"', ""]
+    if driver == "ni":
+        lines += ["[ni]", 'ao_channel = ""            # e.g. "cDAQ1Mod4/ao0": the AO feeding the amplifier',
+                  "ao_max_v = 2.0", ""]
+    else:
+        lines += ["[visa]", 'generator = ""             # e.g. "TCPIP::192.168.0.20::5025::SOCKET"', ""]
+    for spec in specs:
+        lines += [f"[channels.{spec.name}]           # {spec.role} {spec.quantity}, grid {spec.grid}",
+                  'physical = ""', f'serial = "{spec.serial}"',
+                  f"sensitivity_mv_per_unit = {spec.sensitivity * 1000:.6g}   # mV per {spec.unit}",
+                  f"iepe_current_ma = {(spec.iepe_current_a or 0.004) * 1000:g}",
+                  f"range_v = {spec.range_v:g}", ""]
+    return "\n".join(lines)

@@ -25,6 +25,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--hardware", metavar="HW.toml",
                         help="check a hardware configuration file: probe its VISA instruments / NI devices")
     parser.add_argument("--timeout-ms", type=int, default=2000, help="timeout of each *IDN? probe (ms)")
+    parser.add_argument("--hardware-template", metavar="LAYOUT.json",
+                        help="print a hardware TOML skeleton for the channels of a pretest layout and exit")
+    parser.add_argument("--template-driver", choices=("ni", "visa"), default="ni",
+                        help="driver section of the skeleton (default ni)")
 
 
 def _version(dist: str) -> str | None:
@@ -164,6 +168,13 @@ def run(args) -> int:
 
     from frfcal import __version__
 
+    if args.hardware_template:
+        from acquisition import read_layout
+        from acquisition._hardware_config import hardware_template
+
+        layout = read_layout(args.hardware_template)
+        print(hardware_template(layout.sensors + layout.drives, args.template_driver))
+        return 0
     ni = _ni_devices()
     report = {
         "frfcal": __version__,

@@ -103,3 +103,32 @@ def test_bad_hardware_file_is_one_line_error(capsys, tmp_path):
     hw.write_text('driver = "ni"\n[ni]\nao_chanel = "x"\n')
     assert main(["info", "--no-scan", "--hardware", str(hw)]) == 2
     assert "unknown field ni.ao_chanel" in capsys.readouterr().err
+
+
+def test_hardware_template_from_layout_maps_once_filled_in(capsys, tmp_path):
+    import tomllib
+
+    from acquisition import read_layout
+    from acquisition._hardware_config import HardwareConfigError, hardware_config_from_dict
+
+    lay = tmp_path / "layout.json"
+    lay.write_text(json.dumps({
+        "format": "frfcal-layout", "version": 1,
+        "channels": [{"name": f"acc{k}", "quantity": "acceleration", "unit": "m/s^2", "grid": 10 + k,
+                      "direction": [0, 0, 1]} for k in range(3)],
+        "drives": [{"name": "drive1", "quantity": "force", "unit": "N", "grid": 7, "direction": [1, 0, 0]}],
+    }))
+    assert main(["info", "--hardware-template", str(lay)]) == 0
+    data = tomllib.loads(capsys.readouterr().out)
+    assert list(data["channels"]) == ["acc0", "acc1", "acc2", "drive1"]
+    with pytest.raises(HardwareConfigError, match="physical is missing"):
+        hardware_config_from_dict(data, "template")  # nothing is guessed: the user maps every channel
+    for k, name in enumerate(data["channels"]):
+        data["channels"][name]["physical"] = f"cDAQ1Mod1/ai{k}"
+    data["ni"]["ao_channel"] = "cDAQ1Mod2/ao0"
+    hw = hardware_config_from_dict(data, "filled")
+    layout = read_layout(lay)
+    specs = hw.mapped(layout.sensors + layout.drives)
+    assert [s.physical for s in specs] == ["cDAQ1Mod1/ai0", "cDAQ1Mod1/ai1", "cDAQ1Mod1/ai2", "cDAQ1Mod1/ai3"]
+    assert all(s.iepe_current_a == pytest.approx(0.004) for s in specs)
+    assert specs[3].grid == 7 and specs[3].direction == (1.0, 0.0, 0.0)
