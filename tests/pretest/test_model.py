@@ -211,3 +211,18 @@ def test_cli_json_and_errors(subframe, tmp_path, capsys):
     rc = main(["pretest", str(ex.bdf), "--units", "mm-t-s", "--sensors", "100000", "--out", str(out)])
     assert rc == 2
     assert "only" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_real_shell_deck_femap_exhaust():
+    """20 normal sensors for the first 20 modes of a real NX shell deck (in-lbf-s, constrained)."""
+    from tests.conftest import reference_path
+
+    deck = reference_path("nastran", "femap_exhaust", "modal_example_from_op2.bdf")
+    model = femodel.read_bdf(deck, units="in-lbf-s")
+    res = pretest.plan_pretest(model, PretestConfig(n_sensors=20, n_modes=20))
+    assert res.target.n_rigid == 0 and res.target.indices[0] == 0
+    assert res.sensors.n_rows == 20 and len(set(res.sensors.grids.tolist())) == 20
+    assert res.metrics.fim_condition < 1e4 and res.metrics.automac_max_offdiag < 0.9
+    # normals of the chosen sensors are unit vectors normal to the attached shells
+    np.testing.assert_allclose(np.linalg.norm(res.sensors.directions, axis=1), 1.0)
