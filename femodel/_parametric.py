@@ -41,21 +41,17 @@ class _Pattern:
 
 def _shared_pattern(matrices) -> _Pattern:
     n = matrices[0].shape
-    pat = None
-    for m in matrices:
-        s = sp.csr_matrix((np.ones(m.nnz), m.indices, m.indptr), shape=m.shape)
-        pat = s if pat is None else pat + s
-    pat = pat.tocsr()
-    pat.sort_indices()
     ncol = np.int64(n[1])
-    rows = np.repeat(np.arange(n[0], dtype=np.int64), np.diff(pat.indptr))
-    keys = rows * ncol + pat.indices
-    positions = []
+    keys_per = []
     for m in matrices:
         r = np.repeat(np.arange(n[0], dtype=np.int64), np.diff(m.indptr))
-        pos = np.searchsorted(keys, r * ncol + m.indices)
-        positions.append(pos.astype(np.int32 if keys.shape[0] < 2**31 else np.int64))
-    return _Pattern(pat.indptr.copy(), pat.indices.copy(), n, tuple(positions))
+        keys_per.append(r * ncol + m.indices)
+    keys = np.unique(np.concatenate(keys_per))  # sorted: row-major CSR order
+    indices = (keys % ncol).astype(np.int32 if n[1] < 2**31 else np.int64)
+    indptr = np.searchsorted(keys, np.arange(n[0] + 1, dtype=np.int64) * ncol)
+    dtype = np.int32 if keys.shape[0] < 2**31 else np.int64
+    positions = tuple(np.searchsorted(keys, k).astype(dtype) for k in keys_per)
+    return _Pattern(indptr.astype(indices.dtype if keys.shape[0] < 2**31 else np.int64), indices, n, positions)
 
 
 def _canonical(m) -> sp.csr_matrix:
