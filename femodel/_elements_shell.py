@@ -55,6 +55,35 @@ class ElementGeometryError(ValueError):
     """Degenerate, inverted or badly shaped elements (lists the offending elements)."""
 
 
+def _inv2(a: np.ndarray) -> np.ndarray:
+    """Closed-form inverse of a stack of 2x2 matrices (numpy's per-matrix LAPACK calls are slow)."""
+    det = a[..., 0, 0] * a[..., 1, 1] - a[..., 0, 1] * a[..., 1, 0]
+    out = np.empty_like(a)
+    out[..., 0, 0] = a[..., 1, 1]
+    out[..., 1, 1] = a[..., 0, 0]
+    out[..., 0, 1] = -a[..., 0, 1]
+    out[..., 1, 0] = -a[..., 1, 0]
+    return out / det[..., None, None]
+
+
+def _spd_solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Solve a stack of small SPD systems a x = b by a vectorized Cholesky (loops over the size only)."""
+    m = a.shape[-1]
+    low = np.zeros_like(a)
+    for j in range(m):
+        d = a[:, j, j] - np.sum(low[:, j, :j] ** 2, axis=1)
+        low[:, j, j] = np.sqrt(d)
+        for i in range(j + 1, m):
+            low[:, i, j] = (a[:, i, j] - np.sum(low[:, i, :j] * low[:, j, :j], axis=1)) / low[:, j, j]
+    y = np.empty_like(b)
+    for i in range(m):
+        y[:, i] = (b[:, i] - np.einsum("nk,nkr->nr", low[:, i, :i], y[:, :i])) / low[:, i, i, None]
+    x = np.empty_like(b)
+    for i in reversed(range(m)):
+        x[:, i] = (y[:, i] - np.einsum("nk,nkr->nr", low[:, i + 1:, i], x[:, i + 1:])) / low[:, i, i, None]
+    return x
+
+
 def _describe(bad: np.ndarray, ids, what: str, kind: str) -> str:
     bad = np.flatnonzero(bad)
     if ids is not None:
@@ -238,7 +267,7 @@ def _quad_local(xy, dm, db, ds, kdrill, ids):
         ks += _btdb(bs, ds, det)
         bd = _drill_b(nsh, dxy, 4)
         kd += np.einsum("ni,nj->nij", bd, bd * (kdrill * det)[:, None])
-    km = km - np.matmul(kua, np.linalg.solve(kaa, np.swapaxes(kua, 1, 2)))
+    km = km - np.matmul(kua, _spd_solve(kaa, np.swapaxes(kua, 1, 2)))
     return km, kb, ks, kd
 
 
@@ -315,9 +344,10 @@ def _effective_shear(ds: np.ndarray, db: np.ndarray, lengths: np.ndarray, coeff:
     flex[plate, 1, 1] = coeff * lengths[plate, 1] ** 2 / (12.0 * dbd[plate, 1])
     soft = plate & ~rigid
     if soft.any():
-        flex[soft] += np.linalg.inv(ds[soft])
-    ok = plate & (np.abs(np.linalg.det(np.where(plate[:, None, None], flex, np.eye(2)))) > 0)
-    out[ok] = np.linalg.inv(flex[ok])
+        flex[soft] += _inv2(ds[soft])
+    fdet = flex[:, 0, 0] * flex[:, 1, 1] - flex[:, 0, 1] * flex[:, 1, 0]
+    ok = plate & (np.abs(fdet) > 0)
+    out[ok] = _inv2(flex[ok])
     # shear-rigid plate without the residual term: a stiff penalty (1e4 x bending scale)
     pen = plate & ~ok
     out[pen, 0, 0] = 1e4 * 12.0 * dbd[pen, 0] / lengths[pen, 0] ** 2
@@ -328,20 +358,30 @@ def _effective_shear(ds: np.ndarray, db: np.ndarray, lengths: np.ndarray, coeff:
 
 
 def _to_basic(rot: np.ndarray, h: np.ndarray) -> np.ndarray:
-    """(n, 6nn, 6nn) map from basic grid DOF to local DOF of the projected points.
+    """(n, nn, 6, 6) per-grid blocks of the map from basic grid DOF to local DOF of the projected points.
 
     Local translation of a projected point = R u + h * (n x theta) in the
     element frame, i.e. u_p = u - h theta_y, v_p = v + h theta_x.
     """
     n, nn = h.shape
-    t = np.zeros((n, 6 * nn, 6 * nn))
-    for i in range(nn):
-        t[:, 6 * i:6 * i + 3, 6 * i:6 * i + 3] = rot
-        t[:, 6 * i + 3:6 * i + 6, 6 * i + 3:6 * i + 6] = rot
-        # warp offset in local coordinates acting on local rotations (= rot @ theta_basic)
-        t[:, 6 * i, 6 * i + 3:6 * i + 6] = -h[:, i, None] * rot[:, 1, :]
-        t[:, 6 * i + 1, 6 * i + 3:6 * i + 6] = h[:, i, None] * rot[:, 0, :]
+    t = np.zeros((n, nn, 6, 6))
+    t[:, :, 0:3, 0:3] = rot[:, None]
+    t[:, :, 3:6, 3:6] = rot[:, None]
+    # warp offset in local coordinates acting on local rotations (= rot @ theta_basic)
+    t[:, :, 0, 3:6] = -h[:, :, None] * rot[:, None, 1, :]
+    t[:, :, 1, 3:6] = h[:, :, None] * rot[:, None, 0, :]
     return t
+
+
+def _congruence(k: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """T^T K T for block-diagonal T given as per-grid 6x6 blocks; k (n, 6nn, 6nn), t (n, nn, 6, 6)."""
+    n, nn = t.shape[:2]
+    k5 = k.reshape(n, nn, 6, 6 * nn)
+    left = np.matmul(np.swapaxes(t, 2, 3), k5)  # (n, nn, 6, 6nn): T_a^T K_a.
+    left = left.reshape(n, 6 * nn, nn, 6).transpose(0, 2, 1, 3)  # (n, nn_b, 6nn, 6)
+    out = np.matmul(left, t)  # (n, nn_b, 6nn, 6)
+    out = out.transpose(0, 2, 1, 3).reshape(n, 6 * nn, 6 * nn)
+    return 0.5 * (out + np.swapaxes(out, 1, 2))
 
 
 RESIDUAL_BENDING_COEFF = 1.0
@@ -411,12 +451,7 @@ def shell_stiffness(xyz, dm, db, ds, k6rot, ids=None, residual_bending=True) -> 
     kdrill = 1e-6 * k6rot * dm[:, 2, 2]
     local = (_quad_local if nn == 4 else _tri_local)(xy, dm, db, ds, kdrill, ids)
     t = _to_basic(rot, h)
-    tt = np.swapaxes(t, 1, 2)
-    out = {}
-    for name, k in zip(("membrane", "bending", "shear", "drill"), local):
-        kb = tt @ k @ t
-        out[name] = 0.5 * (kb + np.swapaxes(kb, 1, 2))
-    return out
+    return {name: _congruence(k, t) for name, k in zip(("membrane", "bending", "shear", "drill"), local)}
 
 
 def shell_mass(xyz, mu, coupled: bool, ids=None) -> np.ndarray:
