@@ -34,7 +34,7 @@ from acquisition._plan import (
     summarize_plan,
 )
 from acquisition._plant import ModalPlant, PlantError
-from acquisition._simlab import Fault, ShakerModel, SimLabError, SimulatedLab
+from acquisition._simlab import CubicSpring, Fault, ShakerModel, SimLabError, SimulatedLab
 from acquisition._uff import UffError, export_uff, import_uff
 from acquisition.runfile import (
     LineQuality,
@@ -68,6 +68,7 @@ __all__ += [
     "run_plan",
     "run_sweep",
     "summarize_plan",
+    "CubicSpring",
     "Fault",
     "Layout",
     "LayoutError",

@@ -36,8 +36,13 @@ def fit_harmonics(samples: np.ndarray, rate_hz: float, frequency_hz: float, n_ha
     for k in ks:
         th = 2 * np.pi * k * frequency_hz * t
         cols += [np.cos(th), np.sin(th)]
-    M = np.stack(cols, axis=1)
-    coef, *_ = np.linalg.lstsq(M, x.T, rcond=None)
+    M = np.stack(cols)  # (n_basis, n): nearly orthogonal over >= 1 cycle, so normal equations are safe
+    G = M @ M.T
+    rhs = M @ x.T
+    try:
+        coef = np.linalg.solve(G, rhs)
+    except np.linalg.LinAlgError:  # fewer samples than basis functions
+        coef, *_ = np.linalg.lstsq(M.T, x.T, rcond=None)
     out = np.zeros((x.shape[0], n_harmonics), dtype=complex)
     for j, k in enumerate(ks):
         out[:, k - 1] = coef[1 + 2 * j] - 1j * coef[2 + 2 * j]

@@ -69,6 +69,7 @@ class ModalPlant:
     _d: np.ndarray | None = None
     _abcd: tuple | None = None
     _cdrive: np.ndarray | None = None
+    _cdrive_physical: np.ndarray | None = None
 
     def __post_init__(self):
         if self.quantity not in QUANTITIES:
@@ -158,6 +159,7 @@ class ModalPlant:
             _d=D,
             _abcd=(A, B, C, D),
             _cdrive=None if C_drive is None else np.asarray(C_drive, dtype=float) @ V,
+            _cdrive_physical=None if C_drive is None else np.asarray(C_drive, dtype=float),
         ).items():
             object.__setattr__(plant, name, value)
         if quantity not in QUANTITIES:

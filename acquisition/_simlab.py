@@ -64,6 +64,21 @@ class ShakerModel:
 
 
 @dataclass(frozen=True)
+class CubicSpring:
+    """A hardening (beta > 0) or softening cubic spring on one mode of a modal plant.
+
+    The modal equation gains ``beta * w_r^2 * q^3`` (q the mass-normalized modal
+    coordinate, m*sqrt(kg); ``beta`` in 1/(m^2 kg)). The lab applies it by
+    equivalent linearization, updated every block from the present modal
+    amplitude a: ``w_eq^2 = w_r^2 (1 + 3/4 beta a^2)``. The resonance then shifts with
+    force level, which a linearity check detects. Harmonics are not generated.
+    """
+
+    mode: int
+    beta_per_m2kg: float
+
+
+@dataclass(frozen=True)
 class Fault:
     """A fault to inject.
 
@@ -103,6 +118,8 @@ class SimulatedLab:
         Harmonics reported in demodulating mode.
     amplitude_ramp_s : float
         Amplitude changes ramp linearly over this time (the response to the ramp is exact too).
+    nonlinearity : CubicSpring or None
+        Optional amplitude-dependent mode (equivalent linearization per block).
     """
 
     def __init__(
@@ -119,6 +136,7 @@ class SimulatedLab:
         kind: str = "sampling",
         n_harmonics: int = 5,
         amplitude_ramp_s: float = 0.01,
+        nonlinearity: "CubicSpring | None" = None,
     ):
         if not isinstance(plant, ModalPlant):
             raise SimLabError(f"plant must be a ModalPlant, got {type(plant).__name__}")
@@ -139,6 +157,14 @@ class SimulatedLab:
         self.n_harmonics = n_harmonics
         self.amplitude_ramp_s = float(amplitude_ramp_s)
         self._rng = np.random.default_rng(seed)
+        if nonlinearity is not None:
+            if plant._abcd is not None or not 0 <= nonlinearity.mode < plant.frequencies_hz.size:
+                raise SimLabError(f"nonlinearity needs a modal plant and a mode index in range, got mode {nonlinearity.mode}")
+            self._omega_eq = 2 * np.pi * plant.frequencies_hz[nonlinearity.mode]
+        self.nonlinearity = nonlinearity
+        self._gain_ideal = gain_n_per_v
+        if plant._abcd is not None and plant.drive_point_form() is not None:
+            self._cdrive_physical = plant._cdrive_physical
         self._build_coupled(gain_n_per_v)
         self._configured = False
         self._n = 0  # samples elapsed on the virtual clock
@@ -149,46 +175,80 @@ class SimulatedLab:
         self._ramp_left = 0
         self._slope = 0.0
         self._phase = 0.0
-        self._w = np.zeros_like(self._p)
         self._faulted = False
         #: (time_s, frequency_hz, amplitude_v) every time the drive changed, for inspection.
         self.drive_log: list[tuple[float, float, float]] = []
         self.closed = False
 
     # ----------------------------------------------------------- physics set-up
+    def _physical(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+        """Real realization ``(A, B, C, D, C_drive)`` of the plant; C_drive maps states to drive-point displacement."""
+        A, B, C, D = self.plant.state_space()
+        A = np.array(A, dtype=float)
+        if self.plant._abcd is None:  # modal plant: states [q, q']
+            n = self.plant.frequencies_hz.size
+            Cd = np.hstack([self.plant.shapes_in, np.zeros_like(self.plant.shapes_in)])
+            if self.nonlinearity is not None:
+                r = self.nonlinearity.mode
+                A[n + r, r] = -self._omega_eq**2
+        else:
+            cd = self.plant.drive_point_form()
+            Cd = None if cd is None else self._cdrive_physical
+        return A, np.asarray(B, float), np.asarray(C, float), np.asarray(D, float), Cd
+
     def _build_coupled(self, gain_ideal: float) -> None:
-        p, bz, cz, d = self.plant.diagonal_form()
+        """Couple plant and shaker into one linear system driven by the voltage, and diagonalize it."""
+        A, B, C, D, Cd = self._physical()
         k = self.drive_index
-        b = bz[:, k]
-        cd_all = self.plant.drive_point_form()
+        b = B[:, k]
         sh = self.shaker
-        if sh is None or cd_all is None:
+        if sh is None or Cd is None:
             g = gain_ideal if sh is None else sh.gain_n_per_v
-            K = np.zeros_like(p)
+            K = np.zeros(A.shape[0])
             den = 1.0
         else:
             g = sh.gain_n_per_v
-            cd = cd_all[k]
-            K = sh.electrical_damping_ns_per_m * cd * p + sh.armature_mass_kg * cd * p**2 + sh.suspension_stiffness_n_per_m * cd
-            den = 1.0 + sh.armature_mass_kg * float(np.real(np.sum(cd * p * b)))
-        A = np.diag(p) - np.outer(b, K) / den
-        lam, W = np.linalg.eig(A)
+            cd = Cd[k]
+            # f = g V - c_e v - m_a a - k_s x with v = cd A x, a = cd A^2 x + cd A b f (cd b = 0)
+            K = sh.electrical_damping_ns_per_m * cd @ A + sh.armature_mass_kg * cd @ A @ A + sh.suspension_stiffness_n_per_m * cd
+            den = 1.0 + sh.armature_mass_kg * float(cd @ A @ b)
+        Acl = A - np.outer(b, K) / den
+        lam, W = np.linalg.eig(Acl)
         Winv = np.linalg.inv(W)
         # rows: plant outputs (responses) then the force at the drive point
-        C = np.vstack([(cz - np.outer(d[:, k], K) / den) @ W, (-K / den) @ W])
+        Cy = np.vstack([C - np.outer(D[:, k], K) / den, -K[None, :] / den]) @ W
         bw = Winv @ (b * g / den)
         # The coupled system is real: keep one pole of each conjugate pair and
         # double its output (real poles kept once), halving the work.
         tol = 1e-9 * np.abs(lam).max()
-        keep = lam.imag > tol
         real = np.abs(lam.imag) <= tol
-        weight = np.where(real, 1.0, 2.0)
-        sel = keep | real
+        sel = (lam.imag > tol) | real
+        weight = np.where(real, 1.0, 2.0)[sel]
+        x = None
+        if hasattr(self, "_Wsel"):  # rebuild: carry the physical state over
+            x = ((self._Wsel * self._weight) @ self._w).real
+        self._Wsel = W[:, sel]
+        self._weight = weight
+        self._Winv_sel = Winv[sel]
         self._p = lam[sel]
         self._b = bw[sel]
-        self._C = C[:, sel] * weight[sel][None, :]
-        self._D = np.concatenate([d[:, k] * g / den, [g / den]]).real
+        self._C = Cy[:, sel] * weight[None, :]
+        self._D = np.concatenate([D[:, k] * g / den, [g / den]]).real
+        self._w = np.zeros(self._p.size, dtype=complex) if x is None else self._Winv_sel @ x
         self.gain_n_per_v = g / den
+
+    def _update_nonlinearity(self) -> None:
+        """Equivalent linearization of the cubic spring at the present modal amplitude (quasi-static)."""
+        nl = self.nonlinearity
+        n = self.plant.frequencies_hz.size
+        x = ((self._Wsel * self._weight) @ self._w).real
+        w_drive = 2 * np.pi * max(self._freq, 1e-9)
+        a2 = x[nl.mode] ** 2 + (x[n + nl.mode] / w_drive) ** 2
+        w0 = 2 * np.pi * self.plant.frequencies_hz[nl.mode]
+        w_eq = w0 * np.sqrt(max(1.0 + 0.75 * nl.beta_per_m2kg * a2, 0.05))
+        if abs(w_eq / self._omega_eq - 1) > 1e-7:
+            self._omega_eq = w_eq
+            self._build_coupled(self._gain_ideal)
 
     # -------------------------------------------------------------- protocol
     def configure(self, channels: Sequence[ChannelSpec], sample_rate_hz: float | None) -> DriverInfo:
@@ -365,6 +425,8 @@ class SimulatedLab:
                 if f.at_s > t0:
                     self._advance(int((f.at_s - t0) * self._rate))
                 raise DriverError(f"simulated driver fault at t = {f.at_s:.3f} s")
+        if self.nonlinearity is not None:
+            self._update_nonlinearity()
         y, drive = self._advance(n)
         data, overload = self._sensor(y, drive, t0)
         if self.kind == "sampling":

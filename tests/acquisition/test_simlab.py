@@ -116,3 +116,33 @@ def test_ramp_down_and_errors():
         ModalPlant([100.0, 200.0], 0.01, [[1.0]], [[1.0, 1.0]])
     with pytest.raises(PlantError, match="stable"):
         ModalPlant.from_state_space([[0.0, 1.0], [-1.0, 0.1]], [[0.0], [1.0]], [[1.0, 0.0]])
+
+
+def test_state_space_plant_with_drive_point_couples_the_shaker_like_the_modal_plant():
+    p = plant3()
+    A, B, C, D = p.state_space()
+    ss = ModalPlant.from_state_space(A, B, C, D, C_drive=np.hstack([p.shapes_in, np.zeros_like(p.shapes_in)]))
+    out = []
+    for plant in (p, ss):
+        lab = SimulatedLab(plant, noise_rms=0.0, adc_bits=32)
+        lab.configure(CH, 4096.0)
+        lab.set_drive(121.0, 0.3)
+        blk = lab.read_block(300)
+        out.append(blk.samples)
+    assert np.allclose(out[0], out[1], atol=1e-9 * np.abs(out[0]).max())
+
+
+def test_cubic_spring_shifts_the_resonance_with_level_and_the_linearity_check_flags_it(tmp_path):
+    from acquisition import CubicSpring, read_run, run_sweep
+    from acquisition.runfile import FLAG_NONLINEAR
+    from tests.acquisition._common import DRIVE, SENSORS, plan
+
+    p = plant3()
+    nl = CubicSpring(mode=0, beta_per_m2kg=5e4)
+    lines = {"kind": "linear", "start_hz": 119.8, "stop_hz": 120.6, "step_hz": 0.2}
+    run_sweep(SimulatedLab(p, nonlinearity=nl, noise_rms=1e-4), plan(lines, linearity={"enabled": True, "peaks_only": False}),
+              tmp_path / "nl.h5", sensors=SENSORS, drive=DRIVE, level_n=1.0)
+    run = read_run(tmp_path / "nl.h5")
+    assert np.any(run.flags & FLAG_NONLINEAR) and np.nanmax(run.linearity) > 0.05
+    # the hardened mode's peak moved up: the measured FRF differs from the linear plant near 120 Hz
+    assert np.max(np.abs(run.frf / p.frf(run.frequency_hz) - 1)) > 0.05
