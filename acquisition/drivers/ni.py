@@ -37,6 +37,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from acquisition._driver import ChannelSpec, DriverError, DriverInfo, SampleBlock
+from acquisition.drivers import DriverUnavailable
 
 #: Standard gravity, m/s^2 per g (sensitivities in mV/g on calibration sheets).
 G0 = 9.80665
@@ -54,7 +55,7 @@ def _nidaqmx():
         import nidaqmx.stream_readers
         import nidaqmx.stream_writers
     except ImportError as exc:  # pragma: no cover - exercised only without the extra
-        raise DriverError("the NI-DAQmx driver needs the nidaqmx package: pip install 'frfcal[ni]'") from exc
+        raise DriverUnavailable("the NI-DAQmx driver needs the nidaqmx package: pip install 'frfcal[ni]'") from exc
     return nidaqmx
 
 
@@ -263,6 +264,12 @@ class NiDaqDriver:
             writer = self._writer_factory or nidaqmx.stream_writers.AnalogSingleChannelWriter
             self._reader = reader(self._ai.in_stream)
             self._writer = writer(self._ao.out_stream, auto_start=False)
+        except nidaqmx.errors.DaqNotFoundError as exc:
+            self._ai = self._ao = None
+            raise DriverUnavailable(
+                "NI-DAQmx runtime not installed on this machine (the nidaqmx package needs NI's DAQmx "
+                "driver; 'frfcal info' shows what is present)"
+            ) from exc
         except nidaqmx.errors.DaqError as exc:
             self.close()
             raise DriverError(f"NI-DAQmx set-up failed (error {exc.error_code}): {exc}") from exc

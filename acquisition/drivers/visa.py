@@ -32,6 +32,7 @@ from typing import Sequence
 import numpy as np
 
 from acquisition._driver import ChannelSpec, DriverError, DriverInfo, PhasorBlock
+from acquisition.drivers import DriverUnavailable
 from acquisition._scpi import (
     LIAS_FILTER_OVERLOAD,
     LIAS_INPUT_OVERLOAD,
@@ -53,7 +54,7 @@ def _pyvisa():
     try:
         import pyvisa
     except ImportError as exc:  # pragma: no cover - exercised only without the extra
-        raise DriverError(
+        raise DriverUnavailable(
             "the VISA driver needs pyvisa (and pyvisa-py for the '@py' backend): "
             "pip install 'frfcal[visa]'"
         ) from exc
@@ -246,7 +247,7 @@ class VisaDriver:
             try:
                 self._rm = pyvisa.ResourceManager(self.backend)
             except (OSError, ValueError) as exc:
-                raise DriverError(f"VISA backend {self.backend!r} unavailable: {exc}") from exc
+                raise DriverUnavailable(f"VISA backend {self.backend!r} unavailable: {exc}") from exc
         return self._rm
 
     def _check_errors(self) -> None:

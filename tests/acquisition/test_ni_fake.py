@@ -333,3 +333,17 @@ def test_bad_channels_are_named(rig):
         drv.configure([ChannelSpec("x", "response", "acceleration", "m/s^2")], RATE)
     with pytest.raises(ValueError, match="sample_rate_hz"):
         drv.configure(CHANNELS, None)
+
+
+def test_missing_ni_runtime_is_driver_unavailable():
+    """Without NI's DAQmx library, creating a task raises DaqNotFoundError: one clear line, no traceback."""
+    from acquisition.drivers import DriverUnavailable
+
+    def no_runtime(name):
+        raise nidaqmx.errors.DaqNotFoundError("Could not find an installation of NI-DAQmx.")
+
+    drv = NiDaqDriver("Dev1/ao0", task_factory=no_runtime)
+    with pytest.raises(DriverUnavailable, match="NI-DAQmx runtime not installed") as err:
+        drv.configure(CHANNELS, RATE)
+    assert isinstance(err.value, DriverError) and isinstance(err.value, ValueError)
+    drv.close()  # nothing was opened: closing is a no-op

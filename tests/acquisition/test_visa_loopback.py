@@ -183,3 +183,11 @@ def test_reference_that_never_locks_is_a_driver_error():
             d.read_block(20)
     finally:
         d.close()
+
+
+def test_unknown_visa_backend_is_driver_unavailable():
+    from acquisition.drivers import DriverUnavailable
+
+    d = VisaDriver("TCPIP::127.0.0.1::1::SOCKET", backend="@nonexistent")
+    with pytest.raises(DriverUnavailable, match="VISA backend '@nonexistent' unavailable"):
+        d.configure(CHANNELS, None)
