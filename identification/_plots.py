@@ -49,7 +49,7 @@ def plot_stabilization(stab, path, freq_hz=None, H=None, title: str | None = Non
         fonly = stab.stable_frequency[idx] & phys & ~full
         new = phys & ~full & ~fonly
         other = ~phys & (f >= lo) & (f <= hi)
-        ax.plot(f[full], np.full(full.sum(), n), "o", color="tab:green", ms=5, label="stable f, zeta, MAC" if idx == 0 or full.any() else None)
+        ax.plot(f[full], np.full(full.sum(), n), "o", color="tab:green", ms=5)
         ax.plot(f[fonly], np.full(fonly.sum(), n), "+", color="tab:blue", ms=6)
         ax.plot(f[new], np.full(new.sum(), n), ".", color="tab:red", ms=5)
         ax.plot(f[other], np.full(other.sum(), n), "x", color="0.6", ms=4)
@@ -72,7 +72,7 @@ def plot_stabilization(stab, path, freq_hz=None, H=None, title: str | None = Non
         ax2.semilogy(f[sel], np.sum(np.abs(Ha[sel]).reshape(sel.sum(), -1), axis=1), color="0.3", lw=0.8)
         ax2.set_ylabel("sum |H| over channels")
         handles.append(Line2D([], [], color="0.3", label="data"))
-    ax.legend(handles=handles, loc="upper left", fontsize=8)
+    ax.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=len(handles), fontsize=8)
     ax.set_title(title or "stabilization diagram")
     fig.tight_layout()
     out = Path(path)

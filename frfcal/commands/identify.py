@@ -34,7 +34,7 @@ def _weights(run):
 
 def _stabilization_orders(order: int) -> list[int]:
     lo = max(2, order // 2)
-    hi = max(lo + 2, (3 * order) // 2)
+    hi = max(lo + 2, order + 8, (3 * order) // 2)
     step = max(2, 2 * round((hi - lo) / 24))
     return list(range(lo - lo % 2, hi + 1, step))
 
