@@ -75,14 +75,13 @@ class Assembly:
     autospc: DofMap
     timings: dict = field(default_factory=dict)
     selection: np.ndarray | None = None
+    dependent: np.ndarray | None = None
+    dependent_rows: sp.csr_matrix | None = None
 
     def _sum(self, kind: str) -> sp.csr_matrix:
         n = len(self.gset)
-        out = sp.csr_matrix((n, n))
-        for t in self.terms:
-            if t.kind == kind:
-                out = out + t.matrix
-        return out.tocsr()
+        mats = [t.matrix for t in self.terms if t.kind == kind]
+        return _tree_sum(mats).tocsr() if mats else sp.csr_matrix((n, n))
 
     @cached_property
     def _kg(self) -> sp.csr_matrix:
@@ -101,14 +100,27 @@ class Assembly:
         return self._mg
 
     def reduce(self, matrix_g) -> sp.csr_matrix:
-        """T^T A T for a g-set matrix, symmetrized."""
-        if self.selection is not None:
-            a = sp.csr_matrix(matrix_g)
-            r = a[self.selection][:, self.selection].tocsr()
-            r.sort_indices()
-            return r
-        r = (self.T.T @ (matrix_g @ self.T)).tocsr()
-        return (0.5 * (r + r.T)).tocsr()
+        """T^T A T for a g-set matrix, symmetrized.
+
+        Uses T = P + D (P selects the independent DOF, D holds the few rows of
+        rigid-element dependent DOF): T^T A T = A[s, s] + X + X^T + D_d^T A[d, d] D_d
+        with X = A[s, d] D_d, which avoids two full sparse products.
+        """
+        a = sp.csr_matrix(matrix_g)
+        if self.selection is None:
+            r = (self.T.T @ (a @ self.T)).tocsr()
+            return (0.5 * (r + r.T)).tocsr()
+        s = self.selection
+        r = a[s][:, s].tocsr()
+        dep = self.dependent
+        if dep is not None and dep.size:
+            dd = self.dependent_rows
+            a_sd = a[s][:, dep]
+            x = (a_sd @ dd).tocsr()
+            y = (dd.T @ (a[dep][:, dep] @ dd)).tocsr()
+            r = (r + x + x.T + 0.5 * (y + y.T)).tocsr()
+        r.sort_indices()
+        return r
 
     @cached_property
     def _ka(self) -> sp.csr_matrix:
@@ -209,6 +221,17 @@ class BlockPattern:
         return sp.csr_matrix((data, self.indices, self.indptr), shape=(n_g, n_g))
 
 
+def _tree_sum(mats: list):
+    """Sum sparse matrices pairwise (cost ~ total nnz x log(count), not count x nnz)."""
+    mats = list(mats)
+    while len(mats) > 1:
+        nxt = [mats[i] + mats[i + 1] for i in range(0, len(mats) - 1, 2)]
+        if len(mats) % 2:
+            nxt.append(mats[-1])
+        mats = nxt
+    return mats[0]
+
+
 class _Collector:
     """Accumulates term matrices per (kind, factors) and their labels."""
 
@@ -224,13 +247,19 @@ class _Collector:
         if label not in lab:
             lab.append(label)
 
-    def add(self, kind: str, factors, label: str, ke: np.ndarray, pattern: "BlockPattern", scale=None):
-        """Element matrices ke (n_el, d, d) on ``pattern`` (same elements), scaled per element."""
+    def add(self, kind: str, factors, label: str, ke: np.ndarray, pattern: "BlockPattern", scale=None,
+            symmetric: bool = False):
+        """Element matrices ke (n_el, d, d) on ``pattern`` (same elements), scaled per element.
+
+        ``symmetric=True``: the kernel already returns symmetric ke (up to round-off),
+        so the symmetrizing copy is skipped.
+        """
         if ke.shape[0] == 0:
             return
         if scale is not None:
             ke = ke * np.asarray(scale, dtype=float)[:, None, None]
-        ke = 0.5 * (ke + np.swapaxes(ke, 1, 2))
+        if not symmetric:
+            ke = 0.5 * (ke + np.swapaxes(ke, 1, 2))
         self._store(kind, factors, label, pattern.matrix(ke))
 
     def add_dofs(self, kind: str, factors, label: str, ke: np.ndarray, dofs: np.ndarray, scale=None):
@@ -248,11 +277,7 @@ class _Collector:
         out = []
         for key in sorted(self.parts, key=lambda k: (k[0], str(k[1]))):
             kind, factors = key
-            parts = self.parts[key]
-            m = parts[0]
-            for extra in parts[1:]:
-                m = m + extra
-            m = m.tocsr()
+            m = _tree_sum(self.parts[key]).tocsr()
             m.sort_indices()
             fac = ", ".join(f"{a[0]} {a[1]} {a[2]}" + (f"^{e}" if e != 1 else "") for a, e in factors) or "constant"
             out.append(MatrixTerm(kind, factors, m, f"{kind} ~ {fac}: " + "; ".join(self.labels[key])))
@@ -336,17 +361,12 @@ def assemble(model: FEModel) -> Assembly:
     t1 = time.perf_counter()
     terms = col.terms()
     t2 = time.perf_counter()
-    kg = None
-    mg = None
-    for t in terms:
-        if t.kind == "K":
-            kg = t.matrix if kg is None else kg + t.matrix
-        else:
-            mg = t.matrix if mg is None else mg + t.matrix
     n = len(gset)
-    kg = sp.csr_matrix((n, n)) if kg is None else kg.tocsr()
-    mg = sp.csr_matrix((n, n)) if mg is None else mg.tocsr()
-    T, aset, auto, selection = constraint_transformation(model, gset, kg, mg)
+    kl = [t.matrix for t in terms if t.kind == "K"]
+    ml = [t.matrix for t in terms if t.kind == "M"]
+    kg = _tree_sum(kl).tocsr() if kl else sp.csr_matrix((n, n))
+    mg = _tree_sum(ml).tocsr() if ml else sp.csr_matrix((n, n))
+    T, aset, auto, selection, dep, ddep = constraint_transformation(model, gset, kg, mg)
     t3 = time.perf_counter()
     asm = Assembly(
         model=model,
@@ -357,6 +377,8 @@ def assemble(model: FEModel) -> Assembly:
         autospc=auto,
         timings={"elements_s": t1 - t0, "merge_s": t2 - t1, "constraints_s": t3 - t2, "total_s": t3 - t0},
         selection=selection,
+        dependent=dep,
+        dependent_rows=ddep,
     )
     # seed the cached sums with the matrices already formed
     asm.__dict__["_kg"] = kg
@@ -605,17 +627,17 @@ def _add_shells(model, col, cd_axes, wt):
             T = ("PSHELL", int(pid), "T")
             if m1[i0] > 0:
                 f = [(("MAT1", int(m1[i0]), "E"), 1), (T, 1)]
-                col.add("K", f, lab + " membrane", k["membrane"][sel], pat.subset(sel))
-                col.add("K", f, lab + " drilling", k["drill"][sel], pat.subset(sel))
+                col.add("K", f, lab + " membrane", k["membrane"][sel], pat.subset(sel), symmetric=True)
+                col.add("K", f, lab + " drilling", k["drill"][sel], pat.subset(sel), symmetric=True)
                 col.add("M", [(("MAT1", int(m1[i0]), "RHO"), 1), (T, 1)], lab + " mass", mu_unit[sel], pat.subset(sel), wt * rho[sel] * t[sel])
             if m2[i0] > 0:
-                col.add("K", [(("MAT1", int(m2[i0]), "E"), 1), (T, 3)], lab + " bending", k["bending"][sel], pat.subset(sel))
+                col.add("K", [(("MAT1", int(m2[i0]), "E"), 1), (T, 3)], lab + " bending", k["bending"][sel], pat.subset(sel), symmetric=True)
                 if m3[i0] > 0:
                     r3 = mat.rows([m3[i0]])[0]
                     gf = _g_factor(int(m3[i0]), bool(mat["g_follows_e"][r3]))
-                    col.add("K", [gf, (T, 1)], lab + " transverse shear", k["shear"][sel], pat.subset(sel))
+                    col.add("K", [gf, (T, 1)], lab + " transverse shear", k["shear"][sel], pat.subset(sel), symmetric=True)
                 else:
-                    col.add("K", [(("MAT1", int(m2[i0]), "E"), 1), (T, 1)], lab + " transverse shear (rigid penalty)", k["shear"][sel], pat.subset(sel))
+                    col.add("K", [(("MAT1", int(m2[i0]), "E"), 1), (T, 1)], lab + " transverse shear (rigid penalty)", k["shear"][sel], pat.subset(sel), symmetric=True)
             if np.any(nsm[sel] != 0):
                 col.add("M", [], lab + " NSM", mu_unit[sel], pat.subset(sel), wt * nsm[sel])
 

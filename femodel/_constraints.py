@@ -28,8 +28,17 @@ def _lambda6(cd_axes, i):
     return lam
 
 
+def _lam6_many(cd_axes, idx: np.ndarray) -> np.ndarray:
+    """(m, 6, 6) block-diagonal CD rotations of grids ``idx`` (u_basic = lam u_cd)."""
+    out = np.broadcast_to(np.eye(6), (idx.size, 6, 6)).copy()
+    if cd_axes is not None:
+        out[:, :3, :3] = cd_axes[idx]
+        out[:, 3:, 3:] = cd_axes[idx]
+    return out
+
+
 def rigid_rows(model: FEModel, cd_axes=None):
-    """Dependent-DOF equations of all rigid elements.
+    """Dependent-DOF equations of all rigid elements (vectorized per element).
 
     Returns
     -------
@@ -37,42 +46,61 @@ def rigid_rows(model: FEModel, cd_axes=None):
         g-set index of each dependent DOF.
     R : csr_matrix (k, n_g)
         u_g[dep] = R @ u_g (R refers to other g-set DOF, possibly dependent ones).
+
+    Raises
+    ------
+    ModelError
+        A DOF made dependent by two rigid elements (both named), a degenerate RBE3.
     """
     if cd_axes is None and np.any(model.cd != 0):
         cd_axes = model.cd_axes()
-    rows_dep, ri, rj, rv = [], [], [], []
-    owner: dict[int, str] = {}
+    n_g = 6 * model.n_grids
+    owner = np.full(n_g, -1, np.int64)
+    names: list[str] = []
+    dep_parts, ri, rj, rv = [], [], [], []
+    n_dep = 0
 
-    def claim(dof, who):
-        if dof in owner:
-            g, c = divmod(dof, 6)
-            raise ModelError(
-                f"GRID {int(model.grid_ids[g])} component {c + 1} is dependent in both {owner[dof]} and {who}"
-            )
-        owner[dof] = who
+    def claim(dofs: np.ndarray, who: str):
+        nonlocal n_dep
+        taken = owner[dofs] >= 0
+        dup_in_self = np.unique(dofs).size != dofs.size
+        if np.any(taken) or dup_in_self:
+            d = int(dofs[taken][0]) if np.any(taken) else int(dofs[0])
+            g, c = divmod(d, 6)
+            other = names[owner[d]] if owner[d] >= 0 else who
+            raise ModelError(f"GRID {int(model.grid_ids[g])} component {c + 1} is dependent in both {other} and {who}")
+        names.append(who)
+        owner[dofs] = len(names) - 1
+        dep_parts.append(dofs)
+        first = n_dep
+        n_dep += dofs.size
+        return first
+
+    def emit(first: int, coef: np.ndarray, cols: np.ndarray):
+        """coef (k, p) dependence of k new dependent DOF on g-set columns cols (k, p) or (p,)."""
+        k, p = coef.shape
+        cols = np.broadcast_to(cols, (k, p))
+        keep = np.abs(coef) > 1e-14 * np.maximum(1.0, np.abs(coef).max(axis=1, keepdims=True))
+        rows = np.broadcast_to((first + np.arange(k))[:, None], (k, p))
+        ri.append(rows[keep])
+        rj.append(cols[keep])
+        rv.append(coef[keep])
 
     for r in model.rbe2:
         who = f"RBE2 {r.eid}"
         n = int(model.grid_index(r.gn, what=f"{who} GN")[0])
-        lam_n = _lambda6(cd_axes, n)
-        comps = [int(c) - 1 for c in r.components]
-        for gm in r.gm:
-            m = int(model.grid_index(gm, what=f"{who} GM")[0])
-            if m == n:
-                raise ModelError(f"{who}: GN {r.gn} also listed as dependent")
-            rig = rigid_offset((model.xyz[n] - model.xyz[m])[None])[0]  # u_m = u_n + th_n x (x_m - x_n)
-            # rigid_offset(w) maps grid motion to a point at +w; here the point is x_m relative to x_n
-            rig = rigid_offset((model.xyz[m] - model.xyz[n])[None])[0]
-            a = _lambda6(cd_axes, m).T @ rig @ lam_n
-            for c in comps:
-                dof = 6 * m + c
-                claim(dof, who)
-                k = len(rows_dep)
-                rows_dep.append(dof)
-                nz = np.flatnonzero(np.abs(a[c]) > 1e-14 * max(1.0, np.abs(a[c]).max()))
-                ri.extend([k] * nz.size)
-                rj.extend((6 * n + nz).tolist())
-                rv.extend(a[c, nz].tolist())
+        m = model.grid_index(np.array(r.gm, np.int64), what=f"{who} GM")
+        if np.any(m == n):
+            raise ModelError(f"{who}: GN {r.gn} also listed as dependent")
+        comps = np.array([int(c) - 1 for c in r.components], np.int64)
+        if comps.size == 0 or m.size == 0:
+            continue
+        rig = rigid_offset(model.xyz[m] - model.xyz[n])  # u_m = u_n + th_n x (x_m - x_n)
+        a = np.swapaxes(_lam6_many(cd_axes, m), 1, 2) @ rig @ _lam6_many(cd_axes, np.array([n]))[0]
+        coef = a[:, comps, :].reshape(-1, 6)  # (m * n_comp, 6)
+        dofs = (6 * m[:, None] + comps[None, :]).ravel()
+        first = claim(dofs, who)
+        emit(first, coef, 6 * n + np.arange(6))
 
     for r in model.rbe3:
         who = f"RBE3 {r.eid}"
@@ -80,26 +108,23 @@ def rigid_rows(model: FEModel, cd_axes=None):
         xr = model.xyz[ref]
         grids, comps, weights = [], [], []
         for w, cs, gs in r.groups:
-            for g in gs:
-                gi = int(model.grid_index(g, what=f"{who} grid")[0])
-                for c in cs:
-                    grids.append(gi)
-                    comps.append(int(c) - 1)
-                    weights.append(w)
+            gi = model.grid_index(np.array(gs, np.int64), what=f"{who} grid")
+            for c in cs:
+                grids.append(gi)
+                comps.append(np.full(gi.size, int(c) - 1))
+                weights.append(np.full(gi.size, float(w)))
         if not grids:
             raise ModelError(f"{who}: no independent grids")
-        grids = np.array(grids)
-        comps = np.array(comps)
-        weights = np.array(weights, float)
+        grids = np.concatenate(grids)
+        comps = np.concatenate(comps)
+        weights = np.concatenate(weights)
         uniq = np.unique(grids)
         lc = np.mean(np.linalg.norm(model.xyz[uniq] - xr, axis=1))
         # Rotational weights are scaled by Lc^2 (Lc: mean distance of the
         # independent grids from the reference grid), as Nastran documents.
         wscaled = np.where(comps >= 3, weights * lc**2, weights)
-        G = np.zeros((grids.size, 6))
-        for k, (gi, c) in enumerate(zip(grids, comps)):
-            rig = rigid_offset((model.xyz[gi] - xr)[None])[0]
-            G[k] = (_lambda6(cd_axes, gi).T @ rig)[c]
+        rig = rigid_offset(model.xyz[grids] - xr)
+        G = (np.swapaxes(_lam6_many(cd_axes, grids), 1, 2) @ rig)[np.arange(grids.size), comps]  # (p, 6)
         A = G.T @ (wscaled[:, None] * G)
         try:
             cond = np.linalg.cond(A)
@@ -108,27 +133,37 @@ def rigid_rows(model: FEModel, cd_axes=None):
         if not np.isfinite(cond) or cond > 1e12:
             raise ModelError(f"{who}: the independent grids/components do not determine all six motions of REFGRID {r.refgrid}")
         X = np.linalg.solve(A, G.T * wscaled[None, :])  # u_ref_basic = X u_ind
-        Y = _lambda6(cd_axes, ref).T @ X
-        for cstr in r.refc:
-            c = int(cstr) - 1
-            dof = 6 * ref + c
-            claim(dof, who)
-            k = len(rows_dep)
-            rows_dep.append(dof)
-            for coef, gi, cc in zip(Y[c], grids, comps):
-                if coef != 0.0:
-                    ri.append(k)
-                    rj.append(6 * gi + cc)
-                    rv.append(coef)
-    n_g = 6 * model.n_grids
-    R = sp.csr_matrix((rv, (ri, rj)), shape=(len(rows_dep), n_g))
+        Y = _lam6_many(cd_axes, np.array([ref]))[0].T @ X
+        rc = np.array([int(c) - 1 for c in r.refc], np.int64)
+        if rc.size == 0:
+            continue
+        first = claim(6 * ref + rc, who)
+        emit(first, Y[rc], 6 * grids + comps)
+
+    dep = np.concatenate(dep_parts) if dep_parts else np.zeros(0, np.int64)
+    if ri:
+        R = sp.csr_matrix((np.concatenate(rv), (np.concatenate(ri), np.concatenate(rj))), shape=(dep.size, n_g))
+    else:
+        R = sp.csr_matrix((dep.size, n_g))
     R.sum_duplicates()
-    return np.array(rows_dep, np.int64), R
+    return dep, R
 
 
 def constraint_transformation(model: FEModel, gset: DofMap, kg, mg):
-    """T (n_g, n_a), the independent DofMap, the DofMap of AUTOSPC'd DOF, and the
-    g-set indices of the a-set when T is a plain selection (no rigid elements), else None.
+    """The map u_g = T u_a and its parts.
+
+    Returns
+    -------
+    T : csr (n_g, n_a)
+    aset : DofMap
+    autospc : DofMap
+        DOF removed for having neither stiffness nor mass.
+    selection : (n_a,) int
+        g-set row of each independent DOF (T = P + D, P this selection).
+    dep : (k,) int
+        g-set rows of rigid-element dependent DOF.
+    ddep : csr (k, n_a)
+        Their rows of T (D is zero elsewhere).
 
     Raises
     ------
@@ -185,9 +220,18 @@ def constraint_transformation(model: FEModel, gset: DofMap, kg, mg):
         kd = kg.diagonal()[kept_idx]
         md = mg.diagonal()[kept_idx]
     else:
-        Tk = T[:, keep] if not np.all(keep) else T
-        kd = np.asarray((Tk.multiply(kg @ Tk)).sum(axis=0)).ravel()
-        md = np.asarray((Tk.multiply(mg @ Tk)).sum(axis=0)).ravel()
+        # diag(T^T A T) with T = P + D (D: rows of dependent DOF only)
+        Dk = C[:, np.flatnonzero(keep)].tocsr()
+
+        def tdiag(a):
+            a = sp.csr_matrix(a)
+            d0 = a.diagonal()[kept_idx]
+            cross = np.asarray(a[dep][:, kept_idx].multiply(Dk).sum(axis=0)).ravel()
+            quad = np.asarray((a[dep][:, dep] @ Dk).multiply(Dk).sum(axis=0)).ravel()
+            return d0 + 2.0 * cross + quad
+
+        kd = tdiag(kg)
+        md = tdiag(mg)
     is_rot = gset.component[kept_idx] >= 4
     empty = np.zeros(kept_idx.size, bool)
     for sel in (is_rot, ~is_rot):
@@ -202,8 +246,9 @@ def constraint_transformation(model: FEModel, gset: DofMap, kg, mg):
     final = np.flatnonzero(keep)[~empty]
     T = T[:, final].tocsr()
     aset = gset.subset(indep[final])
-    selection = indep[final] if dep.size == 0 else None
-    return T, aset, auto, selection
+    selection = indep[final]
+    ddep = C[:, final].tocsr() if dep.size else sp.csr_matrix((0, final.size))
+    return T, aset, auto, selection, dep, ddep
 
 
 def _sparse_solve(A, B):

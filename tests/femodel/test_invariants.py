@@ -202,3 +202,12 @@ def test_material_constants(frame):
     r = mat.rows([1])[0]
     assert mat["E"][r] == E and mat["RHO"][r] == RHO
     assert mat["G"][r] == pytest.approx(E / (2 * (1 + NU)))
+
+
+def test_reduce_equals_naive_projection(frame):
+    """The P + D shortcut of Assembly.reduce equals T^T A T (frame has RBE2 and RBE3)."""
+    assert frame.dependent is not None and frame.dependent.size > 0
+    for a in (frame.stiffness_g(), frame.mass_g()):
+        naive = (frame.T.T @ a @ frame.T).toarray()
+        fast = frame.reduce(a).toarray()
+        np.testing.assert_allclose(fast, naive, rtol=0, atol=1e-10 * np.abs(naive).max())
