@@ -15,9 +15,7 @@ from functools import lru_cache
 
 import numpy as np
 import pytest
-import scipy.linalg
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
 from femodel import shell_mass, shell_stiffness, solid_mass, solid_stiffness
 from tests.conftest import reference_path
@@ -264,8 +262,10 @@ class MiniModel:
                 tv.append(val)
         return sp.csr_matrix((tv, (tr, tc)), shape=(ndof, len(free)))
 
-    def modes(self, n_modes, sigma=-1.0):
-        """Lowest natural frequencies [Hz] (AUTOSPC: DOF without stiffness and mass dropped)."""
+    def modes(self, n_modes):
+        """Lowest natural frequencies [Hz] (AUTOSPC: DOF without stiffness dropped)."""
+        import femodel
+
         t = self.transform
         k = (t.T @ self.k @ t).tocsc()
         m = (t.T @ self.m @ t).tocsc()
@@ -273,16 +273,7 @@ class MiniModel:
         keep = np.flatnonzero(kd > 1e-9 * kd.max())
         k = k[keep][:, keep]
         m = m[keep][:, keep]
-        if k.shape[0] < 3000:
-            mu = scipy.linalg.eigh(m.toarray(), (k - sigma * m).toarray(), eigvals_only=True)
-            w = np.sort(1.0 / mu[mu > 0] + sigma)[:n_modes]
-        else:
-            lu = spla.splu((k - sigma * m).tocsc())
-            op = spla.LinearOperator(k.shape, matvec=lu.solve)
-            vals = spla.eigsh(k, k=n_modes, M=m, sigma=sigma, OPinv=op, which="LM",
-                              return_eigenvectors=False)
-            w = np.sort(vals)
-        return np.sign(w) * np.sqrt(np.abs(w)) / (2 * np.pi)
+        return femodel.normal_modes(k, m, n_modes).frequencies_hz
 
 
 def reference_frequencies(folder):
@@ -303,25 +294,64 @@ def _error_table(ours, ref, modes):
 
 
 # --------------------------------------------------------------------------- tests
+# The issue asks for 2 % (aiming at 0.5 %); the formulation reaches 1 % on every
+# mode of both decks, which is what is asserted.  Per-mode tables: docs/validation.md.
+
+
+def _product_modes(folder, deck, units, n):
+    import femodel
+
+    model = femodel.read_bdf(reference_path("nastran", folder, deck), units=units)
+    return femodel.solve_modes(model, n)
 
 
 def test_femap_exhaust_modes_2_to_10_within_1_percent():
     ref, _ = reference_frequencies("femap_exhaust")
-    ours = _exhaust_model().modes(10)
+    modes = _product_modes("femap_exhaust", "modal_example_from_op2.bdf", "in-lbf-s", 10)
+    ours = modes.frequencies_hz
     table = _error_table(ours, ref, range(10))
     print(table)
+    assert modes.n_rigid == 0
     err = ours[1:10] / ref[1:10] - 1
     assert np.all(np.abs(err) < 0.01), table
+    # mode 1 is the drilling (K6ROT) mechanism: reproduced too
+    assert abs(ours[0] / ref[0] - 1) < 0.01, table
 
 
 def test_dakota_cylinder_coupled_mass_free_free():
     ref, _ = reference_frequencies("dakota_cylinder")
+    modes = _product_modes("dakota_cylinder", "modal.bdf", "in-lbf-s", 20)
+    ours = modes.frequencies_hz
+    table = _error_table(ours, ref, range(6, 20))
+    print(table)
+    assert modes.n_rigid == 6
+    err = ours[6:20] / ref[6:20] - 1
+    assert np.all(np.abs(err) < 0.01), table
+
+
+def test_independent_assembly_agrees_with_product_path_on_dakota():
+    """The kernel-only helper assembly (pyNastran cards, own RBE2/CONM2) and the
+    project's reader/assembler give the same elastic frequencies."""
     mm = MiniModel(reference_path("nastran", "dakota_cylinder", "modal.bdf"))
     assert mm.coupled
     ours = mm.modes(20)
-    table = _error_table(ours, ref, range(6, 20))
-    print(table)
-    # six rigid-body modes, then elastic modes within 2 %
-    assert np.all(np.abs(ours[:6]) < 1e-3 * ref[6])
-    err = ours[6:20] / ref[6:20] - 1
-    assert np.all(np.abs(err) < 0.01), table
+    product = _product_modes("dakota_cylinder", "modal.bdf", "in-lbf-s", 20).frequencies_hz
+    np.testing.assert_allclose(ours[6:], product[6:], rtol=1e-7)
+
+
+@pytest.mark.slow
+def test_femap_exhaust_frequencies_do_not_hinge_on_k6rot():
+    """Our drilling term penalizes theta_z minus the membrane rotation, so it stays a
+    small penalty: K6ROT 10 -> 100 moves every mode, mode 1 included, by < 0.1 %
+    (MYSTRAN, whose drilling spring is not tied to the membrane rotation, moves
+    mode 1 from 8.2 to 18.3 Hz).  Our mode-1 agreement is not a K6ROT artefact."""
+    import femodel
+    from dataclasses import replace
+
+    model = femodel.read_bdf(reference_path("nastran", "femap_exhaust", "modal_example_from_op2.bdf"),
+                             units="in-lbf-s")
+    assert model.k6rot == 10.0
+    base = femodel.solve_modes(model, 10).frequencies_hz
+    stiff = femodel.solve_modes(replace(model, k6rot=100.0), 10).frequencies_hz
+    assert np.all(stiff >= base * (1 - 1e-9))
+    assert np.all(np.abs(stiff / base - 1) < 1e-3)
