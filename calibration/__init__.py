@@ -1,5 +1,6 @@
 """calibration layer (see ARCHITECTURE.md)."""
 
+from calibration._campaign import Campaign, campaign_from_dict, load_campaign
 from calibration._crossval import CrossValidation, cross_validate, split_halves
 from calibration._ensemble import group_articles, pairwise_sd
 from calibration._errors import CalibrationError
@@ -17,6 +18,7 @@ from calibration._fit import (
 )
 from calibration._metric import log_deviation, square_deviation, stacked
 from calibration._sampling import half_bandwidth_frequencies
+from calibration._pipeline import build_model, load_articles, run_campaign
 from calibration._validation import (
     IdentifiedModes,
     Validation,
@@ -39,6 +41,12 @@ from calibration._surrogate import (
 )
 
 __all__ = [
+    "Campaign",
+    "build_model",
+    "campaign_from_dict",
+    "load_articles",
+    "load_campaign",
+    "run_campaign",
     "CrossValidation",
     "IdentifiedModes",
     "Validation",

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from calibration._executor import SerialExecutor
-from calibration._fit import FitData, Objective, _check_bounds, run_start
+from calibration._fit import FitData, Objective, _check_bounds, _run_start, single_thread
 
 
 @dataclass(frozen=True)
@@ -69,9 +69,10 @@ def split_halves(data, rng) -> tuple[list, list]:
 
 def _realization(args):
     sur, fit, test, p_start, lower, upper, zeta0, quantity, max_nfev = args
-    obj = Objective(sur, fit, zeta0, quantity)
-    out = run_start((obj, p_start, lower, upper, max_nfev, 1e-8))
-    sd_test = Objective(sur, test, zeta0, quantity).sd(out.p)
+    with single_thread():
+        obj = Objective(sur, fit, zeta0, quantity)
+        out = _run_start((obj, p_start, lower, upper, max_nfev, 1e-8))
+        sd_test = Objective(sur, test, zeta0, quantity).sd(out.p)
     return out.p, out.sd, sd_test
 
 

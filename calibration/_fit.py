@@ -269,7 +269,27 @@ def _check_bounds(lower, upper, n_p):
     return lower, upper
 
 
+def single_thread():
+    """Context limiting BLAS to one thread (parallelism comes from the executor; avoids oversubscription)."""
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # optional: without it the libraries keep their own setting
+        import contextlib
+
+        return contextlib.nullcontext()
+    return threadpool_limits(limits=1, user_api="blas")
+
+
 def run_start(args) -> StartOutcome:
+    """Minimize from one start (module-level so worker processes can run it).
+
+    ``args`` = (objectives, x0, lower, upper, max_nfev, xtol); see :func:`_run_start`.
+    """
+    with single_thread():
+        return _run_start(args)
+
+
+def _run_start(args) -> StartOutcome:
     """Minimize from one start (module-level so worker processes can run it).
 
     ``args`` = (objectives, x0, lower, upper, max_nfev, xtol): ``objectives`` is
@@ -437,6 +457,8 @@ def calibrate_cycles(
     surrogate: Surrogate | None = None,
     log=None,
     continuation=(),
+    enrich: bool = True,
+    max_nfev: int = 100,
 ) -> CycleResult:
     """Calibrate; re-build the basis at the calibrated point and refine until p stops moving.
 
@@ -451,20 +473,20 @@ def calibrate_cycles(
     say = log or (lambda msg: None)
     t0 = time.perf_counter()
     if surrogate is None:
-        surrogate, _ = build_surrogate(model, np.zeros(model.n_params), band_hz, basis_factor)
+        surrogate, _ = build_surrogate(model, np.zeros(model.n_params), band_hz, basis_factor, enrich=enrich)
     t1 = time.perf_counter()
     say(f"cycle 1: basis {surrogate.size} ({len(surrogate.basis_frequencies_hz)} modes), {n_starts + 1} starts")
     cal = calibrate(surrogate, data, lower, upper, zeta0, n_starts, seed, executor, quantity,
-                    continuation=continuation)
+                    continuation=continuation, max_nfev=max_nfev)
     t2 = time.perf_counter()
     cycles = [{"cycle": 1, "p": cal.p.tolist(), "sd": cal.sd, "basis_size": surrogate.size,
                "basis_s": t1 - t0, "fit_s": t2 - t1, "max_dp": float(np.max(np.abs(cal.p)))}]
     p, sd = cal.p, cal.sd
     for k in range(2, max_cycles + 1):
         ta = time.perf_counter()
-        surrogate, _ = build_surrogate(model, p, band_hz, basis_factor)
+        surrogate, _ = build_surrogate(model, p, band_hz, basis_factor, enrich=enrich)
         tb = time.perf_counter()
-        sub = calibrate(surrogate, data, lower, upper, zeta0, 0, seed, None, quantity, p_start=p)
+        sub = calibrate(surrogate, data, lower, upper, zeta0, 0, seed, None, quantity, p_start=p, max_nfev=max_nfev)
         tc = time.perf_counter()
         dp = float(np.max(np.abs(sub.p - p)))
         cycles.append({"cycle": k, "p": sub.p.tolist(), "sd": sub.sd, "basis_size": surrogate.size,

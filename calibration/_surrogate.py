@@ -71,6 +71,9 @@ class FRFModel:
         Channel names, in column/row order.
     parameter_names : tuple of str
         Names of the normalized parameters p (P = P0 (1 + p)).
+    parametric : femodel.ParametricModel, optional
+        When given, its fast shared-pattern ``stiffness``/``mass``/``dK``/``dM``
+        are used for the full-order work (same values as K, M).
     """
 
     K: AffineMatrix
@@ -80,6 +83,7 @@ class FRFModel:
     input_names: tuple = ()
     output_names: tuple = ()
     parameter_names: tuple = ()
+    parametric: object = None
 
     def __post_init__(self) -> None:
         n = self.K.shape[0]
@@ -105,6 +109,18 @@ class FRFModel:
     @property
     def n_params(self) -> int:
         return self.K.n_params
+
+    def stiffness(self, p):
+        return self.parametric.stiffness(p) if self.parametric is not None else self.K.at(p)
+
+    def mass(self, p):
+        return self.parametric.mass(p) if self.parametric is not None else self.M.at(p)
+
+    def dK(self, p, j):
+        return self.parametric.dK(p, j) if self.parametric is not None else self.K.derivative(p, j)
+
+    def dM(self, p, j):
+        return self.parametric.dM(p, j) if self.parametric is not None else self.M.derivative(p, j)
 
 
 @dataclass(frozen=True)
@@ -169,16 +185,27 @@ class Surrogate:
 
 
 def _factor(A):
+    """solve(F) for symmetric positive definite A: CHOLMOD when scikit-sparse is present, else SuperLU."""
     A = sp.csc_matrix(A)
+    try:
+        from sksparse.cholmod import cholesky
+    except ImportError:
+        cholesky = None
+    if cholesky is not None:
+        try:
+            f = cholesky(A)
+            return lambda F: f(np.asarray(F, dtype=float))
+        except Exception:  # not positive definite in floating point: fall back to LU
+            pass
     try:
         lu = spla.splu(A, permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True})
     except RuntimeError as exc:  # singular factor
         raise CalibrationError(f"stiffness (+ shift) is singular: {exc}") from exc
-    return lu
+    return lambda F: lu.solve(np.asarray(F, dtype=float))
 
 
 def full_modes(K, M, max_hz: float, shift_hz: float, max_modes: int = 600, dense_below: int = 1500):
-    """Undamped modes of (K, M) up to ``max_hz`` and a factor of K + s M.
+    """Undamped modes of (K, M) up to ``max_hz`` and a solver for K + s M.
 
     Parameters
     ----------
@@ -186,7 +213,8 @@ def full_modes(K, M, max_hz: float, shift_hz: float, max_modes: int = 600, dense
     max_hz : float
         Highest natural frequency wanted (Hz).
     shift_hz : float
-        Shift s = (2 pi shift_hz)^2 > 0 used for shift-invert and static solves.
+        Shift s = (2 pi shift_hz)^2 > 0 of the static solves (K + s M is
+        definite also for free-free models).
     max_modes : int
         Safety cap on the number of modes.
 
@@ -207,26 +235,20 @@ def full_modes(K, M, max_hz: float, shift_hz: float, max_modes: int = 600, dense
         solve = lambda F: sla.cho_solve(lu, np.asarray(F.toarray() if sp.issparse(F) else F))  # noqa: E731
         lam = np.clip(lam[keep], 0.0, None)
         return np.sqrt(lam) / (2 * np.pi), X[:, keep], solve
+    from femodel import normal_modes
+
     Ks = sp.csc_matrix(K)
     Ms = sp.csc_matrix(M)
-    lu = _factor(Ks + s * Ms)
-    solve = lambda F: lu.solve(np.asarray(F.toarray() if sp.issparse(F) else F, dtype=float))  # noqa: E731
-    op = spla.LinearOperator((n, n), matvec=lambda x: lu.solve(np.asarray(x, dtype=float)), dtype=float)
-    k = min(30, n - 2)
-    lam_cut = (2 * np.pi * max_hz) ** 2
+    solve = _factor(Ks + s * Ms)
+    k = min(40, n - 2)
     while True:
-        lam, X = spla.eigsh(Ks, k=k, M=Ms, sigma=-s, which="LM", OPinv=op, tol=1e-10)
-        order = np.argsort(lam)
-        lam, X = lam[order], X[:, order]
-        if lam[-1] > lam_cut or k >= min(max_modes, n - 2):
+        modes = normal_modes(Ks, Ms, k)
+        freqs = np.asarray(modes.frequencies_hz)
+        if freqs[-1] > max_hz or k >= min(max_modes, n - 2):
             break
         k = min(2 * k, max_modes, n - 2)
-    keep = lam <= lam_cut
-    lam = np.clip(lam[keep], 0.0, None)
-    X = X[:, keep]
-    # eigsh returns M-orthonormal vectors already; renormalize for safety
-    X = X / np.sqrt(np.einsum("ij,ij->j", X, Ms @ X))
-    return np.sqrt(lam) / (2 * np.pi), X, solve
+    keep = freqs <= max_hz
+    return np.clip(freqs[keep], 0.0, None), np.asarray(modes.shapes)[:, keep], solve
 
 
 def build_surrogate(
@@ -238,6 +260,7 @@ def build_surrogate(
     max_modes: int = 600,
     enrich: bool = True,
     enrich_tol: float = 1e-6,
+    enrich_factor: float = 1.25,
 ) -> tuple[Surrogate, np.ndarray]:
     """Reduction basis at ``p`` and the exact-in-p reduced model.
 
@@ -257,11 +280,13 @@ def build_surrogate(
     enrich : bool
         Add parameter-derivative enrichment vectors
         (K + s M)^-1 (dK/dp_j - lambda_i dM/dp_j) phi_i for the elastic modes up to
-        1.25 x band top and every parameter (the first-order change of those
+        ``enrich_factor`` x band top and every parameter (the first-order change of those
         mode shapes), compressed by an M-weighted SVD. This keeps the fixed-basis
         surrogate accurate for local (e.g. single-plate thickness) changes.
     enrich_tol : float
         Relative singular-value cut (on M-norm squared) for the compression.
+    enrich_factor : float
+        Modes up to ``enrich_factor`` x band top are enriched.
 
     Returns
     -------
@@ -281,8 +306,8 @@ def build_surrogate(
     if shift_hz is None:
         shift_hz = max(low / 4.0, high / 50.0)
     t0 = time.perf_counter()
-    K0 = model.K.at(p)
-    M0 = model.M.at(p)
+    K0 = model.stiffness(p)
+    M0 = model.mass(p)
     t1 = time.perf_counter()
     freqs, Phi, solve = full_modes(K0, M0, basis_factor * high, shift_hz, max_modes=max_modes)
     t2 = time.perf_counter()
@@ -293,13 +318,13 @@ def build_surrogate(
     n_static = S.shape[1]
     n_enrich = 0
     if enrich:
-        sel = np.flatnonzero((freqs <= 1.25 * high) & (freqs > max(1e-3 * max(low, 1.0), 1e-6 * high)))
+        sel = np.flatnonzero((freqs <= enrich_factor * high) & (freqs > max(1e-3 * max(low, 1.0), 1e-6 * high)))
         if sel.size:
             lam = (2 * np.pi * freqs[sel]) ** 2
             rhs = []
             for j in range(model.n_params):
-                dK = model.K.derivative(p, j)
-                dM = model.M.derivative(p, j)
+                dK = model.dK(p, j)
+                dM = model.dM(p, j)
                 rhs.append(dK @ Phi[:, sel] - (dM @ Phi[:, sel]) * lam[None, :])
             rhs = np.hstack(rhs)
             nz = np.linalg.norm(rhs, axis=0) > 0
@@ -360,6 +385,15 @@ def reduced_modes(sur: Surrogate, p) -> tuple[np.ndarray, np.ndarray]:
     except np.linalg.LinAlgError as exc:
         raise CalibrationError(f"reduced mass matrix not positive definite at p={np.round(p, 4)}") from exc
     return lam, X
+
+
+def _stacked(A: AffineMatrix) -> np.ndarray:
+    """The dense reduced terms of ``A`` as one (n_terms, r, r) array (cached on the object)."""
+    cached = A.__dict__.get("_stack")
+    if cached is None:
+        cached = np.stack([np.asarray(m) for m in A.matrices])
+        object.__setattr__(A, "_stack", cached)
+    return cached
 
 
 def _quantity_factor(w: np.ndarray, quantity: str) -> np.ndarray:
@@ -467,10 +501,8 @@ def surrogate_frf_jacobian(
     # A_j, B_j in modal coordinates, from the projected terms and coefficient derivatives
     dcK = sur.K.coefficient_jacobian(p)  # (n_terms, n_p)
     dcM = sur.M.coefficient_jacobian(p)
-    KX = np.stack([X.T @ Kt @ X for Kt in sur.K.matrices])  # (n_terms, m, m)
-    MX = np.stack([X.T @ Mt @ X for Mt in sur.M.matrices])
-    A = np.einsum("tj,tab->jab", dcK, KX)
-    Bm = np.einsum("tj,tab->jab", dcM, MX)
+    A = X.T @ np.tensordot(dcK.T, _stacked(sur.K), axes=1) @ X  # (n_p, m, m)
+    Bm = X.T @ np.tensordot(dcM.T, _stacked(sur.M), axes=1) @ X
     osum = om[:, None] + om[None, :]
     both_rigid = rigid[:, None] & rigid[None, :]
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -482,12 +514,15 @@ def surrogate_frf_jacobian(
     # right factor diag(r) X^T B for every frequency: (m, n_f * n_in)
     vr = (r.T[:, :, None] * v[:, None, :]).reshape(m, n_f * n_in)
     mats = np.concatenate([A, Bm, R], axis=0).reshape(3 * n_p * m, m)
-    W = (mats @ vr.real + 1j * (mats @ vr.imag)).reshape(3, n_p, m, n_f, n_in)
+    # (contiguous real operands keep numpy on the BLAS path)
+    W = mats @ np.ascontiguousarray(vr.real) + 1j * (mats @ np.ascontiguousarray(vr.imag))
+    # W[(c, j, k), (f, i)] -> (f, k, (c, j, i)) for one batched product with C X diag(r)
+    W = np.ascontiguousarray(W.reshape(3 * n_p, m, n_f, n_in).transpose(2, 1, 0, 3)).reshape(n_f, m, 3 * n_p * n_in)
     ur = u[None, :, :] * r[:, None, :]  # (n_f, n_out, m)
-    T3 = np.einsum("fom,cjmfi->cjfoi", ur, W, optimize=True)  # (3, n_p, n_f, n_out, n_in)
-    w2 = (w**2)[None, :, None, None]
-    dH = -(T3[0]) + w2 * T3[1] - 1j * w[None, :, None, None] * T3[2]
-    dH = dH * q[None, :, None, None]
+    T3 = np.matmul(ur, W).reshape(n_f, -1, 3, n_p, n_in)  # (f, o, c, j, i)
+    w2 = (w**2)[:, None, None, None]
+    dH = -T3[:, :, 0] + w2 * T3[:, :, 1] - 1j * w[:, None, None, None] * T3[:, :, 2]  # (f, o, j, i)
+    dH = (dH * q[:, None, None, None]).transpose(2, 0, 1, 3)
     return H, dH
 
 

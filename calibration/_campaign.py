@@ -1,0 +1,177 @@
+"""Campaign configuration: everything a calibration needs, in one TOML file (docs/campaign.md).
+
+Paths are relative to the campaign file. Unknown keys are errors, every
+field states its unit, defaults follow the method paper.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from calibration._errors import CalibrationError
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class ModelSection(_Strict):
+    """The FE model: Nastran deck, its unit system and the parameter file."""
+
+    bdf: Path | None = Field(None, description="Nastran deck (default: [model] bdf of the parameter file)")
+    units: str | None = Field(None, description="deck unit system, e.g. 'mm-t-s' or 'si' (default: parameter file)")
+    parameters: Path = Field(description="femodel parameter TOML (names, cards, bounds on normalized p)")
+
+
+class RunEntry(_Strict):
+    """One run file (HDF5, acquisition.runfile) of one test article."""
+
+    path: Path
+    article: str | None = Field(None, description="article label (default: the run file's article)")
+
+
+class ChannelsSection(_Strict):
+    """Which response channels calibrate and which are held out; which drives."""
+
+    calibrate: list[str] = Field(min_length=1, description="response channel names used for calibration")
+    holdout: list[str] = Field(default_factory=list, description="response channels for hold-out validation")
+    drives: list[str] = Field(default_factory=list, description="force channel names (default: all drives of the runs)")
+
+    @model_validator(mode="after")
+    def _disjoint(self):
+        both = sorted(set(self.calibrate) & set(self.holdout))
+        if both:
+            raise ValueError(f"channels {both} are both in calibrate and holdout")
+        for name, lst in (("calibrate", self.calibrate), ("holdout", self.holdout), ("drives", self.drives)):
+            if len(set(lst)) != len(lst):
+                raise ValueError(f"channels.{name} lists a channel twice")
+        return self
+
+
+class BandSection(_Strict):
+    """Calibration and validation band in Hz."""
+
+    low_hz: float = Field(gt=0)
+    high_hz: float = Field(gt=0)
+
+    @model_validator(mode="after")
+    def _order(self):
+        if self.high_hz <= self.low_hz:
+            raise ValueError(f"band: high_hz ({self.high_hz}) must exceed low_hz ({self.low_hz})")
+        return self
+
+
+class CalibrationSection(_Strict):
+    """Metric, surrogate and minimizer settings."""
+
+    zeta0: float = Field(0.01, gt=0, lt=0.5, description="equalized damping ratio (fraction)")
+    samples_per_half_bandwidth: float = Field(3.0, gt=0, description="frequency samples per 2*zeta0*f")
+    starts: int = Field(20, ge=0, description="Latin-hypercube starts besides the nominal one")
+    seed: int = Field(0, description="seed of the Latin hypercube")
+    continuation_zeta: list[float] = Field(
+        default_factory=lambda: [0.08, 0.03], description="damping continuation stages before zeta0 ([] = off)"
+    )
+    basis_factor: float = Field(2.0, ge=1.1, description="modes up to basis_factor x band top enter the basis")
+    enrich: bool = Field(True, description="parameter-derivative enrichment of the basis")
+    max_cycles: int = Field(3, ge=1, description="re-basis cycles (1 = keep the nominal basis)")
+    cycle_tol: float = Field(1e-3, gt=0, description="stop cycling when max |dp| is below this")
+    max_evaluations: int = Field(100, ge=5, description="residual evaluations per start and stage")
+    ensemble: Literal["all", "article", "group"] = Field("all", description="calibrate on all articles, each, or each group")
+    n_groups: int | None = Field(None, ge=1, description="number of article groups (default: largest gap)")
+
+    @field_validator("continuation_zeta")
+    @classmethod
+    def _zetas(cls, v):
+        if any(not 0 < z < 0.5 for z in v):
+            raise ValueError("continuation_zeta values must be in (0, 0.5)")
+        return v
+
+
+class IdentificationSection(_Strict):
+    """Subspace identification of the test data (skipped when the run file holds one and use_stored)."""
+
+    order: int = Field(44, ge=2, description="state order (2 per mode)")
+    low_hz: float | None = Field(None, gt=0, description="identification band low (default: 0.8 x band low)")
+    high_hz: float | None = Field(None, gt=0, description="identification band high (default: 1.25 x band high)")
+    use_stored: bool = Field(True, description="use /analysis/identification of the run file when present")
+
+
+class ValidationSection(_Strict):
+    target_sd: float | None = Field(None, gt=0, description="SD target of Eq. 2.24 (dimensionless)")
+    mac_min: float = Field(0.6, ge=0, le=1, description="smallest MAC for damping mapping pairs")
+
+
+class CrossValidationSection(_Strict):
+    realizations: int = Field(20, ge=0, description="Monte Carlo half/half splits (0 = skip)")
+    seed: int = 1
+    max_evaluations: int = Field(30, ge=2, description="residual evaluations per recalibration")
+
+
+class ExecutionSection(_Strict):
+    workers: int | None = Field(None, ge=1, description="local worker processes (default: all cores)")
+    scheduler: str | None = Field(None, description="Dask scheduler address, e.g. tcp://host:8786")
+
+
+class OutputSection(_Strict):
+    dir: Path = Field(Path("calibration-out"), description="output directory")
+    figures: bool = True
+    write_bdf: bool = True
+
+
+class Campaign(_Strict):
+    """A complete, re-runnable calibration campaign."""
+
+    model: ModelSection
+    run: list[RunEntry] = Field(min_length=1)
+    channels: ChannelsSection
+    band: BandSection
+    calibration: CalibrationSection = CalibrationSection()
+    identification: IdentificationSection = IdentificationSection()
+    validation: ValidationSection = ValidationSection()
+    crossvalidation: CrossValidationSection = CrossValidationSection()
+    execution: ExecutionSection = ExecutionSection()
+    output: OutputSection = OutputSection()
+    base_dir: Path = Field(Path("."), exclude=True)
+
+    def resolve(self, path: Path | None) -> Path | None:
+        if path is None:
+            return None
+        return path if path.is_absolute() else (self.base_dir / path)
+
+
+def _format_errors(source, exc: ValidationError) -> str:
+    parts = []
+    for err in exc.errors():
+        loc = ".".join(str(x) for x in err["loc"])
+        msg = err["msg"]
+        if err["type"] == "extra_forbidden":
+            msg = "unknown field"
+        parts.append(f"{loc}: {msg}")
+    return f"{source}: " + "; ".join(parts)
+
+
+def campaign_from_dict(data: dict, base_dir=".", source="campaign") -> Campaign:
+    """Validate a campaign dict (as read from TOML); CalibrationError names the bad field."""
+    try:
+        return Campaign(**data, base_dir=Path(base_dir))
+    except ValidationError as exc:
+        raise CalibrationError(_format_errors(source, exc)) from None
+    except TypeError as exc:
+        raise CalibrationError(f"{source}: {exc}") from None
+
+
+def load_campaign(path) -> Campaign:
+    """Read and validate a campaign TOML file."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            data = tomllib.load(fh)
+    except tomllib.TOMLDecodeError as exc:
+        raise CalibrationError(f"{path}: not valid TOML: {exc}") from None
+    if "base_dir" in data:
+        raise CalibrationError(f"{path}: base_dir: unknown field")
+    return campaign_from_dict(data, path.resolve().parent, str(path))

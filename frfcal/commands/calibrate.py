@@ -1,0 +1,77 @@
+"""``frfcal calibrate CAMPAIGN.toml``: calibrate, validate and cross-validate a campaign."""
+
+from __future__ import annotations
+
+import argparse
+
+HELP = "calibrate an FE model against run files (campaign TOML): calibration, hold-out validation, cross-validation"
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("campaign", help="campaign TOML file (see docs/campaign.md)")
+    parser.add_argument("--json", action="store_true", help="print one JSON object with the results")
+    parser.add_argument("--out", help="output directory (overrides [output] dir)")
+    parser.add_argument("--starts", type=int, help="Latin-hypercube starts (overrides [calibration] starts)")
+    parser.add_argument("--realizations", type=int, help="cross-validation realizations (overrides the campaign)")
+    parser.add_argument("--workers", type=int, help="local worker processes")
+    parser.add_argument("--scheduler", help="Dask scheduler address (tcp://host:8786)")
+    parser.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    parser.add_argument("--quiet", action="store_true", help="no progress messages")
+
+
+def _override(camp, args):
+    from pathlib import Path
+
+    changes = {}
+    if args.out:
+        changes["output"] = camp.output.model_copy(update={"dir": Path(args.out).resolve()})
+    if args.no_figures:
+        changes["output"] = changes.get("output", camp.output).model_copy(update={"figures": False})
+    if args.starts is not None:
+        changes["calibration"] = camp.calibration.model_copy(update={"starts": max(0, args.starts)})
+    if args.realizations is not None:
+        changes["crossvalidation"] = camp.crossvalidation.model_copy(update={"realizations": max(0, args.realizations)})
+    if args.workers is not None or args.scheduler:
+        ex = camp.execution.model_copy(update={k: v for k, v in (("workers", args.workers),
+                                                               ("scheduler", args.scheduler)) if v is not None})
+        changes["execution"] = ex
+    return camp.model_copy(update=changes) if changes else camp
+
+
+def run(args) -> int:
+    import json
+    import sys
+
+    from calibration import load_campaign, run_campaign
+    from calibration._pipeline import _json_default
+
+    camp = _override(load_campaign(args.campaign), args)
+    # progress goes to stdout, or to stderr with --json (stdout holds only the JSON object)
+    stream = sys.stderr if args.json else sys.stdout
+
+    def log(msg):
+        if not args.quiet:
+            print(msg, file=stream, flush=True)
+
+    res = run_campaign(camp, log=log)
+    if args.json:
+        print(json.dumps(res, default=_json_default))
+        return 0
+    for m in res["members"]:
+        print(f"\n== {m['member']} ({', '.join(m['articles'])})")
+        print(f"calibration SD  {m['sd_calibration_nominal']:.4g} -> {m['sd_calibration']:.4g}")
+        v = m["validation"]
+        if v:
+            crit = "passed" if v["passed"] else "FAILED"
+            print(f"hold-out SD     {v['sd_nominal']:.4g} -> {v['sd_calibrated']:.4g}  (Eq. 2.24 {crit})")
+        cv = m["crossvalidation"]
+        if cv:
+            print(f"cross-validation RSE {cv['rse']:.4g} over {cv['realizations']} realizations")
+        print(f"{'parameter':<22}{'nominal':>12}{'calibrated':>12}{'change%':>9}{'CV%':>8}")
+        for r in m["parameters"]:
+            cvp = f"{r['cv_percent']:8.3f}" if "cv_percent" in r else ""
+            print(f"{r['name']:<22}{r['nominal_si']:12.4g}{r['calibrated_si']:12.4g}{100 * r['p']:+9.2f}{cvp}")
+        if "bdf" in m:
+            print(f"calibrated deck: {m['bdf']}")
+    print(f"\nresult: {res['result_file']}  ({res['timings']['total_s']:.1f} s)")
+    return 0
