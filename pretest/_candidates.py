@@ -18,6 +18,7 @@ __all__ = [
 ]
 
 _SHELLS = ("CQUAD4", "CTRIA3", "CQUAD8", "CTRIA6", "CQUADR", "CTRIAR")
+_EDGE_RATIO = 0.25  # second/first eigenvalue of sum(n n^T) above which a grid is on an edge
 _AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
 
 
@@ -164,6 +165,7 @@ def surface_normals(model, grids) -> np.ndarray:
     gi = model.grid_index(grids)
     tensor = np.zeros((model.n_grids, 3, 3))
     count = np.zeros(model.n_grids)
+    corner_grid, corner_normal = [], []
     for card, table in _element_tables(model, _SHELLS):
         nodes = np.asarray(table["nodes"])
         corner = 3 if card.startswith("CTRIA") else 4
@@ -181,6 +183,8 @@ def surface_normals(model, grids) -> np.ndarray:
         for c in range(corner):
             np.add.at(tensor, idx[ok, c], nn)
             np.add.at(count, idx[ok, c], 1.0)
+            corner_grid.append(idx[ok, c])
+            corner_normal.append(n)
     lonely = grids[count[gi] == 0]
     if lonely.size:
         raise PretestError(
@@ -189,6 +193,24 @@ def surface_normals(model, grids) -> np.ndarray:
         )
     w, v = np.linalg.eigh(tensor[gi])
     normal = v[:, :, -1]
+    # On an edge or corner where faces meet at an angle (second eigenvalue of
+    # the tensor comparable to the first) the principal direction is a
+    # non-physical mix; a sensor sits on one face, so take the attached
+    # element normal best aligned with it.
+    edge = w[:, -2] > _EDGE_RATIO * w[:, -1]
+    if np.any(edge):
+        cg = np.concatenate(corner_grid)
+        cn = np.concatenate(corner_normal)
+        slot = -np.ones(model.n_grids, dtype=np.int64)
+        slot[gi[edge]] = np.arange(int(edge.sum()))
+        keep = slot[cg] >= 0
+        cg, cn = slot[cg[keep]], cn[keep]
+        score = np.abs(np.einsum("ei,ei->e", cn, normal[edge][cg]))
+        order = np.lexsort((score, cg))
+        last = np.r_[cg[order][1:] != cg[order][:-1], True]
+        best = np.empty((int(edge.sum()), 3))
+        best[cg[order][last]] = cn[order][last]
+        normal[edge] = best
     big = np.argmax(np.abs(normal), axis=1)
     sign = np.sign(normal[np.arange(normal.shape[0]), big])
     return normal * sign[:, None]

@@ -31,15 +31,21 @@ def _plate_deck(path, *, tilt_deg=30.0, nx=4, ny=3, lx=0.4, ly=0.3):
     return path
 
 
-def _angle_deck(path):
-    """An L-shaped section: a plate in the x-y plane (PID 1) meeting a plate in the x-z plane (PID 2)."""
+def _angle_deck(path, rot_deg=0.0):
+    """An L-shaped section: a plate in the x-y plane (PID 1) meeting a plate in the x-z plane (PID 2),
+    the whole rotated by ``rot_deg`` about the x axis."""
     lines = ["SOL 103", "CEND", "BEGIN BULK", "MAT1,1,2.1e11,,0.3,7850.", "PSHELL,1,1,0.002,1,,1", "PSHELL,2,1,0.003,1,,1"]
     n = 4
+    c, s = np.cos(np.radians(rot_deg)), np.sin(np.radians(rot_deg))
+
+    def grid(gid, x, y, z):
+        lines.append(f"GRID,{gid},,{x:.9f},{c * y - s * z:.9f},{s * y + c * z:.9f}")
+
     for i in range(n + 1):
         for j in range(3):
-            lines.append(f"GRID,{100 + 10 * i + j},,{0.1 * i:.3f},{0.1 * j:.3f},0.0")
+            grid(100 + 10 * i + j, 0.1 * i, 0.1 * j, 0.0)
         for k in (1, 2):
-            lines.append(f"GRID,{200 + 10 * i + k},,{0.1 * i:.3f},0.0,{0.1 * k:.3f}")
+            grid(200 + 10 * i + k, 0.1 * i, 0.0, 0.1 * k)
     eid = 1
     for i in range(n):
         for j in range(2):
@@ -76,6 +82,20 @@ def test_normals_pids_box_on_angle_section(tmp_path):
     assert set(boxed.tolist()) == {200 + 10 * i + k for i in range(5) for k in (1, 2)}
     both = pretest.candidate_grids(model, pids=[1], box_m=[0.15, -1, -1, 1, 1, 1])
     assert set(both.tolist()) == {100 + 10 * i + j for i in (2, 3, 4) for j in range(3)}
+
+
+@pytest.mark.parametrize("rot_deg", [0.0, 30.0, 117.0])
+def test_edge_grids_get_a_face_normal(tmp_path, rot_deg):
+    # grids on the corner line (two flange and two web elements: a tie between the two face
+    # normals) get one face's normal, never a mix of the two
+    model = femodel.read_bdf(_angle_deck(tmp_path / "angle.bdf", rot_deg=rot_deg))
+    c, s = np.cos(np.radians(rot_deg)), np.sin(np.radians(rot_deg))
+    faces = np.array([[0.0, -s, c], [0.0, c, s]])  # flange and web normals, rotated
+    corner = pretest.surface_normals(model, [110, 120, 130])
+    for n in corner:
+        assert np.max(np.abs(faces @ n)) == pytest.approx(1.0, abs=1e-7)
+    big = np.argmax(np.abs(corner), axis=1)
+    assert np.all(corner[np.arange(3), big] > 0)  # sign convention: largest component positive
 
 
 def test_candidate_errors_name_the_culprit(tmp_path):
