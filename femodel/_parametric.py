@@ -145,6 +145,11 @@ class ParametricModel:
         The deck.
     units : str
         The deck's unit system.
+    series_error_bound : float
+        0 when every shell-shear series term is exact (structured meshes,
+        at most ``MAX_SERIES_TERMS_PER_GROUP`` distinct element ratios per
+        group); otherwise the largest relative error of a binned series
+        coefficient anywhere within the parameter bounds.
     """
 
     parameters: ParameterSet
@@ -156,6 +161,7 @@ class ParametricModel:
     assembly: object = field(repr=False)
     bdf: Path = None
     units: str = "si"
+    series_error_bound: float = 0.0
     _kpat: _Pattern = field(default=None, repr=False)
     _mpat: _Pattern = field(default=None, repr=False)
 
@@ -310,6 +316,28 @@ def _key_index(params: ParameterSet) -> dict:
     return key_index
 
 
+#: Distinct series ratios kept exactly per (shear, bending) exponent group; an
+#: irregular mesh with more is binned in log(r) and the coefficient error bound
+#: is reported as ``ParametricModel.series_error_bound``.
+MAX_SERIES_TERMS_PER_GROUP = 64
+
+
+def _series_error(r, r_rep, a, b, lower, upper) -> float:
+    """Max relative coefficient error over the bounds when ratios ``r`` use ``r_rep``.
+
+    c/u = (1 + r) / (1 + r z) with z = u/v = prod (1 + p_j)^(a_j - b_j).
+    """
+    d = np.asarray(a, float) - np.asarray(b, float)
+    lo = np.where(d >= 0, (1.0 + lower) ** d, (1.0 + upper) ** d)
+    hi = np.where(d >= 0, (1.0 + upper) ** d, (1.0 + lower) ** d)
+    err = 0.0
+    for z in (np.prod(lo), np.prod(hi)):
+        exact = (1.0 + r) / (1.0 + r * z)
+        approx = (1.0 + r_rep) / (1.0 + r_rep * z)
+        err = max(err, float(np.max(np.abs(approx / exact - 1.0))))
+    return err
+
+
 def _shell_shear_series(assembly, params: ParameterSet, key_index: dict):
     """Exact parametric form of shell transverse shear with residual bending flexibility.
 
@@ -334,10 +362,10 @@ def _shell_shear_series(assembly, params: ParameterSet, key_index: dict):
     mat = fe.materials.get("MAT1")
     n_par = len(params)
     if coeff == 0.0 or prop is None or mat is None:
-        return [], []
+        return [], [], 0.0
     cd_axes = fe.cd_axes() if np.any(fe.cd != 0) else None
     n_g = len(assembly.gset)
-    corrections, series = [], []
+    corrections, series, errors = [], [], []
     for card in ("CQUAD4", "CTRIA3"):
         tab = fe.elements.get(card)
         if tab is None or len(tab) == 0:
@@ -393,21 +421,38 @@ def _shell_shear_series(assembly, params: ParameterSet, key_index: dict):
             ok = j_[idx] >= 0
             np.add.at(e_, (np.flatnonzero(ok), j_[idx][ok]), w_)
         nominal = np.zeros((n, nd, nd))
+        contribs, ratios = [], []
         for i in range(2):
             b0 = 12.0 * dbd / (coeff * L[:, i] ** 2)
             w0 = 1.0 / (1.0 / a0 + 1.0 / b0)
-            ratio = a0 / b0
-            contrib = unit[i] * w0[:, None, None]
-            nominal += contrib
-            # group (element, direction) pairs with equal exponent rows and ratio
-            key = np.column_stack([ea, eb, np.round(np.log(ratio), 12)])
-            ukeys, inv = np.unique(key, axis=0, return_inverse=True)
-            inv = inv.ravel()
-            for g in range(ukeys.shape[0]):
-                sel = inv == g
-                m = sp.csr_matrix((contrib[sel].ravel(), (rr.reshape(n, -1)[sel].ravel(), cc.reshape(n, -1)[sel].ravel())),
-                                  shape=(n_g, n_g))
-                series.append((ea[sel][0], eb[sel][0], float(np.mean(ratio[sel])), m))
+            ratios.append(a0 / b0)
+            contribs.append(unit[i] * w0[:, None, None])
+            nominal += contribs[-1]
+        contrib = np.concatenate(contribs)
+        ratio = np.concatenate(ratios)
+        rr2 = np.tile(rr.reshape(n, -1), (2, 1))
+        cc2 = np.tile(cc.reshape(n, -1), (2, 1))
+        ea2, eb2 = np.tile(ea, (2, 1)), np.tile(eb, (2, 1))
+        urows, rinv = np.unique(np.column_stack([ea2, eb2]), axis=0, return_inverse=True)
+        rinv = rinv.ravel()
+        for g in range(urows.shape[0]):
+            members = np.flatnonzero(rinv == g)
+            logr = np.log(ratio[members])
+            levels, linv = np.unique(np.round(logr, 12), return_inverse=True)
+            linv = linv.ravel()
+            if levels.size > MAX_SERIES_TERMS_PER_GROUP:
+                # irregular mesh: bin log(r); the representative ratio is the bin's log-midpoint
+                edges = np.linspace(logr.min(), logr.max(), MAX_SERIES_TERMS_PER_GROUP + 1)
+                linv = np.clip(np.searchsorted(edges, logr, side="right") - 1, 0, MAX_SERIES_TERMS_PER_GROUP - 1)
+            for b in np.unique(linv):
+                sel = members[linv == b]
+                lr = np.log(ratio[sel])
+                r_rep = float(np.exp(0.5 * (lr.min() + lr.max())))
+                if lr.max() - lr.min() > 1e-11:
+                    errors.append(_series_error(ratio[sel], r_rep, urows[g, :n_par], urows[g, n_par:],
+                                                params.lower, params.upper))
+                m = sp.csr_matrix((contrib[sel].ravel(), (rr2[sel].ravel(), cc2[sel].ravel())), shape=(n_g, n_g))
+                series.append((urows[g, :n_par], urows[g, n_par:], r_rep, m))
         # remove the nominal shear from the monomial term it was assembled in (exponent row a)
         urows, inv = np.unique(ea, axis=0, return_inverse=True)
         inv = inv.ravel()
@@ -416,7 +461,7 @@ def _shell_shear_series(assembly, params: ParameterSet, key_index: dict):
             m = sp.csr_matrix((-nominal[sel].ravel(), (rr.reshape(n, -1)[sel].ravel(), cc.reshape(n, -1)[sel].ravel())),
                               shape=(n_g, n_g))
             corrections.append((urows[g], m))
-    return corrections, series
+    return corrections, series, float(max(errors, default=0.0))
 
 
 def _grouped_terms(assembly, params: ParameterSet, kind: str, source, extra=(), series=()):
@@ -513,7 +558,7 @@ def parametric_model(params, bdf=None, *, units: str | None = None, allow_unsupp
                 "no element uses it"
             )
 
-    corrections, series = _shell_shear_series(assembly, params, _key_index(params))
+    corrections, series, series_error = _shell_shear_series(assembly, params, _key_index(params))
     kmats, ka, kb, kr = _grouped_terms(assembly, params, "K", source, corrections, series)
     mmats, ma, _, _ = _grouped_terms(assembly, params, "M", source)
     K = SeriesAffineMatrix(tuple(kmats), ka, kb, kr) if series else AffineMatrix(tuple(kmats), ka)
@@ -528,6 +573,7 @@ def parametric_model(params, bdf=None, *, units: str | None = None, allow_unsupp
         assembly=assembly,
         bdf=Path(bdf),
         units=units,
+        series_error_bound=series_error,
         _kpat=_shared_pattern(kmats),
         _mpat=_shared_pattern(mmats),
     )
