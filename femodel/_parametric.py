@@ -403,11 +403,12 @@ def _shell_shear_series(assembly, params: ParameterSet, key_index: dict):
         xyz = fe.xyz[nodes]
         _, xy, _ = shell_frames(xyz, tab.ids[idx])
         L = _bending_lengths(xy)
-        zero_m = np.broadcast_to(np.eye(3), (n, 3, 3))  # membrane is computed but not used
-        unit_b = np.broadcast_to(np.eye(3), (n, 3, 3))
-        k11 = shell_stiffness(xyz, zero_m, unit_b, np.broadcast_to(np.eye(2), (n, 2, 2)), 0.0,
+        # contiguous inputs: the batched kernel is about twice as fast as on broadcast views
+        unit_m = np.tile(np.eye(3), (n, 1, 1))  # membrane is computed but not used
+        unit_b = unit_m.copy()
+        k11 = shell_stiffness(xyz, unit_m, unit_b, np.tile(np.eye(2), (n, 1, 1)), 0.0,
                               ids=tab.ids[idx], residual_bending=False)["shear"]
-        k12 = shell_stiffness(xyz, zero_m, unit_b, np.broadcast_to(np.diag([1.0, 2.0]), (n, 2, 2)), 0.0,
+        k12 = shell_stiffness(xyz, unit_m, unit_b, np.tile(np.diag([1.0, 2.0]), (n, 1, 1)), 0.0,
                               ids=tab.ids[idx], residual_bending=False)["shear"]
         unit = (_to_cd(2.0 * k11 - k12, nodes, cd_axes, 6), _to_cd(k12 - k11, nodes, cd_axes, 6))
         del k11, k12
