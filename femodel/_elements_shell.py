@@ -223,7 +223,7 @@ def _btdb(b: np.ndarray, d: np.ndarray, w: np.ndarray) -> np.ndarray:
     return np.matmul(np.swapaxes(b, 1, 2), db * w[:, None, None])
 
 
-def _quad_local(xy, dm, db, ds, kdrill, ids):
+def _quad_local(xy, dm, db, ds, kdrill, ids, dmb=None):
     n = xy.shape[0]
     km = np.zeros((n, 24, 24))
     kb = np.zeros((n, 24, 24))
@@ -235,6 +235,9 @@ def _quad_local(xy, dm, db, ds, kdrill, ids):
     _, det0, inv0 = _jacobian(d0, xy)
     kua = np.zeros((n, 24, 4))
     kaa = np.zeros((n, 4, 4))
+    if dmb is not None:
+        kc = np.zeros((n, 24, 24))
+        kab = np.zeros((n, 4, 24))
     # MITC4 tying points: gamma_xi at (0, -1) and (0, +1); gamma_eta at (-1, 0), (+1, 0)
     tying = {}
     for key, (xi, eta, a) in {"A": (0.0, -1.0, 0), "C": (0.0, 1.0, 0), "D": (-1.0, 0.0, 1), "B": (1.0, 0.0, 1)}.items():
@@ -260,18 +263,31 @@ def _quad_local(xy, dm, db, ds, kdrill, ids):
         dba = np.matmul(dm, ba) * det[:, None, None]
         kua += np.matmul(np.swapaxes(bm, 1, 2), dba)
         kaa += np.matmul(np.swapaxes(ba, 1, 2), dba)
-        kb += _btdb(_bending_b(dxy, 4), db, det)
+        bb = _bending_b(dxy, 4)
+        kb += _btdb(bb, db, det)
+        if dmb is not None:
+            cbb = np.matmul(dmb, bb) * det[:, None, None]
+            kc += np.matmul(np.swapaxes(bm, 1, 2), cbb)
+            kab += np.matmul(np.swapaxes(ba, 1, 2), cbb)
         g_xi = 0.5 * (1 - eta) * tying["A"] + 0.5 * (1 + eta) * tying["C"]
         g_eta = 0.5 * (1 - xi) * tying["D"] + 0.5 * (1 + xi) * tying["B"]
         bs = np.einsum("nab,nbm->nam", inv, np.stack([g_xi, g_eta], axis=1))
         ks += _btdb(bs, ds, det)
         bd = _drill_b(nsh, dxy, 4)
         kd += np.einsum("ni,nj->nij", bd, bd * (kdrill * det)[:, None])
-    km = km - np.matmul(kua, _spd_solve(kaa, np.swapaxes(kua, 1, 2)))
-    return km, kb, ks, kd
+    if dmb is None:
+        km = km - np.matmul(kua, _spd_solve(kaa, np.swapaxes(kua, 1, 2)))
+        return km, kb, ks, kd, None
+    # condense the bubbles out of the coupled membrane-bending system
+    sol = _spd_solve(kaa, np.concatenate([np.swapaxes(kua, 1, 2), kab], axis=2))
+    xm, xb = sol[:, :, :24], sol[:, :, 24:]
+    km = km - np.matmul(kua, xm)
+    half = kc - np.matmul(kua, xb)
+    kcp = half + np.swapaxes(half, 1, 2) - np.matmul(np.swapaxes(kab, 1, 2), xb)
+    return km, kb, ks, kd, kcp
 
 
-def _tri_local(xy, dm, db, ds, kdrill, ids):
+def _tri_local(xy, dm, db, ds, kdrill, ids, dmb=None):
     n = xy.shape[0]
     dn = np.array([[-1.0, 1.0, 0.0], [-1.0, 0.0, 1.0]])
     _, det, inv = _jacobian(dn, xy)
@@ -279,8 +295,14 @@ def _tri_local(xy, dm, db, ds, kdrill, ids):
         raise ElementGeometryError(_describe(det <= 0, ids, "have non-positive area", "CTRIA3"))
     area = 0.5 * det
     dxy = np.einsum("nab,bk->nak", inv, dn)
-    km = _btdb(_membrane_b(dxy, 3), dm, area)
-    kb = _btdb(_bending_b(dxy, 3), db, area)
+    bm = _membrane_b(dxy, 3)
+    bb = _bending_b(dxy, 3)
+    km = _btdb(bm, dm, area)
+    kb = _btdb(bb, db, area)
+    kcp = None
+    if dmb is not None:
+        half = np.matmul(np.swapaxes(bm, 1, 2), np.matmul(dmb, bb)) * area[:, None, None]
+        kcp = half + np.swapaxes(half, 1, 2)
     jac = np.einsum("ak,nkb->nab", dn, xy)
 
     def shape(r, s):
@@ -300,7 +322,7 @@ def _tri_local(xy, dm, db, ds, kdrill, ids):
         ks += _btdb(bs, ds, det / 6.0)
         bd = _drill_b(shape(r, s), dxy, 3)
         kd += np.einsum("ni,nj->nij", bd, bd * (kdrill * det / 6.0)[:, None])
-    return km, kb, ks, kd
+    return km, kb, ks, kd, kcp
 
 
 def _polygon_area(xy: np.ndarray) -> np.ndarray:
@@ -392,7 +414,7 @@ shell decks femap_exhaust, dakota_cylinder and nx_sine_solids agree with
 Nastran within 1 % (docs/validation.md, Shells and solids)."""
 
 
-def shell_stiffness(xyz, dm, db, ds, k6rot, ids=None, residual_bending=True) -> dict[str, np.ndarray]:
+def shell_stiffness(xyz, dm, db, ds, k6rot, ids=None, residual_bending=True, dmb=None) -> dict[str, np.ndarray]:
     """Stiffness of CQUAD4 / CTRIA3 shells, split by constitutive term.
 
     Parameters
@@ -421,6 +443,11 @@ def shell_stiffness(xyz, dm, db, ds, k6rot, ids=None, residual_bending=True) -> 
         one in both together, e.g. exact under scaling of E, but not a
         monomial in the thickness); False makes it exactly linear in ``ds``
         at the price of a much stiffer coarse-mesh plate.
+    dmb : array_like, shape (n, 3, 3), optional
+        Membrane-bending coupling matrix B [N] (PSHELL MID4 times t^2, a
+        laminate's B, or ``z0 * A`` for a normal offset), with membrane
+        strain ``e(z) = e0 + z k`` and z along the element normal.  When
+        given, a ``coupling`` term is returned as well.
 
     Returns
     -------
@@ -429,8 +456,10 @@ def shell_stiffness(xyz, dm, db, ds, k6rot, ids=None, residual_bending=True) -> 
         incompatible modes make it exactly linear under scalar scaling of dm),
         ``bending`` (linear in db), ``shear`` (linear in ds, see
         ``residual_bending``) and ``drill`` (linear in dm[2,2] and K6ROT), in
-        basic coordinates, DOF per grid T1 T2 T3 R1 R2 R3.  Their sum is the
-        element stiffness.
+        basic coordinates, DOF per grid T1 T2 T3 R1 R2 R3; with ``dmb`` also
+        ``coupling`` (linear in dmb for triangles; for quads it also holds the
+        bending correction from the condensed membrane bubbles, quadratic in
+        dmb).  Their sum is the element stiffness.
 
     Raises
     ------
@@ -449,9 +478,12 @@ def shell_stiffness(xyz, dm, db, ds, k6rot, ids=None, residual_bending=True) -> 
     coeff = RESIDUAL_BENDING_COEFF if residual_bending else 0.0
     ds = _effective_shear(ds, db, _bending_lengths(xy), coeff)
     kdrill = 1e-6 * k6rot * dm[:, 2, 2]
-    local = (_quad_local if nn == 4 else _tri_local)(xy, dm, db, ds, kdrill, ids)
+    if dmb is not None:
+        dmb = np.broadcast_to(np.asarray(dmb, dtype=float), (n, 3, 3))
+    local = (_quad_local if nn == 4 else _tri_local)(xy, dm, db, ds, kdrill, ids, dmb)
     t = _to_basic(rot, h)
-    return {name: _congruence(k, t) for name, k in zip(("membrane", "bending", "shear", "drill"), local)}
+    names = ("membrane", "bending", "shear", "drill", "coupling")
+    return {name: _congruence(k, t) for name, k in zip(names, local) if k is not None}
 
 
 def shell_mass(xyz, mu, coupled: bool, ids=None) -> np.ndarray:

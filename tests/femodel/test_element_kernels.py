@@ -419,3 +419,36 @@ def test_inverted_solid_raises_with_ids():
     flat[3, 2] = 0.0
     with pytest.raises(ElementGeometryError, match="CTETRA.*element indices 0"):
         solid_mass(flat[None], [RHO], False)
+
+
+@pytest.mark.parametrize("nodes", [WARPED_QUAD[:, :2], TRIANGLE[:, :2]], ids=["CQUAD4", "CTRIA3"])
+def test_membrane_bending_coupling_energy_of_constant_states(nodes):
+    """With B != 0 the element energy of a uniform (e0, k) state is A/2 [e0 k][[A B][B D]][e0 k]."""
+    xyz = np.column_stack([nodes, np.zeros(len(nodes))])
+    n = 1
+    dm, db, ds = sections(n)
+    # a mid-plane offset z0 (as a ZOFFS or an unsymmetric laminate): B = z0 A, D' = D + z0^2 A
+    z0 = 0.3 * T
+    b = z0 * dm[0]
+    db = db + z0 ** 2 * dm
+    k = shell_stiffness(xyz[None], dm, db, ds, 100.0, dmb=b[None])
+    assert "coupling" in k
+    ktot = sum(k.values())[0]
+    w = np.linalg.eigvalsh(ktot)
+    assert w[0] > -1e-9 * w[-1] and w[5] < 1e-10 * w[-1] and w[6] > 1e-9 * w[-1]
+    x, y = xyz[:, 0], xyz[:, 1]
+    e0 = np.array([2e-4, -1e-4, 3e-4])
+    kap = np.array([0.3, -0.2, 0.15])
+    u = np.zeros((len(nodes), 6))
+    u[:, 0] = e0[0] * x + 0.5 * e0[2] * y
+    u[:, 1] = e0[1] * y + 0.5 * e0[2] * x
+    u[:, 2] = 0.5 * (kap[0] * x ** 2 + kap[1] * y ** 2 + kap[2] * x * y)
+    u[:, 3] = kap[1] * y + 0.5 * kap[2] * x
+    u[:, 4] = -(kap[0] * x + 0.5 * kap[2] * y)
+    u = u.ravel()
+    # Nastran rotation signs: curvature from theta is -w'' ; the state above has k = -kap
+    ks = -kap
+    area = abs(np.cross(np.append(nodes[2] - nodes[0], 0), np.append(nodes[-1] - nodes[1], 0))[2]) / 2 \
+        if len(nodes) == 4 else 0.5 * abs(np.cross(np.append(nodes[1] - nodes[0], 0), np.append(nodes[2] - nodes[0], 0))[2])
+    exact = area * (e0 @ dm[0] @ e0 + 2 * e0 @ b @ ks + ks @ db[0] @ ks)
+    assert np.isclose(u @ ktot @ u, exact, rtol=1e-9)
