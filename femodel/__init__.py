@@ -12,7 +12,7 @@ from femodel._modes import Modes, normal_modes, solve_modes
 from femodel._reader import read_bdf
 from femodel._sensors import MassProperties, mass_properties, rigid_body_vectors, sensor_matrix
 from femodel._units import UNIT_SYSTEMS, UnitSystem, unit_system
-from femodel._elements_shell import ElementGeometryError, shell_mass, shell_stiffness
+from femodel._elements_shell import ElementGeometryError, laminate_abd, orthotropic_q, shell_mass, shell_stiffness
 from femodel._elements_solid import solid_mass, solid_stiffness
 from femodel._params import Parameter, ParameterError, ParameterSet, read_parameters
 from femodel._parametric import ParametricModel, SeriesAffineMatrix, parametric_model
@@ -24,6 +24,6 @@ __all__ = [
     "read_op2_matrices", "read_op4", "CoordSystem", "FEModel", "ModelError", "RBE2", "RBE3", "Table",
     "Modes", "normal_modes", "solve_modes", "read_bdf", "MassProperties", "mass_properties",
     "rigid_body_vectors", "sensor_matrix", "UNIT_SYSTEMS", "UnitSystem", "unit_system",
-    "AffineMatrix", "ElementGeometryError", "shell_stiffness", "shell_mass", "solid_stiffness", "solid_mass",
+    "AffineMatrix", "ElementGeometryError", "shell_stiffness", "shell_mass", "solid_stiffness", "solid_mass", "laminate_abd", "orthotropic_q",
     "Parameter", "ParameterError", "ParameterSet", "read_parameters", "ParametricModel", "SeriesAffineMatrix", "parametric_model",
     "write_bdf", "SubframeExample", "example_subframe"]

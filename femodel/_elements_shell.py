@@ -42,7 +42,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["ElementGeometryError", "shell_stiffness", "shell_mass", "shell_frames"]
+__all__ = ["ElementGeometryError", "shell_stiffness", "shell_mass", "shell_frames", "laminate_abd", "orthotropic_q"]
 
 _G = 1.0 / np.sqrt(3.0)
 _QUAD_XI = np.array([-1.0, 1.0, 1.0, -1.0])
@@ -484,6 +484,91 @@ def shell_stiffness(xyz, dm, db, ds, k6rot, ids=None, residual_bending=True, dmb
     t = _to_basic(rot, h)
     names = ("membrane", "bending", "shear", "drill", "coupling")
     return {name: _congruence(k, t) for name, k in zip(names, local) if k is not None}
+
+
+def orthotropic_q(e1, e2, nu12, g12) -> np.ndarray:
+    """Plane-stress stiffness of an orthotropic ply in its own axes (MAT8) [Pa].
+
+    Parameters
+    ----------
+    e1, e2 : float
+        Young's moduli along and across the fibres [Pa].
+    nu12 : float
+        Major Poisson ratio.
+    g12 : float
+        In-plane shear modulus [Pa].
+
+    Returns
+    -------
+    ndarray, shape (3, 3)
+        Q in strain order (e11, e22, g12), engineering shear strain.
+    """
+    nu21 = nu12 * e2 / e1
+    den = 1.0 - nu12 * nu21
+    if not den > 0:
+        raise ValueError(f"orthotropic ply: 1 - nu12 nu21 = {den:g} must be positive")
+    return np.array([[e1 / den, nu12 * e2 / den, 0.0], [nu12 * e2 / den, e2 / den, 0.0], [0.0, 0.0, g12]])
+
+
+def laminate_abd(thickness, theta_deg, q_ply, g_ply=None, z0=None, shear_factor=5.0 / 6.0):
+    """Classical lamination theory: shell constitutive input of a ply stack (PCOMP).
+
+    Parameters
+    ----------
+    thickness : array_like, shape (n_ply,)
+        Ply thicknesses [m], bottom (most negative z) first.
+    theta_deg : array_like, shape (n_ply,)
+        Ply angles from the element material x axis [deg].
+    q_ply : array_like, shape (n_ply, 3, 3)
+        Plane-stress ply stiffness in ply axes [Pa] (``orthotropic_q`` or
+        the isotropic plane-stress matrix).
+    g_ply : array_like, shape (n_ply, 2), optional
+        Transverse shear moduli (G13, G23) per ply [Pa]; without them the
+        laminate gets no transverse shear stiffness (``ds`` = 0).
+    z0 : float, optional
+        Distance from the reference plane to the bottom surface [m]
+        (Nastran PCOMP Z0); default ``-total / 2``.
+    shear_factor : float
+        Transverse shear correction applied to the thickness-summed shear
+        stiffness (5/6, a simplification of Nastran's ply-wise shear).
+
+    Returns
+    -------
+    dm, dmb, db : ndarray, shape (3, 3)
+        A [N/m], B [N], D [N m] with membrane strain ``e0 + z k``.
+    ds : ndarray, shape (2, 2)
+        Transverse shear stiffness [N/m].
+    """
+    t = np.asarray(thickness, dtype=float).ravel()
+    th = np.radians(np.asarray(theta_deg, dtype=float).ravel())
+    q = np.asarray(q_ply, dtype=float).reshape(-1, 3, 3)
+    if not (t.size == th.size == q.shape[0]) or t.size == 0:
+        raise ValueError(f"laminate: {t.size} thicknesses, {th.size} angles, {q.shape[0]} ply matrices")
+    if np.any(~(t > 0)):
+        raise ValueError(f"laminate: ply thicknesses must be positive, got {t.tolist()}")
+    total = t.sum()
+    zb = -0.5 * total if z0 is None else float(z0)
+    z = zb + np.concatenate([[0.0], np.cumsum(t)])
+    m, n = np.cos(th), np.sin(th)
+    # engineering strain transformation element -> ply axes
+    te = np.zeros((t.size, 3, 3))
+    te[:, 0] = np.stack([m * m, n * n, m * n], axis=1)
+    te[:, 1] = np.stack([n * n, m * m, -m * n], axis=1)
+    te[:, 2] = np.stack([-2 * m * n, 2 * m * n, m * m - n * n], axis=1)
+    qbar = np.einsum("kji,kjl,klm->kim", te, q, te)
+    h1 = z[1:] - z[:-1]
+    h2 = 0.5 * (z[1:] ** 2 - z[:-1] ** 2)
+    h3 = (z[1:] ** 3 - z[:-1] ** 3) / 3.0
+    dm = np.einsum("k,kij->ij", h1, qbar)
+    dmb = np.einsum("k,kij->ij", h2, qbar)
+    db = np.einsum("k,kij->ij", h3, qbar)
+    ds = np.zeros((2, 2))
+    if g_ply is not None:
+        g = np.asarray(g_ply, dtype=float).reshape(-1, 2)
+        r = np.stack([np.stack([m, n], axis=1), np.stack([-n, m], axis=1)], axis=1)  # gamma_ply = r gamma
+        gbar = np.einsum("kji,kj,kjl->kil", r, g, r)
+        ds = shear_factor * np.einsum("k,kij->ij", h1, gbar)
+    return dm, dmb, db, ds
 
 
 def shell_mass(xyz, mu, coupled: bool, ids=None) -> np.ndarray:

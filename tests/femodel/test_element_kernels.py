@@ -452,3 +452,28 @@ def test_membrane_bending_coupling_energy_of_constant_states(nodes):
         if len(nodes) == 4 else 0.5 * abs(np.cross(np.append(nodes[1] - nodes[0], 0), np.append(nodes[2] - nodes[0], 0))[2])
     exact = area * (e0 @ dm[0] @ e0 + 2 * e0 @ b @ ks + ks @ db[0] @ ks)
     assert np.isclose(u @ ktot @ u, exact, rtol=1e-9)
+
+
+def test_laminate_abd_classical_cases():
+    from femodel._elements_shell import laminate_abd, orthotropic_q
+
+    q_iso = plane_stress()
+    # isotropic plies at any angles about the mid-plane: A = Q t, B = 0, D = Q t^3 / 12
+    dm, dmb, db, ds = laminate_abd([0.001] * 3, [0, 37, -80], [q_iso] * 3, g_ply=[[G, G]] * 3)
+    assert np.allclose(dm, q_iso * 0.003) and np.allclose(dmb, 0, atol=1e-6)
+    assert np.allclose(db, q_iso * 0.003 ** 3 / 12)
+    assert np.allclose(ds, np.eye(2) * 5 / 6 * G * 0.003)
+    # unsymmetric cross-ply [0/90]: B11 = h^2 (Q22 - Q11) / 2 = -B22, B12 = B66 = 0
+    q = orthotropic_q(140e9, 10e9, 0.3, 5e9)
+    h = 0.002
+    dm, dmb, db, _ = laminate_abd([h, h], [0, 90], [q, q])
+    assert np.isclose(dmb[0, 0], 0.5 * h * h * (q[1, 1] - q[0, 0]))
+    assert np.isclose(dmb[1, 1], -dmb[0, 0]) and abs(dmb[0, 1]) < 1e-9 * abs(dmb[0, 0])
+    assert np.isclose(dm[0, 0], dm[1, 1]) and np.isclose(dm[0, 0], h * (q[0, 0] + q[1, 1]))
+    # quasi-isotropic [0/45/-45/90]s: A is isotropic
+    dm, dmb, _, _ = laminate_abd([h] * 8, [0, 45, -45, 90, 90, -45, 45, 0], [q] * 8)
+    assert np.isclose(dm[0, 0], dm[1, 1]) and abs(dm[0, 2]) < 1e-9 * dm[0, 0]
+    assert np.isclose(dm[2, 2], 0.5 * (dm[0, 0] - dm[0, 1]))
+    assert np.allclose(dmb, 0, atol=1e-9 * dm[0, 0] * h)
+    with pytest.raises(ValueError, match="positive"):
+        laminate_abd([h, -h], [0, 0], [q, q])
