@@ -28,6 +28,7 @@ from pretest._plan import (
     evaluate_channels,
     plan_pretest,
 )
+from pretest._refine import RefineResult, refine_automac
 from pretest._shaker import DriveRanking, rank_drive_points
 
 __all__ = [
@@ -37,4 +38,5 @@ __all__ = [
     "read_layout", "write_layout", "DEFAULT_SENSOR_MASS_KG", "MassLoading", "mass_loading_shifts",
     "LayoutMetrics", "automac", "layout_metrics", "mac", "PretestConfig", "PretestResult", "TargetModes",
     "compute_target_modes", "evaluate_channels", "plan_pretest", "DriveRanking", "rank_drive_points",
+    "RefineResult", "refine_automac",
 ]

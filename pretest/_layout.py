@@ -148,6 +148,7 @@ def layout_dict(result, *, model_path=None, units=None, relative_to=None) -> dic
                 for i in top.tolist()
             ],
             "drive_criterion": result.config.drive_criterion,
+            **result.extra,
             "mass_loading": {
                 "sensor_mass_kg": float(result.config.sensor_mass_kg),
                 "drive_mass_kg": float(result.config.drive_mass_kg),

@@ -2,17 +2,18 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from pretest._candidates import CandidateSet, candidate_grids, candidate_set, parse_direction, select_target_modes
-from pretest._efi import EfIResult, effective_independence
+from pretest._efi import EfIResult, effective_independence, fim_logdet
 from pretest._errors import PretestError
 from pretest._massload import DEFAULT_SENSOR_MASS_KG, MassLoading, mass_loading_shifts
 from pretest._metrics import LayoutMetrics, layout_metrics
+from pretest._refine import refine_automac
 from pretest._shaker import DriveRanking, rank_drive_points
 
 __all__ = ["PretestConfig", "PretestResult", "TargetModes", "compute_target_modes", "plan_pretest", "evaluate_channels"]
@@ -50,6 +51,11 @@ class PretestConfig(BaseModel):
     sensor_mass_kg: float = Field(DEFAULT_SENSOR_MASS_KG, ge=0.0, description="mass of one sensor, kg")
     drive_mass_kg: float = Field(0.005, ge=0.0, description="force sensor + stinger moving mass at a drive, kg")
     extra_modes: int = Field(6, ge=0, description="modes solved beyond the targets (rigid modes, margin)")
+    refine_automac_decades: float | None = Field(
+        None, ge=0.0,
+        description="after EfI, exchange sensors to lower the largest off-diagonal autoMAC while keeping "
+        "log10 det(FIM) within this many decades of the EfI layout (None: no refinement)",
+    )
 
     @field_validator("direction")
     @classmethod
@@ -237,6 +243,17 @@ def plan_pretest(model, config: PretestConfig | None = None, *, assembly=None, t
         positions=cands.xyz_m,
         min_distance=cfg.min_distance_m,
     )
+    refine = None
+    if cfg.refine_automac_decades is not None:
+        refine = refine_automac(
+            phi, efi.groups, group_labels=cands.group,
+            include=np.asarray(cfg.include_grids, dtype=np.int64) if cfg.include_grids else None,
+            exclude=np.intersect1d(np.asarray(cfg.exclude_grids, dtype=np.int64), cands.group) if cfg.exclude_grids else None,
+            positions=cands.xyz_m, min_distance=cfg.min_distance_m, max_det_loss_decades=cfg.refine_automac_decades,
+        )
+        efi = replace(efi, groups=refine.groups, rows=refine.rows, logdet_fim=fim_logdet(phi[refine.rows]),
+                      group_retention=np.full(refine.groups.size, np.nan),
+                      effective_independence=np.full(refine.rows.size, np.nan))
     sensors = cands.subset(efi.rows)
     # order sensors by position along the structure for readable names: x, then y, then z
     order = np.lexsort((sensors.axis, sensors.xyz_m[:, 2], sensors.xyz_m[:, 1], sensors.xyz_m[:, 0]))
@@ -282,6 +299,10 @@ def plan_pretest(model, config: PretestConfig | None = None, *, assembly=None, t
         mass_loading=loading,
         channel_names=_names(sensors, "acc"),
         drive_names=tuple(f"drive{i + 1}" for i in range(drives.n_rows)),
+        extra={} if refine is None else {"automac_refinement": {
+            "decades_allowed": float(cfg.refine_automac_decades), "swaps": int(refine.n_swaps),
+            "automac_before": refine.automac_before, "automac_after": refine.automac_after,
+            "log10_det_before": refine.log10_det_before, "log10_det_after": refine.log10_det_after}},
     )
 
 

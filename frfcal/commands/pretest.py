@@ -46,6 +46,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="drive ranking: weakest-mode participation (default), ADPR, or their product")
     parser.add_argument("--sensor-mass-g", type=float, default=0.5, help="mass of one sensor, g (default 0.5)")
     parser.add_argument("--drive-mass-g", type=float, default=5.0, help="force sensor + stinger mass, g (default 5)")
+    parser.add_argument("--refine-automac", type=float, default=None, metavar="DECADES",
+                        help="after EfI, swap sensors to lower the largest off-diagonal autoMAC, giving up at most "
+                        "DECADES of det(FIM) (e.g. 1)")
     parser.add_argument("--no-figures", action="store_true", help="do not write the PNG figures")
     parser.add_argument("--evaluate", metavar="LAYOUT.json",
                         help="do not plan: print the metrics of this existing layout for the target modes")
@@ -82,6 +85,7 @@ def run(args) -> int:
         drive_criterion=args.drive_criterion,
         sensor_mass_kg=args.sensor_mass_g * 1e-3,
         drive_mass_kg=args.drive_mass_g * 1e-3,
+        refine_automac_decades=args.refine_automac,
     )
     model = femodel.read_bdf(args.model, units=args.units)
     if args.evaluate:
@@ -110,6 +114,10 @@ def run(args) -> int:
           f"({'triaxial' if cfg.triax else 'single-axis, ' + str(cfg.direction)}); chosen {n_sens} sensors, "
           f"{res.sensors.n_rows} channels" + (f", {res.efi.n_swaps} distance swaps" if res.efi.n_swaps else ""))
     i, j = m.automac_worst_pair
+    ref = res.extra.get("automac_refinement")
+    if ref:
+        print(f"autoMAC refinement: {ref['swaps']} swap(s), largest off-diagonal {ref['automac_before']:.4f} -> "
+              f"{ref['automac_after']:.4f}, log10 det {ref['log10_det_before']:.3f} -> {ref['log10_det_after']:.3f}")
     print(f"Fisher information: log10 det {m.fim_log10_det:.3f}, condition number {m.fim_condition:.4g}")
     print(f"autoMAC: largest off-diagonal {m.automac_max_offdiag:.4f} (modes {t.indices[i] + 1} and {t.indices[j] + 1})")
     print(" mode   f (Hz)  independence  peak frac  mass-load shift (Hz)")

@@ -246,3 +246,14 @@ def test_real_shell_deck_femap_exhaust():
     assert res.metrics.fim_condition < 1e4 and res.metrics.automac_max_offdiag < 0.9
     # normals of the chosen sensors are unit vectors normal to the attached shells
     np.testing.assert_allclose(np.linalg.norm(res.sensors.directions, axis=1), 1.0)
+
+
+def test_plan_with_automac_refinement(subframe):
+    ex, model, asm, target = subframe
+    res = pretest.plan_pretest(model, PretestConfig(n_sensors=20, n_modes=20, refine_automac_decades=1.0),
+                               assembly=asm, target=target)
+    ref = res.extra["automac_refinement"]
+    assert res.metrics.automac_max_offdiag == pytest.approx(ref["automac_after"], rel=1e-9)
+    assert ref["automac_after"] < ref["automac_before"]
+    assert res.metrics.fim_log10_det >= ref["log10_det_before"] - 1.0 - 1e-9
+    assert pretest.layout_dict(res)["metrics"]["automac_refinement"]["swaps"] == ref["swaps"] > 0
