@@ -30,7 +30,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="print one JSON object (the layout file content)")
     parser.add_argument("--triax", action="store_true", help="triaxial sensors (kept whole)")
     parser.add_argument("--direction", default="normal", metavar="normal|x|y|z|vx,vy,vz",
-                        help="single-axis direction (default: local surface normal)")
+                        help="single-axis direction (default: local surface normal); write --direction=-1,0,0 for a leading minus")
     parser.add_argument("--include", type=_ints, default=[], metavar="G,..", help="grids that must carry a sensor")
     parser.add_argument("--exclude", type=_ints, default=[], metavar="G,..", help="grids that must not carry a sensor")
     parser.add_argument("--candidates", type=_ints, default=None, metavar="G,..", help="candidate grids (default: all shell grids)")

@@ -257,3 +257,25 @@ def test_plan_with_automac_refinement(subframe):
     assert ref["automac_after"] < ref["automac_before"]
     assert res.metrics.fim_log10_det >= ref["log10_det_before"] - 1.0 - 1e-9
     assert pretest.layout_dict(res)["metrics"]["automac_refinement"]["swaps"] == ref["swaps"] > 0
+
+
+def test_cli_text_triax_free_drive(subframe, tmp_path, capsys):
+    from frfcal.cli import main
+
+    ex = subframe[0]
+    out = tmp_path / "t.json"
+    rc = main(["pretest", str(ex.bdf), "--units", "mm-t-s", "--sensors", "4", "--modes", "6", "--triax",
+               "--min-distance", "0.15", "--free-drive", "--drive-criterion", "product", "--out", str(out),
+               "--no-figures"])
+    assert rc == 0
+    text = capsys.readouterr().out
+    assert "largest off-diagonal" in text and "drive1: grid" in text and "acc04z" in text
+    data = json.loads(out.read_text())
+    assert len(data["channels"]) == 12 and data["metrics"]["drive_criterion"] == "product"
+    xyz = np.array([c["xyz_m"] for c in data["channels"]])
+    d = np.linalg.norm(xyz[:, None] - xyz[None], axis=-1)
+    assert d[d > 0].min() >= 0.15
+    rc = main(["pretest", str(ex.bdf), "--units", "mm-t-s", "--modes", "6", "--evaluate", str(out)])
+    assert rc == 0 and "condition number" in capsys.readouterr().out
+    rc = main(["pretest", str(ex.bdf), "--units", "mm-t-s", "--direction", "sideways", "--out", str(out)])
+    assert rc == 2 and "direction" in capsys.readouterr().err
