@@ -260,7 +260,7 @@ def candidate_set(model, grids, *, direction="normal", triax: bool = False) -> C
         g = np.repeat(grids, 3)
         d = np.tile(np.eye(3), (grids.size, 1))
         return CandidateSet(g, d, np.repeat(xyz, 3, axis=0), g.copy(), np.tile(np.array(["x", "y", "z"]), grids.size))
-    parsed = parse_direction(direction) if not isinstance(direction, np.ndarray) else direction
+    parsed = parse_direction(direction)
     if isinstance(parsed, str):
         d = surface_normals(model, grids)
         axis = "n"

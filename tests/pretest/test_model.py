@@ -108,6 +108,9 @@ def test_candidate_errors_name_the_culprit(tmp_path):
         pretest.candidate_grids(model, box_m=[5, 5, 5, 6, 6, 6])
     with pytest.raises(PretestError, match="direction"):
         pretest.candidate_set(model, [100], direction="sideways")
+    # any given vector is stored as a unit vector
+    cs = pretest.candidate_set(model, [100, 101], direction=np.array([0.0, 3.0, 4.0]))
+    np.testing.assert_allclose(cs.directions, [[0, 0.6, 0.8]] * 2)
     with pytest.raises(PretestError, match="band"):
         pretest.select_target_modes([0.0, 0.0, 10.0, 20.0], 2, band_hz=(50.0, 90.0))
     with pytest.raises(PretestError, match="only 2"):
