@@ -13,8 +13,8 @@ the group whose ``det(I - E_g)`` is largest is the cheapest to lose.
 The inverse ``Q^-1`` and every group's ``E_g`` block are updated after each
 deletion with the Woodbury identity (``O(n m k)`` per step for ``n``
 candidate rows, ``m`` modes and groups of ``k`` rows) and recomputed exactly
-every few steps and whenever the remaining set gets small, so thousands of
-candidates take seconds.
+every ``refresh_every`` steps and at every step once fewer than ``4 m`` rows
+remain, so thousands of candidates take seconds.
 
 References
 ----------
@@ -190,8 +190,8 @@ def effective_independence(
         deleted first.  Default: the group labels themselves, which makes the
         result independent of the order the candidates are listed in.
     refresh_every : int
-        Re-sum the Fisher information from the remaining rows every this many
-        deletions (between, it is downdated by subtraction).
+        Recompute ``Q^-1`` and every E block exactly from the remaining rows
+        every this many deletions (between, they are updated by Woodbury).
 
     Returns
     -------
@@ -247,6 +247,13 @@ def effective_independence(
     key_rank = np.empty(n_groups, dtype=np.int64)
     key_rank[np.lexsort((np.arange(n_groups), keys))] = np.arange(n_groups)
 
+    if min_distance and min_distance > 0:
+        if positions is None:
+            raise PretestError("min_distance needs candidate positions")
+        positions = np.asarray(positions, dtype=float)
+        if positions.shape != (n_rows, 3):
+            raise PretestError(f"positions have shape {positions.shape}; expected ({n_rows}, 3)")
+
     # Scale the columns: EfI is invariant to it, and it keeps Q well conditioned.
     col = np.linalg.norm(phi[table[active][table[active] >= 0]], axis=0)
     if np.any(col == 0):
@@ -263,11 +270,6 @@ def effective_independence(
     selected = active.copy()
     n_swaps = 0
     if min_distance and min_distance > 0:
-        if positions is None:
-            raise PretestError("min_distance needs candidate positions")
-        positions = np.asarray(positions, dtype=float)
-        if positions.shape != (n_rows, 3):
-            raise PretestError(f"positions have shape {positions.shape}; expected ({n_rows}, 3)")
         gpos = np.where((table >= 0)[:, :, None], positions[np.maximum(table, 0)], 0.0).sum(1)
         gpos /= rows_per_group[:, None]
         available = np.ones(n_groups, dtype=bool)
