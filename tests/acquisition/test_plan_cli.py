@@ -152,3 +152,19 @@ def test_read_layout(tmp_path):
         (tmp_path / "b.json").write_text(json.dumps(data))
         with pytest.raises(LayoutError, match=msg):
             read_layout(tmp_path / "b.json")
+
+
+def test_live_plot_callback_draws(monkeypatch):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from frfcal.commands.acquire import _live_plot
+
+    on_line = _live_plot()
+    on_line(100.0, np.array([[1.0 + 1j], [2.0]]), None)
+    on_line(101.0, np.array([[2.0 + 1j], [3.0]]), None)
+    import matplotlib.pyplot as plt
+
+    lines = plt.gcf().axes[0].get_lines()
+    assert len(lines) == 2 and np.allclose(lines[0].get_xdata(), [100.0, 101.0])
+    plt.close("all")
