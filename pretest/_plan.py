@@ -117,7 +117,8 @@ def compute_target_modes(assembly, *, n_modes=None, band_hz=None, mode_numbers=N
         enough = True
         if band_hz is not None and f[-1] < band_hz[1]:
             enough = False
-        if n_modes is not None and band_hz is None and mode_numbers is None and f.size - n_rigid < n_modes:
+        want = 20 if n_modes is None else int(n_modes)
+        if band_hz is None and mode_numbers is None and f.size - n_rigid < want:
             enough = False
         if enough or n_solve >= min(max_modes, n_dof - 1):
             break
