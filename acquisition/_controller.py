@@ -409,8 +409,9 @@ def run_sweep(
             if on_line is not None:
                 on_line(f, res.frf[:, None], q)
             if bar is not None:
+                bar.set_postfix(f=f"{f:.2f}Hz", F=f"{q.force_n[0]:.3f}N", settle=f"{q.settle_time_s:.2f}s",
+                                refresh=False)
                 bar.update(1)
-                bar.set_postfix(f=f"{f:.2f}Hz", F=f"{q.force_n[0]:.3f}N", settle=f"{q.settle_time_s:.2f}s")
             if search is not None and f == probe:
                 search.add(f, res.norm)
             elif plan.refine.enabled and not any(
