@@ -89,6 +89,36 @@ def quantity_of(sensors: Sequence[ChannelSpec]) -> str:
     return _QUANTITY[qs.pop()]
 
 
+def settle_metric(history: Sequence[np.ndarray], q_bound: float) -> float:
+    """Estimated relative error the transient still leaves in the latest block estimate.
+
+    Parameters
+    ----------
+    history : sequence of (n,) complex
+        Block estimates since the last drive change; the last entry of each is
+        the force/volt gain, the others FRF values.
+    q_bound : float
+        ``exp(-T_block / tau_bound)``, the slowest decay per block expected.
+
+    Returns
+    -------
+    float
+        ``max_j |d_j| / |h_j| * q / (1 - q)`` with ``d`` the last block-to-block
+        change (the tail of the geometric series of changes), ``q`` the larger
+        of ``q_bound`` and the measured ratio of successive changes; FRF
+        magnitudes are floored at 5 % of the largest.
+    """
+    d = history[-1] - history[-2]
+    q = q_bound
+    if len(history) >= 3:
+        n0, n1 = np.linalg.norm(history[-2] - history[-3]), np.linalg.norm(d)
+        if n0 > 0:
+            q = max(q, min(n1 / n0, 0.995))
+    h = history[-1]
+    den = np.concatenate([np.maximum(np.abs(h[:-1]), 0.05 * np.abs(h[:-1]).max()), [abs(h[-1])]])
+    return float(np.max(np.abs(d) / den) * q / (1 - q))
+
+
 class _Sweep:
     """State of one sweep (one article, one drive point, one level)."""
 
@@ -184,16 +214,7 @@ class _Sweep:
                     metric = float("nan")
                     settled = True
             elif len(H_hist) >= 2:
-                d = H_hist[-1] - H_hist[-2]
-                q = q_bound
-                if len(H_hist) >= 3:
-                    d_prev = H_hist[-2] - H_hist[-3]
-                    n0, n1 = np.linalg.norm(d_prev), np.linalg.norm(d)
-                    if n0 > 0:
-                        q = max(q, min(n1 / n0, 0.995))
-                h = H_hist[-1]
-                den = np.concatenate([np.maximum(np.abs(h[:-1]), 0.05 * np.abs(h[:-1]).max()), [abs(h[-1])]])
-                metric = float(np.max(np.abs(d) / den) * q / (1 - q))
+                metric = settle_metric(H_hist, q_bound)
                 settled = len(H_hist) >= st.min_blocks and metric <= st.tolerance
             if settled:
                 self.gain = abs(F) / self.amp
