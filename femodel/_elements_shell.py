@@ -223,27 +223,39 @@ def _btdb(b: np.ndarray, d: np.ndarray, w: np.ndarray) -> np.ndarray:
     return np.matmul(np.swapaxes(b, 1, 2), db * w[:, None, None])
 
 
+def _cols(nn: int, comps) -> np.ndarray:
+    """Element DOF indices (6 per grid) of the given local components, grid-major."""
+    return np.array([6 * i + c for i in range(nn) for c in comps])
+
+
+# local components each term acts on: u v w theta_x theta_y theta_z = 0..5
+_MEM, _PLATE, _DRILL, _COUP = (0, 1), (2, 3, 4), (0, 1, 5), (0, 1, 2, 3, 4)
+
+
 def _quad_local(xy, dm, db, ds, kdrill, ids, dmb=None):
+    """Local stiffness terms of CQUAD4 as (matrix, column indices) pairs on their own DOF subsets."""
     n = xy.shape[0]
-    km = np.zeros((n, 24, 24))
-    kb = np.zeros((n, 24, 24))
-    ks = np.zeros((n, 24, 24))
-    kd = np.zeros((n, 24, 24))
+    cm, cp, cd, cc = _cols(4, _MEM), _cols(4, _PLATE), _cols(4, _DRILL), _cols(4, _COUP)
+    km = np.zeros((n, 8, 8))
+    kb = np.zeros((n, 12, 12))
+    ks = np.zeros((n, 12, 12))
+    kd = np.zeros((n, 12, 12))
     # membrane incompatible modes (Wilson QM6 with Taylor's centroid-Jacobian form):
     # u, v += a (1 - xi^2) + b (1 - eta^2), condensed after integration
     _, d0 = _quad_derivs(0.0, 0.0)
     _, det0, inv0 = _jacobian(d0, xy)
-    kua = np.zeros((n, 24, 4))
+    kua = np.zeros((n, 8, 4))
     kaa = np.zeros((n, 4, 4))
     if dmb is not None:
-        kc = np.zeros((n, 24, 24))
-        kab = np.zeros((n, 4, 24))
+        kc = np.zeros((n, 20, 20))
+        kuac = np.zeros((n, 20, 4))
+        kab = np.zeros((n, 4, 20))
     # MITC4 tying points: gamma_xi at (0, -1) and (0, +1); gamma_eta at (-1, 0), (+1, 0)
     tying = {}
     for key, (xi, eta, a) in {"A": (0.0, -1.0, 0), "C": (0.0, 1.0, 0), "D": (-1.0, 0.0, 1), "B": (1.0, 0.0, 1)}.items():
         nsh, dn = _quad_derivs(xi, eta)
         jac, _, _ = _jacobian(dn, xy)
-        tying[key] = _covariant_shear(nsh, dn[a], jac[:, a, :], 4)
+        tying[key] = _covariant_shear(nsh, dn[a], jac[:, a, :], 4)[:, cp]
     for xi, eta in _QUAD_GAUSS:
         nsh, dn = _quad_derivs(xi, eta)
         _, det, inv = _jacobian(dn, xy)
@@ -252,7 +264,8 @@ def _quad_local(xy, dm, db, ds, kdrill, ids, dmb=None):
                                                  "are inverted, concave or have a re-entrant corner "
                                                  "(non-positive Jacobian; check grid order)", "CQUAD4"))
         dxy = np.einsum("nab,bk->nak", inv, dn)
-        bm = _membrane_b(dxy, 4)
+        bm_full = _membrane_b(dxy, 4)
+        bm = bm_full[:, :, cm]
         km += _btdb(bm, dm, det)
         dinc = np.einsum("nab,bk->nak", inv0, np.diag([-2.0 * xi, -2.0 * eta])) * (det0 / det)[:, None, None]
         ba = np.zeros((n, 3, 4))
@@ -263,32 +276,37 @@ def _quad_local(xy, dm, db, ds, kdrill, ids, dmb=None):
         dba = np.matmul(dm, ba) * det[:, None, None]
         kua += np.matmul(np.swapaxes(bm, 1, 2), dba)
         kaa += np.matmul(np.swapaxes(ba, 1, 2), dba)
-        bb = _bending_b(dxy, 4)
-        kb += _btdb(bb, db, det)
+        bb_full = _bending_b(dxy, 4)
+        kb += _btdb(bb_full[:, :, cp], db, det)
         if dmb is not None:
-            cbb = np.matmul(dmb, bb) * det[:, None, None]
-            kc += np.matmul(np.swapaxes(bm, 1, 2), cbb)
+            bmc, bbc = bm_full[:, :, cc], bb_full[:, :, cc]
+            cbb = np.matmul(dmb, bbc) * det[:, None, None]
+            kc += np.matmul(np.swapaxes(bmc, 1, 2), cbb)
             kab += np.matmul(np.swapaxes(ba, 1, 2), cbb)
+            kuac += np.matmul(np.swapaxes(bmc, 1, 2), dba)
         g_xi = 0.5 * (1 - eta) * tying["A"] + 0.5 * (1 + eta) * tying["C"]
         g_eta = 0.5 * (1 - xi) * tying["D"] + 0.5 * (1 + xi) * tying["B"]
         bs = np.einsum("nab,nbm->nam", inv, np.stack([g_xi, g_eta], axis=1))
         ks += _btdb(bs, ds, det)
-        bd = _drill_b(nsh, dxy, 4)
+        bd = _drill_b(nsh, dxy, 4)[:, cd]
         kd += np.einsum("ni,nj->nij", bd, bd * (kdrill * det)[:, None])
+    terms = [(kb, cp), (ks, cp), (kd, cd)]
     if dmb is None:
         km = km - np.matmul(kua, _spd_solve(kaa, np.swapaxes(kua, 1, 2)))
-        return km, kb, ks, kd, None
+        return [(km, cm)] + terms + [None]
     # condense the bubbles out of the coupled membrane-bending system
     sol = _spd_solve(kaa, np.concatenate([np.swapaxes(kua, 1, 2), kab], axis=2))
-    xm, xb = sol[:, :, :24], sol[:, :, 24:]
+    xm, xb = sol[:, :, :8], sol[:, :, 8:]
     km = km - np.matmul(kua, xm)
-    half = kc - np.matmul(kua, xb)
+    half = kc - np.matmul(kuac, xb)
     kcp = half + np.swapaxes(half, 1, 2) - np.matmul(np.swapaxes(kab, 1, 2), xb)
-    return km, kb, ks, kd, kcp
+    return [(km, cm)] + terms + [(kcp, cc)]
 
 
 def _tri_local(xy, dm, db, ds, kdrill, ids, dmb=None):
+    """Local stiffness terms of CTRIA3 as (matrix, column indices) pairs on their own DOF subsets."""
     n = xy.shape[0]
+    cm, cp, cd, cc = _cols(3, _MEM), _cols(3, _PLATE), _cols(3, _DRILL), _cols(3, _COUP)
     dn = np.array([[-1.0, 1.0, 0.0], [-1.0, 0.0, 1.0]])
     _, det, inv = _jacobian(dn, xy)
     if np.any(det <= 0):
@@ -297,32 +315,32 @@ def _tri_local(xy, dm, db, ds, kdrill, ids, dmb=None):
     dxy = np.einsum("nab,bk->nak", inv, dn)
     bm = _membrane_b(dxy, 3)
     bb = _bending_b(dxy, 3)
-    km = _btdb(bm, dm, area)
-    kb = _btdb(bb, db, area)
-    kcp = None
+    km = _btdb(bm[:, :, cm], dm, area)
+    kb = _btdb(bb[:, :, cp], db, area)
+    coupling = None
     if dmb is not None:
-        half = np.matmul(np.swapaxes(bm, 1, 2), np.matmul(dmb, bb)) * area[:, None, None]
-        kcp = half + np.swapaxes(half, 1, 2)
+        half = np.matmul(np.swapaxes(bm[:, :, cc], 1, 2), np.matmul(dmb, bb[:, :, cc])) * area[:, None, None]
+        coupling = (half + np.swapaxes(half, 1, 2), cc)
     jac = np.einsum("ak,nkb->nab", dn, xy)
 
     def shape(r, s):
         return np.array([1.0 - r - s, r, s])
 
     def cov(r, s, a):
-        return _covariant_shear(shape(r, s), dn[a], jac[:, a, :], 3)
+        return _covariant_shear(shape(r, s), dn[a], jac[:, a, :], 3)[:, cp]
 
     e1 = cov(0.5, 0.0, 0)
     e2 = cov(0.0, 0.5, 1)
     c = e2 - e1 - cov(0.5, 0.5, 1) + cov(0.5, 0.5, 0)
-    ks = np.zeros((n, 18, 18))
-    kd = np.zeros((n, 18, 18))
+    ks = np.zeros((n, 9, 9))
+    kd = np.zeros((n, 9, 9))
     for r, s in _TRI_GAUSS:
         g = np.stack([e1 + c * s, e2 - c * r], axis=1)
         bs = np.einsum("nab,nbm->nam", inv, g)
         ks += _btdb(bs, ds, det / 6.0)
-        bd = _drill_b(shape(r, s), dxy, 3)
+        bd = _drill_b(shape(r, s), dxy, 3)[:, cd]
         kd += np.einsum("ni,nj->nij", bd, bd * (kdrill * det / 6.0)[:, None])
-    return km, kb, ks, kd, kcp
+    return [(km, cm), (kb, cp), (ks, cp), (kd, cd), coupling]
 
 
 def _polygon_area(xy: np.ndarray) -> np.ndarray:
@@ -395,15 +413,24 @@ def _to_basic(rot: np.ndarray, h: np.ndarray) -> np.ndarray:
     return t
 
 
-def _congruence(k: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """T^T K T for block-diagonal T given as per-grid 6x6 blocks; k (n, 6nn, 6nn), t (n, nn, 6, 6)."""
+def _congruence(term, t: np.ndarray) -> np.ndarray:
+    """T_c^T K_c T_c: a compact local term (matrix on DOF subset ``cols``) to basic (n, 6nn, 6nn).
+
+    ``t`` holds the per-grid 6x6 blocks of the local-from-basic map; T_c is
+    its rows ``cols``, so only the small matrices are multiplied.
+    """
+    k, cols = term
     n, nn = t.shape[:2]
-    k5 = k.reshape(n, nn, 6, 6 * nn)
-    left = np.matmul(np.swapaxes(t, 2, 3), k5)  # (n, nn, 6, 6nn): T_a^T K_a.
-    left = left.reshape(n, 6 * nn, nn, 6).transpose(0, 2, 1, 3)  # (n, nn_b, 6nn, 6)
-    out = np.matmul(left, t)  # (n, nn_b, 6nn, 6)
-    out = out.transpose(0, 2, 1, 3).reshape(n, 6 * nn, 6 * nn)
-    return 0.5 * (out + np.swapaxes(out, 1, 2))
+    tc = np.zeros((n, cols.size, 6 * nn))
+    for j, col in enumerate(cols):
+        i, a = divmod(int(col), 6)
+        tc[:, j, 6 * i:6 * i + 6] = t[:, i, a, :]
+    # contiguous operands keep numpy's stacked matmul on its fast BLAS path
+    out = np.matmul(np.ascontiguousarray(np.swapaxes(tc, 1, 2)), np.matmul(k, tc))
+    # exact symmetry: mirror the upper triangle (cheaper than averaging with the transpose)
+    iu, ju = np.triu_indices(6 * nn, 1)
+    out[:, ju, iu] = out[:, iu, ju]
+    return out
 
 
 RESIDUAL_BENDING_COEFF = 1.0
@@ -483,7 +510,7 @@ def shell_stiffness(xyz, dm, db, ds, k6rot, ids=None, residual_bending=True, dmb
     local = (_quad_local if nn == 4 else _tri_local)(xy, dm, db, ds, kdrill, ids, dmb)
     t = _to_basic(rot, h)
     names = ("membrane", "bending", "shear", "drill", "coupling")
-    return {name: _congruence(k, t) for name, k in zip(names, local) if k is not None}
+    return {name: _congruence(term, t) for name, term in zip(names, local) if term is not None}
 
 
 def orthotropic_q(e1, e2, nu12, g12) -> np.ndarray:

@@ -136,9 +136,19 @@ _ELEMENTS = {
 
 
 def _jac3(dn: np.ndarray, xyz: np.ndarray):
+    """Batched Jacobian J[a, b] = d x_b / d nat_a, its determinant and inverse (adjugate form)."""
     jac = np.einsum("ak,nkb->nab", dn, xyz)
-    det = np.linalg.det(jac)
-    return jac, det
+    adj = np.empty_like(jac)
+    for i in range(3):
+        for j in range(3):
+            r = [k for k in range(3) if k != j]
+            c = [k for k in range(3) if k != i]
+            minor = jac[:, r[0], c[0]] * jac[:, r[1], c[1]] - jac[:, r[0], c[1]] * jac[:, r[1], c[0]]
+            adj[:, i, j] = (-1) ** (i + j) * minor
+    det = np.einsum("nj,jn->n", jac[:, 0, :], adj[:, :, 0].T)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = adj / det[:, None, None]
+    return jac, det, inv
 
 
 def _strain_b(dxyz: np.ndarray) -> np.ndarray:
@@ -203,9 +213,9 @@ def solid_stiffness(xyz, c, ids=None) -> np.ndarray:
         return _hex8_incompatible(xyz, c, ids)
     for p, w in zip(pts, wts):
         _, dn = shape(p)
-        jac, det = _jac3(dn, xyz)
+        _, det, inv = _jac3(dn, xyz)
         _check_det(det, ids, nn)
-        dxyz = np.linalg.solve(jac, np.broadcast_to(dn, (n,) + dn.shape))
+        dxyz = np.einsum("nab,bk->nak", inv, dn)
         k += _btdb(_strain_b(dxyz), c, det * w)
     return 0.5 * (k + np.swapaxes(k, 1, 2))
 
@@ -215,17 +225,16 @@ def _hex8_incompatible(xyz, c, ids):
     n = xyz.shape[0]
     pts, wts = _rule_hex(2)
     _, dn0 = _shape_hex((0.0, 0.0, 0.0))
-    jac0, det0 = _jac3(dn0, xyz)
+    _, det0, inv0 = _jac3(dn0, xyz)
     _check_det(det0, ids, 8)
-    inv0 = np.linalg.inv(jac0)
     kuu = np.zeros((n, 24, 24))
     kua = np.zeros((n, 24, 9))
     kaa = np.zeros((n, 9, 9))
     for p, w in zip(pts, wts):
         _, dn = _shape_hex(p)
-        jac, det = _jac3(dn, xyz)
+        _, det, inv = _jac3(dn, xyz)
         _check_det(det, ids, 8)
-        dxyz = np.linalg.solve(jac, np.broadcast_to(dn, (n,) + dn.shape))
+        dxyz = np.einsum("nab,bk->nak", inv, dn)
         bu = _strain_b(dxyz)
         # bubbles P_i = 1 - nat_i^2; natural derivatives -2 nat_i on the diagonal.
         # Taylor: Cartesian derivatives through the centroid Jacobian, scaled by det0/det,
@@ -269,7 +278,7 @@ def solid_mass(xyz, rho, coupled: bool, ids=None) -> np.ndarray:
     mnn = np.zeros((n, nn, nn))
     for p, w in zip(pts, wts):
         nsh, dn = shape(p)
-        _, det = _jac3(dn, xyz)
+        _, det, _ = _jac3(dn, xyz)
         _check_det(det, ids, nn)
         mnn += (rho * det * w)[:, None, None] * np.outer(nsh, nsh)[None]
     if not coupled:
