@@ -75,7 +75,9 @@ def main(argv=None) -> int:
     summary = {
         "model": {"target_dof": args.dof, "grid_dof": ex.n_dof, "a_set_dof": int(n_a), "elements": ex.n_elements,
                   "mass_kg": ex.mass_kg, "units": args.units, "parameters": pm.n_params,
-                  "K_terms": len(pm.K.matrices), "M_terms": len(pm.M.matrices), "nnz_K": int(K.nnz)},
+                  "K_terms": len(pm.K.matrices), "M_terms": len(pm.M.matrices), "nnz_K": int(K.nnz),
+                  "series_terms": int(np.sum(getattr(pm.K, "series_ratio", np.zeros(1)) > 0)),
+                  "series_error_bound": pm.series_error_bound},
         "stages_s": {name: dt for name, dt, _ in rows},
         "assembly_timings_s": {k: float(v) for k, v in asm.timings.items()},
         "assembly_s": assembly_s,

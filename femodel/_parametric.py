@@ -338,6 +338,36 @@ def _series_error(r, r_rep, a, b, lower, upper) -> float:
     return err
 
 
+def _selection_map(T) -> np.ndarray:
+    """Per g-set row of T: its a-set column if the row is a unit selection, -1 if empty, -2 otherwise."""
+    T = sp.csr_matrix(T)
+    nnz = np.diff(T.indptr)
+    amap = np.full(T.shape[0], -2, dtype=np.int64)
+    amap[nnz == 0] = -1
+    one = np.flatnonzero(nnz == 1)
+    unit = T.data[T.indptr[one]] == 1.0
+    amap[one[unit]] = T.indices[T.indptr[one[unit]]]
+    return amap
+
+
+def _to_aset(assembly, amap, blocks, rows, cols) -> sp.csr_matrix:
+    """Element blocks (k, d, d) at g-set (rows, cols) as T^T A T on the a-set.
+
+    Where every involved row of T is a unit selection (or empty), the entries
+    map straight to a-set indices; otherwise the g-set matrix is reduced.
+    """
+    r, c, v = rows.ravel(), cols.ravel(), blocks.ravel()
+    ar, ac = amap[r], amap[c]
+    n_a = assembly.T.shape[1]
+    if np.all(ar >= -1) and np.all(ac >= -1):
+        keep = (ar >= 0) & (ac >= 0)
+        m = sp.csr_matrix((v[keep], (ar[keep], ac[keep])), shape=(n_a, n_a))
+    else:
+        n_g = assembly.T.shape[0]
+        m = assembly.reduce(sp.csr_matrix((v, (r, c)), shape=(n_g, n_g)))
+    return _canonical(m)
+
+
 def _shell_shear_series(assembly, params: ParameterSet, key_index: dict):
     """Exact parametric form of shell transverse shear with residual bending flexibility.
 
@@ -349,7 +379,7 @@ def _shell_shear_series(assembly, params: ParameterSet, key_index: dict):
 
     * ``corrections``: (exponent row, g-set matrix) pairs that remove the
       nominal shear from the assembly's monomial terms, and
-    * ``series``: (a row, b row, ratio, g-set matrix) terms with the exact
+    * ``series``: (a row, b row, ratio, a-set matrix) terms with the exact
       coefficient of :class:`SeriesAffineMatrix`, elements grouped by equal
       (rows, ratio) per direction.
     """
@@ -365,6 +395,7 @@ def _shell_shear_series(assembly, params: ParameterSet, key_index: dict):
         return [], [], 0.0
     cd_axes = fe.cd_axes() if np.any(fe.cd != 0) else None
     n_g = len(assembly.gset)
+    amap = _selection_map(assembly.T)
     corrections, series, errors = [], [], []
     for card in ("CQUAD4", "CTRIA3"):
         tab = fe.elements.get(card)
@@ -452,8 +483,8 @@ def _shell_shear_series(assembly, params: ParameterSet, key_index: dict):
                 if lr.max() - lr.min() > 1e-11:
                     errors.append(_series_error(ratio[sel], r_rep, urows[g, :n_par], urows[g, n_par:],
                                                 params.lower, params.upper))
-                m = sp.csr_matrix((contrib[sel].ravel(), (rr2[sel].ravel(), cc2[sel].ravel())), shape=(n_g, n_g))
-                series.append((urows[g, :n_par], urows[g, n_par:], r_rep, m))
+                series.append((urows[g, :n_par], urows[g, n_par:], r_rep,
+                               _to_aset(assembly, amap, contrib[sel], rr2[sel], cc2[sel])))
         # remove the nominal shear from the monomial term it was assembled in (exponent row a)
         urows, inv = np.unique(ea, axis=0, return_inverse=True)
         inv = inv.ravel()
@@ -493,8 +524,8 @@ def _grouped_terms(assembly, params: ParameterSet, kind: str, source, extra=(), 
     a = np.array(rows, dtype=float).reshape(len(rows), len(params))
     b = a.copy()
     ratio = np.zeros(len(rows))
-    if series:
-        mats += [_canonical(assembly.reduce(m)) for _, _, _, m in series]
+    if series:  # already on the a-set
+        mats += [m for _, _, _, m in series]
         a = np.vstack([a, np.array([s_[0] for s_ in series])])
         b = np.vstack([b, np.array([s_[1] for s_ in series])])
         ratio = np.concatenate([ratio, [s_[2] for s_ in series]])
