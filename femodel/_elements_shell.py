@@ -343,12 +343,6 @@ def _tri_local(xy, dm, db, ds, kdrill, ids, dmb=None):
     return [(km, cm), (kb, cp), (ks, cp), (kd, cd), coupling]
 
 
-def _polygon_area(xy: np.ndarray) -> np.ndarray:
-    """(n,) signed area of the projected polygon (shoelace)."""
-    x, y = xy[..., 0], xy[..., 1]
-    return 0.5 * np.sum(x * np.roll(y, -1, axis=1) - np.roll(x, -1, axis=1) * y, axis=1)
-
-
 def _bending_lengths(xy: np.ndarray) -> np.ndarray:
     """(n, 2) element lengths along the element x and y axes [m].
 

@@ -10,7 +10,6 @@ assembler, so a frequency error here is an element-formulation error.
 from __future__ import annotations
 
 import json
-import os
 from functools import lru_cache
 
 import numpy as np
@@ -191,12 +190,10 @@ class MiniModel:
             if mass.type != "CONM2":
                 raise ValueError(mass.type)
             i = self.index[mass.nid]
-            mm = mass.mass_matrix() if hasattr(mass, "mass_matrix") else None
             m6 = np.zeros((6, 6))
             off = np.asarray(mass.X, dtype=float)
             if mass.cid not in (0, -1) or np.any(np.asarray(mass.I) != 0):
                 raise ValueError("helper handles CONM2 with CID 0 and no inertia only")
-            del mm
             mval = mass.mass
             s = np.array([[0, -off[2], off[1]], [off[2], 0, -off[0]], [-off[1], off[0], 0]])
             m6[:3, :3] = mval * np.eye(3)
@@ -219,6 +216,8 @@ class MiniModel:
             if rb.type != "RBE2":
                 raise ValueError(rb.type)
             gi = self.index[rb.Gn()]
+            if any(rb.Gn() in r.Gmi_node_ids for r in model.rigid_elements.values()):
+                raise ValueError("helper: chained RBE2")
             comps = [int(ch) for ch in str(rb.cm)]
             for n in rb.Gmi_node_ids:
                 gd = self.index[n]
@@ -233,19 +232,12 @@ class MiniModel:
                     if len(comps) != 6 and model.nodes[n].cd != 0:
                         raise ValueError("helper: partial RBE2 on a grid with CD")
                     dep[6 * gd + comp - 1] = {6 * gi + j: row[comp - 1, j] for j in range(6) if row[comp - 1, j]}
-        spc = set()
+        spc = set()  # every SPC/SPC1 set of the deck (the helper decks have one), components 1-6
         for spcs in model.spcs.values():
             for card in spcs:
-                nodes = card.nodes if card.type == "SPC1" else card.nodes
-                comps = card.components if card.type == "SPC1" else None
-                if card.type == "SPC1":
-                    for n in nodes:
-                        for ch in str(comps):
-                            spc.add(6 * self.index[n] + int(ch) - 1)
-                else:
-                    for n, cc in zip(card.nodes, card.components):
-                        for ch in str(cc):
-                            spc.add(6 * self.index[n] + int(ch) - 1)
+                comps = [card.components] * len(card.nodes) if card.type == "SPC1" else card.components
+                for n, cc in zip(card.nodes, comps):
+                    spc.update(6 * self.index[n] + int(ch) - 1 for ch in str(cc))
         free = [i for i in range(ndof) if i not in dep and i not in spc]
         col = {d: j for j, d in enumerate(free)}
         tr, tc, tv = [], [], []
