@@ -531,7 +531,7 @@ def orthotropic_q(e1, e2, nu12, g12) -> np.ndarray:
     return np.array([[e1 / den, nu12 * e2 / den, 0.0], [nu12 * e2 / den, e2 / den, 0.0], [0.0, 0.0, g12]])
 
 
-def laminate_abd(thickness, theta_deg, q_ply, g_ply=None, z0=None, shear_factor=5.0 / 6.0):
+def laminate_abd(thickness, theta_deg, q_ply, g_ply=None, z0=None):
     """Classical lamination theory: shell constitutive input of a ply stack (PCOMP).
 
     Parameters
@@ -544,21 +544,24 @@ def laminate_abd(thickness, theta_deg, q_ply, g_ply=None, z0=None, shear_factor=
         Plane-stress ply stiffness in ply axes [Pa] (``orthotropic_q`` or
         the isotropic plane-stress matrix).
     g_ply : array_like, shape (n_ply, 2), optional
-        Transverse shear moduli (G13, G23) per ply [Pa]; without them the
+        Transverse shear moduli (G13, G23) per ply [Pa]; ``inf`` marks a
+        shear-rigid ply (e.g. MAT8 G1Z blank).  Without ``g_ply`` the
         laminate gets no transverse shear stiffness (``ds`` = 0).
     z0 : float, optional
         Distance from the reference plane to the bottom surface [m]
         (Nastran PCOMP Z0); default ``-total / 2``.
-    shear_factor : float
-        Transverse shear correction applied to the thickness-summed shear
-        stiffness (5/6, a simplification of Nastran's ply-wise shear).
 
     Returns
     -------
     dm, dmb, db : ndarray, shape (3, 3)
         A [N/m], B [N], D [N m] with membrane strain ``e0 + z k``.
     ds : ndarray, shape (2, 2)
-        Transverse shear stiffness [N/m].
+        Transverse shear stiffness [N/m], diagonal: per direction i the
+        energy-consistent value ``1 / integral(Q_i(z)^2 / (D_i^2 G_i(z)) dz)``
+        with ``Q_i`` the first moment of the bending stress about the
+        neutral surface (the equilibrium shear distribution).  It gives
+        5/6 G t for a homogeneous plate and the core-dominated stiffness of a
+        sandwich.
     """
     t = np.asarray(thickness, dtype=float).ravel()
     th = np.radians(np.asarray(theta_deg, dtype=float).ravel())
@@ -586,9 +589,26 @@ def laminate_abd(thickness, theta_deg, q_ply, g_ply=None, z0=None, shear_factor=
     ds = np.zeros((2, 2))
     if g_ply is not None:
         g = np.asarray(g_ply, dtype=float).reshape(-1, 2)
-        r = np.stack([np.stack([m, n], axis=1), np.stack([-n, m], axis=1)], axis=1)  # gamma_ply = r gamma
-        gbar = np.einsum("kji,kj,kjl->kil", r, g, r)
-        ds = shear_factor * np.einsum("k,kij->ij", h1, gbar)
+        if g.shape[0] != t.size or np.any(~(g > 0)):
+            raise ValueError(f"laminate: need {t.size} positive (G13, G23) pairs, got {g.tolist()}")
+        # ply shear compliance in element axes: gamma_ply = r gamma_element
+        comp = np.zeros((t.size, 2, 2))
+        comp[:, 0, 0] = np.where(np.isfinite(g[:, 0]), 1.0 / g[:, 0], 0.0)
+        comp[:, 1, 1] = np.where(np.isfinite(g[:, 1]), 1.0 / g[:, 1], 0.0)
+        r = np.stack([np.stack([m, n], axis=1), np.stack([-n, m], axis=1)], axis=1)
+        comp = np.einsum("kji,kjl,klm->kim", r, comp, r)  # element-axis compliance per ply (r orthogonal)
+        xg, wg = np.polynomial.legendre.leggauss(4)
+        for i in range(2):
+            e = qbar[:, i, i]
+            zn = dmb[i, i] / dm[i, i]
+            dstar = db[i, i] - 2 * zn * dmb[i, i] + zn * zn * dm[i, i]
+            flex, q0 = 0.0, 0.0
+            for k in range(t.size):
+                zz = 0.5 * (z[k] + z[k + 1]) + 0.5 * h1[k] * xg
+                qz = q0 + e[k] * (0.5 * ((zz - zn) ** 2 - (z[k] - zn) ** 2))
+                flex += 0.5 * h1[k] * np.sum(wg * qz ** 2) * comp[k, i, i] / dstar ** 2
+                q0 = q0 + e[k] * 0.5 * ((z[k + 1] - zn) ** 2 - (z[k] - zn) ** 2)
+            ds[i, i] = 1.0 / flex if flex > 0 else np.inf
     return dm, dmb, db, ds
 
 

@@ -477,3 +477,12 @@ def test_laminate_abd_classical_cases():
     assert np.allclose(dmb, 0, atol=1e-9 * dm[0, 0] * h)
     with pytest.raises(ValueError, match="positive"):
         laminate_abd([h, -h], [0, 0], [q, q])
+    # sandwich with shear-rigid faces: classical core-shear stiffness G_c d^2 / t_c
+    # (d = distance between face centroids) in the thin-face limit, and bounded by it
+    gc, tc, tf = 80e6, 0.02, 0.0005
+    core = plane_stress() * 1e-4  # negligible in-plane stiffness
+    dm, dmb, db, ds = laminate_abd([tf, tc, tf], [0, 0, 0], [q_iso, core, q_iso],
+                                   g_ply=[[np.inf, np.inf], [gc, gc], [np.inf, np.inf]])
+    d = tc + tf
+    assert np.isclose(ds[0, 0], gc * d * d / tc, rtol=0.03) and np.isclose(ds[1, 1], ds[0, 0])
+    assert abs(ds[0, 1]) == 0
