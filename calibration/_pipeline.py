@@ -56,16 +56,17 @@ def _drive_cols(run, names, path):
     return [lookup[n] for n in names]
 
 
-def load_articles(camp: Campaign, log=print) -> list[Article]:
-    """Read every run, select channels and band, identify (or load the stored identification)."""
-    from acquisition.runfile import read_analysis, read_run
-    from identification import Identification, identify
+def load_articles(camp: Campaign, log=print, identify_data: bool = True) -> list[Article]:
+    """Read every run, select channels and band, identify (or load the stored identification).
+
+    With ``identify_data=False`` only the run files are read and checked
+    (identification left None; see :func:`identified_articles`).
+    """
+    from acquisition.runfile import read_run
 
     ch = camp.channels
     names = list(ch.calibrate) + list(ch.holdout)
     lo, hi = camp.band.low_hz, camp.band.high_hz
-    ilo = camp.identification.low_hz or 0.8 * lo
-    ihi = camp.identification.high_hz or 1.25 * hi
     out = []
     for entry in camp.run:
         path = camp.resolve(entry.path)
@@ -87,21 +88,6 @@ def load_articles(camp: Campaign, log=print) -> list[Article]:
             raise CalibrationError(
                 f"{path}: {bad.sum()} valid line(s) hold NaN/inf (first at {f[sel][bad][0]:.3f} Hz): flag them invalid"
             )
-        ident = None
-        ident_channels = tuple(names)
-        if camp.identification.use_stored and "identification" in (run.analyses or ()):
-            arrays, attrs = read_analysis(path, "identification")
-            cand = Identification.from_arrays(arrays, attrs)
-            if cand.model.n_out == len(run.sensors) and cand.model.n_in == len(run.drives):
-                ident = cand
-                ident_channels = tuple(s.name for s in run.sensors)
-                log(f"{path.name}: using stored identification (order {cand.order})")
-        if ident is None:
-            t0 = time.perf_counter()
-            ident = identify(f, H, camp.identification.order, band_hz=(ilo, ihi), valid=valid,
-                             quantity=run.quantity)
-            log(f"{path.name}: identified order {ident.order}, {ident.modal.n_modes} modes in "
-                f"{ilo:.0f}-{ihi:.0f} Hz ({time.perf_counter() - t0:.1f} s)")
         out.append(Article(
             name=entry.article or run.article,
             path=path,
@@ -109,13 +95,48 @@ def load_articles(camp: Campaign, log=print) -> list[Article]:
             frf=H[sel],
             channels=tuple(names),
             drives=tuple(run.drives[c].name for c in cols),
-            identification=ident,
-            ident_channels=ident_channels,
+            identification=None,
+            ident_channels=tuple(names),
             quantity=run.quantity,
         ))
     quantities = {a.quantity for a in out}
     if len(quantities) > 1:
         raise CalibrationError(f"runs mix FRF quantities {sorted(quantities)}")
+    return identified_articles(camp, out, log) if identify_data else out
+
+
+def identified_articles(camp: Campaign, articles, log=print) -> list[Article]:
+    """Attach an identification to every article: the stored one when usable, else identify now."""
+    from dataclasses import replace
+
+    from acquisition.runfile import read_analysis, read_run
+    from identification import Identification, identify
+
+    lo, hi = camp.band.low_hz, camp.band.high_hz
+    ilo = camp.identification.low_hz or 0.8 * lo
+    ihi = camp.identification.high_hz or 1.25 * hi
+    out = []
+    for a in articles:
+        run = read_run(a.path)
+        ident = None
+        ident_channels = a.channels
+        if camp.identification.use_stored and "identification" in (run.analyses or ()):
+            arrays, attrs = read_analysis(a.path, "identification")
+            cand = Identification.from_arrays(arrays, attrs)
+            if cand.model.n_out == len(run.sensors) and cand.model.n_in == len(run.drives):
+                ident = cand
+                ident_channels = tuple(s.name for s in run.sensors)
+                log(f"{a.path.name}: using stored identification (order {cand.order})")
+        if ident is None:
+            rows = _sensor_rows(run, a.channels, a.path)
+            cols = _drive_cols(run, list(a.drives), a.path)
+            H = np.asarray(run.frf)[:, rows][:, :, cols]
+            t0 = time.perf_counter()
+            ident = identify(run.frequency_hz, H, camp.identification.order, band_hz=(ilo, ihi),
+                             valid=run.valid, quantity=run.quantity)
+            log(f"{a.path.name}: identified order {ident.order}, {ident.modal.n_modes} modes in "
+                f"{ilo:.0f}-{ihi:.0f} Hz ({time.perf_counter() - t0:.1f} s)")
+        out.append(replace(a, identification=ident, ident_channels=ident_channels))
     return out
 
 
@@ -194,11 +215,14 @@ def run_campaign(camp: Campaign, log=print) -> dict:
     timings = {}
     t_all = time.perf_counter()
     t = time.perf_counter()
-    articles = load_articles(camp, log)
-    timings["load_identify_s"] = time.perf_counter() - t
+    articles = load_articles(camp, log, identify_data=False)
+    timings["load_s"] = time.perf_counter() - t
     t = time.perf_counter()
     pm, model = build_model(camp, articles, log)
     timings["model_s"] = time.perf_counter() - t
+    t = time.perf_counter()
+    articles = identified_articles(camp, articles, log)
+    timings["identification_s"] = time.perf_counter() - t
     c = camp.calibration
     band = (camp.band.low_hz, camp.band.high_hz)
     f = half_bandwidth_frequencies(*band, c.zeta0, c.samples_per_half_bandwidth)

@@ -30,7 +30,7 @@ def truth_frf(pm, grids, dirs, p, f, zeta_modes):
     C = femodel.sensor_matrix(pm.assembly, grids, dirs)
     B = C[[DRIVE]].T.toarray()
     model = FRFModel(pm.K, pm.M, B, C, parametric=pm)
-    sur, _ = build_surrogate(model, p, (f.min(), f.max()), basis_factor=4.0)
+    sur, _ = build_surrogate(model, p, (f.min(), f.max()), basis_factor=4.0, enrich=False)
     lam, X = reduced_modes(sur, p)
     fe_hz = np.sqrt(np.clip(lam, 0, None)) / (2 * np.pi)
     zeta = np.interp(fe_hz, [0, 1e6], [zeta_modes, zeta_modes]) if np.isscalar(zeta_modes) else zeta_modes(fe_hz)
@@ -56,7 +56,7 @@ def write_run(path, pm, grids, dirs, f, H, article, flagged=(), units_scale=1.0)
 
 
 def make_campaign(tmp, units="mm-t-s", target_dof=3000, p_true=None, articles=1, noise=0.0, seed=0,
-                  starts=2, realizations=4, extra=""):
+                  starts=2, realizations=4, extra="", step_hz=1.0, bad_grid=False):
     """Write model, parameter file, run files and campaign TOML under ``tmp``; return (campaign path, p_true, pm)."""
     tmp = Path(tmp)
     ex = femodel.example_subframe(tmp / "model", target_dof=target_dof, units=units)
@@ -65,13 +65,16 @@ def make_campaign(tmp, units="mm-t-s", target_dof=3000, p_true=None, articles=1,
     if p_true is None:
         p_true = np.zeros(pm.n_params)
     grids, dirs = layout(pm)
-    f = np.arange(80.0, 520.0, 0.5)
+    f = np.arange(80.0, 520.0, step_hz)
     runs = []
     for a in range(articles):
         H = truth_frf(pm, grids, dirs, np.asarray(p_true), f, lambda fh: 0.002 + 0.003 * (fh / 500.0))
         if noise:
             H = H * (1 + noise * (rng.standard_normal(H.shape) + 1j * rng.standard_normal(H.shape)) / np.sqrt(2))
-        runs.append(write_run(tmp / f"run{a + 1}.h5", pm, grids, dirs, f, H, f"SF{a + 1}", flagged=(10, 11, 400)))
+        g_run = grids.copy()
+        if bad_grid:
+            g_run[3] = 987654321  # acc4: a grid that is not in the model
+        runs.append(write_run(tmp / f"run{a + 1}.h5", pm, g_run, dirs, f, H, f"SF{a + 1}", flagged=(10, 11, 150)))
     cal = [f"acc{i}" for i in (1, 2, 4, 6, 7, 9, 11)]
     hold = [f"acc{i}" for i in (3, 5, 8, 10, 12)]
     text = f"""

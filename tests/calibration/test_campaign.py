@@ -1,6 +1,7 @@
 """Campaign config, pipeline end to end on run files, CLI, bad input."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,12 +15,20 @@ P_TRUE = np.array([0.05, -0.04, 0.06, -0.05, 0.04, -0.03, 0.05, -0.06, 0.03,
 
 
 @pytest.fixture(scope="module")
+def light(tmp_path_factory):
+    """A coarse campaign (5 Hz lines) with a sensor on a grid the model lacks, for error paths."""
+    tmp = tmp_path_factory.mktemp("light")
+    return make_campaign(tmp, target_dof=1000, step_hz=5.0, bad_grid=True)
+
+
+@pytest.fixture(scope="module")
 def campaign(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("camp")
     path, p_true, pm = make_campaign(tmp, p_true=P_TRUE, target_dof=2000)
     return path, p_true, pm
 
 
+@pytest.mark.slow
 def test_campaign_end_to_end_cli_json(campaign, capsys):
     path, p_true, pm = campaign
     rc = main(["calibrate", str(path), "--json", "--starts", "1", "--realizations", "3"])
@@ -32,8 +41,8 @@ def test_campaign_end_to_end_cli_json(campaign, capsys):
     assert m["sd_calibration"] < 0.02 * m["sd_calibration_nominal"]
     v = m["validation"]
     assert v["improved"] and v["sd_calibrated"] < 0.05 * v["sd_nominal"]
-    # flagged lines (NaN) excluded: 3 flagged lines of which 1 in band (line 400 is at 280 Hz)
-    n_lines_in_band = int(np.sum((np.arange(80.0, 520.0, 0.5) >= 100) & (np.arange(80.0, 520.0, 0.5) <= 400)))
+    # flagged lines (NaN) excluded: 3 flagged lines of which 1 in band (line 150 is at 230 Hz)
+    n_lines_in_band = int(np.sum((np.arange(80.0, 520.0, 1.0) >= 100) & (np.arange(80.0, 520.0, 1.0) <= 400)))
     assert v["n_values"] == (n_lines_in_band - 1) * 5
     cv = m["crossvalidation"]
     assert cv["realizations"] == 3 and cv["rse"] < 0.02
@@ -50,25 +59,41 @@ def test_campaign_end_to_end_cli_json(campaign, capsys):
         assert fig.endswith(".png")
 
 
-def test_bad_inputs_have_clear_errors(campaign, tmp_path):
-    path, _, _ = campaign
+def _variant(path, tmp_path, **subs):
     text = path.read_text()
     base = path.parent
-    bad = tmp_path / "c.toml"
-    bad.write_text(text.replace('low_hz = 100.0', 'low_hz = 100.0\nlow_freq = 3').replace('dir = "out"', f'dir = "{tmp_path}/o"')
-                   .replace('path = "run1.h5"', f'path = "{base}/run1.h5"').replace('parameters = "', 'parameters = "'))
+    text = text.replace('path = "run1.h5"', f'path = "{base}/run1.h5"').replace('dir = "out"', f'dir = "{tmp_path}/o"')
+    for a, b in subs.items():
+        text = text.replace(a, b)
+    out = tmp_path / "c.toml"
+    out.write_text(text)
+    return out
+
+
+def test_bad_inputs_have_clear_errors(light, tmp_path):
+    path, _, pm = light
+    quiet = dict(log=lambda m: None)
+    bad = _variant(path, tmp_path, **{"low_hz = 100.0": "low_hz = 100.0\nlow_freq = 3"})
     with pytest.raises(CalibrationError, match="band.low_freq: unknown field"):
         load_campaign(bad)
-    # unknown channel
-    bad.write_text(text.replace('"acc1"', '"accX"', 1).replace('path = "run1.h5"', f'path = "{base}/run1.h5"'))
+    bad = _variant(path, tmp_path, **{'"acc1"': '"accX"'})
     with pytest.raises(CalibrationError, match="accX"):
-        run_campaign(load_campaign(bad), log=lambda m: None)
-    # band without data
-    bad.write_text(text.replace("high_hz = 400.0", "high_hz = 4000.0").replace("low_hz = 100.0", "low_hz = 3000.0")
-                   .replace('path = "run1.h5"', f'path = "{base}/run1.h5"'))
+        run_campaign(load_campaign(bad), **quiet)
+    bad = _variant(path, tmp_path, **{"high_hz = 400.0": "high_hz = 4000.0", "low_hz = 100.0": "low_hz = 3000.0"})
     with pytest.raises(CalibrationError, match="no valid lines"):
-        run_campaign(load_campaign(bad), log=lambda m: None)
-    # CLI prints one line and exits 2
+        run_campaign(load_campaign(bad), **quiet)
+    # acc4 sits on grid 987654321, which the deck does not have
+    with pytest.raises(CalibrationError, match=r"channel 'acc4' \(grid 987654321"):
+        run_campaign(load_campaign(_variant(path, tmp_path)), **quiet)
+    # a parameter naming a card that is not in the deck
+    ptext = Path(pm.parameters.source).read_text().replace("id = 1\n", "id = 4242\n", 1)
+    pfile = tmp_path / "params.toml"
+    pfile.write_text(ptext.replace('bdf = "', f'bdf = "{Path(pm.parameters.source).parent}/'))
+    bad = _variant(path, tmp_path, **{f'parameters = "{pm.parameters.source}"': f'parameters = "{pfile}"'})
+    with pytest.raises(ValueError, match="4242"):
+        run_campaign(load_campaign(bad), **quiet)
+    # the CLI turns these into one line and exit status 2
+    assert main(["calibrate", str(bad)]) == 2
     assert main(["calibrate", str(tmp_path / "missing.toml")]) == 2
 
 
