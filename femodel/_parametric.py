@@ -443,7 +443,7 @@ def _shell_shear_series(assembly, params: ParameterSet, key_index: dict):
                               ids=tab.ids[idx], residual_bending=False)["shear"]
         unit = (_to_cd(2.0 * k11 - k12, nodes, cd_axes, 6), _to_cd(k12 - k11, nodes, cd_axes, 6))
         del k11, k12
-        dofs = _dofs(nodes)
+        dofs = _dofs(nodes).astype(np.int32 if n_g < 2**31 else np.int64)
         nd = dofs.shape[1]
         rr = np.repeat(dofs, nd, axis=1).ravel()
         cc = np.tile(dofs, (1, nd)).ravel()
@@ -460,7 +460,9 @@ def _shell_shear_series(assembly, params: ParameterSet, key_index: dict):
             ratios.append(a0 / b0)
             contribs.append(unit[i] * w0[:, None, None])
             nominal += contribs[-1]
+        del unit
         contrib = np.concatenate(contribs)
+        del contribs
         ratio = np.concatenate(ratios)
         rr2 = np.tile(rr.reshape(n, -1), (2, 1))
         cc2 = np.tile(cc.reshape(n, -1), (2, 1))
