@@ -2,10 +2,12 @@
 
 The deck is read with pyNastran, the parameterized fields are set to new
 physical values (SI in, converted to the deck's unit system), and the deck is
-written again as one flattened file (INCLUDE files are merged into it). The
-modified cards and any added cards are written in free-field format with the
-shortest decimal that reads back to the same double, so values round-trip
-exactly; all other cards are written by pyNastran in large-field format.
+written again. INCLUDE files are written beside the new main file at the same
+relative paths (or, when that would overwrite the source files or when asked,
+merged into one flattened file). The modified cards and any added cards are
+written at the end of the main file in free-field format with the shortest
+decimal that reads back to the same double, so values round-trip exactly; all
+other cards are written by pyNastran in large-field format.
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ from femodel._params import (
 )
 
 
-def _read_deck(path: Path):
+def _read_deck(path: Path, save_file_structure: bool = False):
     from pyNastran.bdf.bdf import BDF
     from pyNastran.bdf.errors import MissingDeckSections
 
@@ -41,7 +43,8 @@ def _read_deck(path: Path):
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
-                bdf.read_bdf(str(path), xref=False, validate=False, punch=punch)
+                bdf.read_bdf(str(path), xref=False, validate=False, punch=punch,
+                             save_file_structure=save_file_structure)
             return bdf
         except MissingDeckSections as exc:
             last = exc
@@ -130,8 +133,30 @@ def _resolve_values(values, parameters: ParameterSet | None, model, units, sourc
     return out
 
 
+def _include_targets(bdf, model_path: Path, out_path: Path):
+    """{source file: output file} for a deck with INCLUDEs, or None to flatten."""
+    files = [Path(f) for f in getattr(bdf, "active_filenames", [])]
+    if len(files) < 2:
+        return None
+    main_dir = model_path.resolve().parent
+    targets = {str(files[0]): str(out_path)}
+    for f in files[1:]:
+        fr = f.resolve()
+        try:
+            rel = fr.relative_to(main_dir)
+        except ValueError:
+            rel = Path(f.name)
+        target = out_path.parent / rel
+        if target.resolve() in {x.resolve() for x in files}:
+            return None  # would overwrite a source file: flatten instead
+        targets[str(f)] = str(target)
+    if len(set(targets.values())) != len(targets):
+        return None
+    return targets
+
+
 def write_bdf(model_path, out_path, values, *, parameters: ParameterSet | None = None,
-              units: str | None = None, added_cards=()) -> Path:
+              units: str | None = None, added_cards=(), keep_includes: bool = True) -> Path:
     """Write ``model_path`` to ``out_path`` with new physical values and added cards.
 
     Parameters
@@ -150,6 +175,10 @@ def write_bdf(model_path, out_path, values, *, parameters: ParameterSet | None =
     added_cards : sequence
         Extra cards, each a string (written verbatim) or a field list
         ``["CONM2", 99, 17, 0, 0.05]`` (written in exact free field).
+    keep_includes : bool
+        Write INCLUDE files beside ``out_path`` at their relative paths
+        (default). The deck is flattened into one file instead when this is
+        False or when an include would overwrite its own source.
 
     Returns
     -------
@@ -165,7 +194,7 @@ def write_bdf(model_path, out_path, values, *, parameters: ParameterSet | None =
     model_path, out_path = Path(model_path), Path(out_path)
     units = units or (parameters.units if parameters is not None else None) or "si"
     source = model_path
-    bdf = _read_deck(model_path)
+    bdf = _read_deck(model_path, save_file_structure=keep_includes)
     si_values = _resolve_values(values, parameters, bdf, units, source)
 
     modified = {}
@@ -197,9 +226,15 @@ def write_bdf(model_path, out_path, values, *, parameters: ParameterSet | None =
             extra.append(free_field_card(card))
 
     out_path.parent.mkdir(parents=True, exist_ok=True)
+    targets = _include_targets(bdf, model_path, out_path) if keep_includes else None
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        bdf.write_bdf(str(out_path), size=16, is_double=False, enddata=False)
+        if targets:
+            for target in targets.values():
+                Path(target).parent.mkdir(parents=True, exist_ok=True)
+            bdf.write_bdfs(targets, relative_dirname=str(out_path.parent), size=16, is_double=False, enddata=False)
+        else:
+            bdf.write_bdf(str(out_path), size=16, is_double=False, enddata=False)
     with open(out_path, "a") as fh:
         if extra:
             fh.write("$ cards written by frfcal (free field, exact values)\n")

@@ -105,3 +105,27 @@ def test_free_field_reals_round_trip_bitwise(tmp_path):
     b = _read_deck(tmp_path / "c.bdf")
     got = np.array([b.masses[100 + i].mass for i in range(len(values))])
     np.testing.assert_array_equal(got, values)
+
+
+def test_include_structure_is_kept(tmp_path):
+    src = tmp_path / "src"
+    (src / "parts").mkdir(parents=True)
+    (src / "main.bdf").write_text(
+        "SOL 103\nCEND\nBEGIN BULK\nINCLUDE 'parts/geom.inc'\nMAT1,3,210000.,,0.3,7.85-9\nPSHELL,5,3,2.5,3,,3\nENDDATA\n"
+    )
+    (src / "parts" / "geom.inc").write_text(
+        "GRID,1,,0.,0.,0.\nGRID,2,,1.,0.,0.\nGRID,3,,1.,1.,0.\nGRID,4,,0.,1.,0.\nCQUAD4,1,5,1,2,3,4\n"
+    )
+    out = write_bdf(src / "main.bdf", tmp_path / "out" / "main.bdf", {("PSHELL", 5, "T"): 3.1e-3}, units="mm-t-s")
+    text = out.read_text()
+    assert "INCLUDE 'parts/geom.inc'" in text and "GRID" not in text.split("INCLUDE")[0]
+    assert (tmp_path / "out" / "parts" / "geom.inc").is_file()
+    b = _read_deck(out)
+    assert len(b.nodes) == 4 and b.properties[5].t == pytest.approx(3.1, rel=1e-15)
+    # writing beside the source would overwrite the include: flattened instead
+    flat = write_bdf(src / "main.bdf", src / "new.bdf", {}, units="mm-t-s")
+    assert "\nINCLUDE" not in flat.read_text() and len(_read_deck(flat).nodes) == 4
+    assert (src / "parts" / "geom.inc").read_text().startswith("GRID,1,,0.")
+    # asked to flatten
+    flat2 = write_bdf(src / "main.bdf", tmp_path / "flat" / "m.bdf", {}, units="mm-t-s", keep_includes=False)
+    assert "\nINCLUDE" not in flat2.read_text()
