@@ -52,6 +52,7 @@ def run(args) -> int:
         f"subframe ({ex.units}): {ex.n_dof} grid DOF, {ex.n_grids} grids, {ex.n_elements} CQUAD4, "
         f"element size {ex.element_size_mm:.3g} mm, mass {ex.mass_kg:.3f} kg"
     )
+    print(f"modes: frfcal modes {ex.bdf} --units {ex.units} --n 30")
     print(f"{len(params)} parameters (P = P0 (1 + p)):")
     for k, p in enumerate(params, 1):
         print(f"  {k:2d} {p['name']:<20s} {p['card']:>6s} {p['id']:>8d} {p['field']:<4s} "
