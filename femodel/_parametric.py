@@ -40,18 +40,22 @@ class _Pattern:
 
 
 def _shared_pattern(matrices) -> _Pattern:
+    """Union CSR pattern of the terms (linear-time COO -> CSR) and each term's positions in it."""
     n = matrices[0].shape
     ncol = np.int64(n[1])
-    keys_per = []
-    for m in matrices:
-        r = np.repeat(np.arange(n[0], dtype=np.int64), np.diff(m.indptr))
-        keys_per.append(r * ncol + m.indices)
-    keys = np.unique(np.concatenate(keys_per))  # sorted: row-major CSR order
-    indices = (keys % ncol).astype(np.int32 if n[1] < 2**31 else np.int64)
-    indptr = np.searchsorted(keys, np.arange(n[0] + 1, dtype=np.int64) * ncol)
+    rows = np.concatenate([np.repeat(np.arange(n[0], dtype=np.int32), np.diff(m.indptr)) for m in matrices])
+    cols = np.concatenate([m.indices for m in matrices])
+    pat = sp.csr_matrix((np.ones(rows.shape[0], dtype=np.int8), (rows, cols)), shape=n)
+    del rows, cols
+    pat.sum_duplicates()
+    pat.sort_indices()
+    keys = np.repeat(np.arange(n[0], dtype=np.int64), np.diff(pat.indptr)) * ncol + pat.indices
     dtype = np.int32 if keys.shape[0] < 2**31 else np.int64
-    positions = tuple(np.searchsorted(keys, k).astype(dtype) for k in keys_per)
-    return _Pattern(indptr.astype(indices.dtype if keys.shape[0] < 2**31 else np.int64), indices, n, positions)
+    positions = []
+    for m in matrices:
+        k = np.repeat(np.arange(n[0], dtype=np.int64), np.diff(m.indptr)) * ncol + m.indices
+        positions.append(np.searchsorted(keys, k).astype(dtype))
+    return _Pattern(pat.indptr.copy(), pat.indices.copy(), n, tuple(positions))
 
 
 def _canonical(m) -> sp.csr_matrix:
