@@ -48,12 +48,12 @@ def member_figures(outdir: Path, label, pm, model, sur0, arts, cyc, val, cv, cam
     H1 = _model_frf(cyc.surrogate, cyc.p, rows, f, z1, arts[0].quantity)
     for k, (ax, name) in enumerate(zip(axes[:, 0], chans)):
         for a in arts:
-            ax.semilogy(a.freq_hz, np.abs(a.frf[:, a.channels.index(name), 0]), color="0.6", lw=0.8)
+            ax.semilogy(a.freq_hz, np.abs(a.frf[:, a.channels.index(name), 0]), color="0.7", lw=2.5)
         ax.semilogy(f, np.abs(H0[:, k, 0]), "b--", lw=1, label="nominal (zeta0)")
         ax.semilogy(f, np.abs(H1[:, k, 0]), "r-", lw=1, label="calibrated (mapped damping)")
         kind = "cal" if name in camp.channels.calibrate else "hold-out"
         ax.set_ylabel(f"{name} ({kind})")
-    axes[0, 0].plot([], [], color="0.6", label="test ensemble")
+    axes[0, 0].plot([], [], color="0.7", lw=2.5, label="test ensemble (raw lines)")
     axes[0, 0].legend(fontsize=7, loc="upper right")
     axes[-1, 0].set_xlabel("frequency [Hz]")
     fig.suptitle(f"{label}: |{arts[0].quantity}| test vs model")
