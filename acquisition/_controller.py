@@ -336,6 +336,62 @@ class _PeakSearch:
         return float(fs[int(np.argmax(ns))]), self.zeta
 
 
+def _resume_refinement(plan: Plan, writer: RunWriter, dense_regions: list, history: list,
+                       extra: list) -> "_PeakSearch | None":
+    """Rebuild the refinement state of a resumed run from its committed lines.
+
+    Clusters of lines much closer than the background (refined peaks) become
+    dense regions; the other lines, ascending, become the peak-detection history.
+    A peak at the end of that history (the run was killed during its search) is
+    searched again, reusing the lines already measured around it; dense lines
+    of a region cut short are appended to ``extra``.
+    """
+    run = read_run(writer.path)
+    order = np.argsort(run.frequency_hz)
+    f = run.frequency_hz[order]
+    norms = np.linalg.norm(run.frf[order, :, 0], axis=1)
+    zeta = plan.settle.assumed_damping
+    close = np.diff(f) <= 2 * (2 * zeta * f[1:]) / plan.refine.lines_per_bandwidth
+    k = 0
+    in_cluster = np.zeros(f.size, dtype=bool)
+    while k < close.size:
+        if close[k]:
+            j = k
+            while j < close.size and close[j]:
+                j += 1
+            if j - k + 1 >= 4:  # a refined region: lines k..j
+                centre = 0.5 * (f[k] + f[j])
+                half = 0.5 * (f[j] - f[k])
+                z = max(zeta, half / (2 * centre * (plan.lines.span_bandwidths + 1)))
+                dense_regions.append((float(centre), float(z)))
+                in_cluster[k : j + 1] = True
+                # complete a region whose dense lines were cut short by the interruption
+                top = k + np.argsort(norms[k : j + 1])[-3:]
+                pk = _parabola(f[np.sort(top)], norms[np.sort(top)]) or (float(f[top[-1]]), zeta)
+                spacing = 2 * pk[1] * pk[0] / plan.refine.lines_per_bandwidth
+                for x in dense_lines([], [Pole(frequency_hz=pk[0], damping=pk[1])], plan.refine.lines_per_bandwidth,
+                                     plan.refine.span_bandwidths, plan.lines.start_hz, plan.lines.stop_hz):
+                    if np.min(np.abs(f - x)) > 0.5 * spacing:
+                        extra.append(float(x))
+            k = j
+        k += 1
+    background = plan_lines(plan)
+    is_bg = np.array([np.min(np.abs(background - x)) <= 1e-6 for x in f]) & ~in_cluster
+    history.extend((float(a), float(b)) for a, b in zip(f[is_bg], norms[is_bg]))
+    if len(history) >= 3:
+        (fa, na), (fb, nb), (fc, nc) = history[-3:]
+        if nb > plan.refine.peak_ratio * max(na, nc) and not any(
+            abs(fb - fr) <= (plan.lines.span_bandwidths + 1) * 2 * z * fr for fr, z in dense_regions
+        ):
+            search = _PeakSearch(history[-3:], zeta)
+            for x, n in zip(f[~is_bg & ~in_cluster], norms[~is_bg & ~in_cluster]):
+                if fa < x < fc:  # probes measured before the interruption
+                    search.add(float(x), float(n))
+                    search.probes += 1
+            return search
+    return None
+
+
 def run_sweep(
     driver: Driver,
     plan: Plan,
@@ -406,6 +462,15 @@ def run_sweep(
     added = 0
     search: _PeakSearch | None = None
     probe = None
+    if plan.refine.enabled and n_before:
+        extra: list[float] = []
+        search = _resume_refinement(plan, writer, dense_regions, history, extra)
+        queue = sorted(extra) + queue
+        added += len(extra)
+        if search is not None:
+            probe = search.next_probe()
+            if probe is not None:
+                queue.insert(0, probe)
     status, reason = "aborted", "interrupted"
     bar = None
     if progress:

@@ -208,3 +208,28 @@ def test_linearity_check_passes_on_a_linear_plant(tmp_path):
     run = read_run(tmp_path / "r.h5")
     assert np.all(np.isfinite(run.linearity)) and np.all(run.linearity < 0.01)
     assert not np.any(run.flags & FLAG_NONLINEAR)
+
+
+@pytest.mark.parametrize("stop_at", [11, 16])  # during the peak search; during the dense lines
+def test_resume_keeps_refinement_state(tmp_path, stop_at):
+    """Interrupted during a refined sweep: the resumed run ends with every peak refined once."""
+    p = plant3()
+    lines = {"kind": "log", "start_hz": 100.0, "stop_hz": 300.0, "n_lines": 45}
+    pl = plan(lines, refine={"enabled": True, "lines_per_bandwidth": 3, "span_bandwidths": 2})
+    seen = []
+
+    def stop_mid_search(f, frf, q):
+        seen.append(f)
+        if len(seen) == stop_at:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_sweep(BACKENDS["sim"](p), pl, tmp_path / "r.h5", sensors=SENSORS, drive=DRIVE, level_n=1.0,
+                  on_line=stop_mid_search)
+    run_sweep(BACKENDS["sim"](p), pl, tmp_path / "r.h5", sensors=SENSORS, drive=DRIVE, level_n=1.0)
+    run = read_run(tmp_path / "r.h5")
+    assert run.status == "completed"
+    for fr in MODES_HZ:
+        near = np.abs(run.frequency_hz - fr) < 2 * 0.001 * fr
+        assert 4 <= near.sum() <= 12  # refined, and not twice
+    assert np.max(np.abs(run.frf / p.frf(run.frequency_hz) - 1)) < 0.005
