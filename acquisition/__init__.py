@@ -21,7 +21,7 @@ from acquisition._controller import (
     run_plan,
     run_sweep,
 )
-from acquisition._demod import fit_harmonics, thd
+from acquisition._demod import fit_harmonics, phasors, thd
 from acquisition._layout import Layout, LayoutError, read_layout
 from acquisition._plan import (
     Plan,
@@ -83,6 +83,7 @@ __all__ += [
     "SimulatedLab",
     "create_run",
     "fit_harmonics",
+    "phasors",
     "read_analysis",
     "read_layout",
     "read_run",

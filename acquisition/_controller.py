@@ -28,8 +28,8 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from acquisition._demod import fit_harmonics, thd
-from acquisition._driver import ChannelSpec, Driver, DriverError, PhasorBlock
+from acquisition._demod import phasors, thd
+from acquisition._driver import ChannelSpec, Driver, DriverError
 from acquisition._plan import Plan, Pole, block_cycles, dense_lines, plan_lines, tau_bound_s
 from acquisition.runfile import (
     FLAG_FORCE,
@@ -138,14 +138,7 @@ class _Sweep:
     # ---------------------------------------------------------------- blocks
     def _phasors(self, frequency_hz: float, n_cycles: int) -> tuple[np.ndarray, bool]:
         blk = self.driver.read_block(n_cycles)
-        if isinstance(blk, PhasorBlock):
-            X = np.asarray(blk.harmonics)
-            n_h = self.plan.measure.n_harmonics
-            if X.shape[1] < n_h:
-                X = np.pad(X, ((0, 0), (0, n_h - X.shape[1])))
-            X = X[:, :n_h]
-        else:
-            X = fit_harmonics(blk.samples, blk.rate_hz, frequency_hz, self.plan.measure.n_harmonics)
+        X = phasors(blk, frequency_hz, self.plan.measure.n_harmonics)
         if X.shape[0] != self.n_out + 1:
             raise DriverError(f"driver returned {X.shape[0]} channels, expected {self.n_out + 1}")
         overload = bool(np.any(blk.overload))

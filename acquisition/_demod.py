@@ -56,3 +56,21 @@ def thd(harmonics: np.ndarray) -> np.ndarray:
     rest = np.sqrt(np.sum(np.abs(h[:, 1:]) ** 2, axis=1))
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.where(fund > 0, rest / fund, np.inf)
+
+
+def phasors(block, frequency_hz: float, n_harmonics: int = 5) -> np.ndarray:
+    """Complex amplitudes ``(n_channels, n_harmonics)`` of any driver block.
+
+    A :class:`~acquisition.SampleBlock` is demodulated by :func:`fit_harmonics`;
+    a :class:`~acquisition.PhasorBlock` already holds them (padded with zeros or
+    truncated to ``n_harmonics``). This is the one place the controller looks at
+    what kind of driver produced a block.
+    """
+    from acquisition._driver import PhasorBlock
+
+    if isinstance(block, PhasorBlock):
+        X = np.atleast_2d(np.asarray(block.harmonics, dtype=complex))
+        if X.shape[1] < n_harmonics:
+            X = np.pad(X, ((0, 0), (0, n_harmonics - X.shape[1])))
+        return X[:, :n_harmonics]
+    return fit_harmonics(block.samples, block.rate_hz, frequency_hz, n_harmonics)
