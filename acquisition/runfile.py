@@ -113,7 +113,8 @@ class Run:
     """A run read back from a file (immutable).
 
     ``frf`` is ``(n_f, n_out, n_in)`` complex SI of ``quantity``; the quality arrays
-    are per line; ``valid`` marks lines without flags.
+    are per line; ``valid`` marks lines without flags. Lines are sorted by
+    ascending frequency (``time_s`` gives the measurement order).
     """
 
     path: str
@@ -530,6 +531,10 @@ def read_run(path) -> Run:
         f = arrays["frequency_hz"]
         if n and (not np.all(np.isfinite(f)) or np.any(f <= 0)):
             raise RunFileError(f"{path}: dataset '/lines/frequency_hz' holds non-positive or non-finite values")
+        # lines are stored in measurement order (refinement steps back); readers get ascending frequency
+        order = np.argsort(f, kind="stable")
+        arrays = {k: v[order] for k, v in arrays.items()}
+        f = arrays["frequency_hz"]
         try:
             plan = json.loads(_attr(path, h5, "plan_json"))
             hardware = json.loads(_attr(path, h5, "hardware_json"))

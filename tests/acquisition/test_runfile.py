@@ -115,3 +115,14 @@ def test_not_a_run_file(tmp_path):
         path = tmp_path / "r.h5"
         create_run(path, article="a", sensors=SENS, drives=DRV).close()
         read_analysis(path, "nope")
+
+
+def test_lines_come_back_sorted_by_frequency(tmp_path):
+    path = tmp_path / "r.h5"
+    with create_run(path, article="a", sensors=SENS, drives=DRV) as w:
+        for k, f in enumerate((120.0, 100.0, 119.5, 130.0)):  # refinement steps back down
+            w.append_line(f, np.full((3, 1), f + 0j), _q(k))
+    run = read_run(path)
+    assert list(run.frequency_hz) == [100.0, 119.5, 120.0, 130.0]
+    assert np.array_equal(run.frf[:, 0, 0].real, run.frequency_hz)
+    assert list(run.time_s) == [1.0, 2.0, 0.0, 3.0]  # measurement order recoverable
