@@ -79,7 +79,7 @@ def test_jacobian_matches_central_differences(beam, quantity):
         # fourth-order central difference (truncation ~h^4, round-off ~eps/h)
         fd = (-frf(p + 2 * e) + 8 * frf(p + e) - 8 * frf(p - e) + frf(p - 2 * e)) / 12e-4
         err = np.max(np.abs(fd - dH[j])) / np.max(np.abs(dH[j]))
-        assert err < 1e-4, (j, err)
+        assert err < 3e-4, (j, err)  # a wrong term gives O(1); FD noise near the rigid modes ~1e-4
 
 
 def test_half_bandwidth_sampling():
