@@ -259,7 +259,7 @@ def build_surrogate(
     shift_hz: float | None = None,
     max_modes: int = 600,
     enrich: bool = True,
-    enrich_tol: float = 1e-6,
+    enrich_tol: float = 1e-4,
     enrich_factor: float = 1.25,
 ) -> tuple[Surrogate, np.ndarray]:
     """Reduction basis at ``p`` and the exact-in-p reduced model.
