@@ -335,3 +335,25 @@ def test_real_nastran_decks_round_trip(folder, name, tmp_path):
     # exact to round-off; an irregular shell mesh bins its shear series terms (bound reported)
     assert rel(pm.stiffness(p), K) <= max(1e-13, pm.series_error_bound)
     assert rel(pm.mass(p), M) < 1e-13
+
+
+def test_series_coefficients_and_jacobian():
+    """c(0) = 1, r = 0 reduces to the monomial, the Jacobian equals central differences."""
+    rng = np.random.default_rng(7)
+    n_terms, n_par = 6, 4
+    a = rng.integers(0, 4, (n_terms, n_par)).astype(float)
+    b = rng.integers(0, 4, (n_terms, n_par)).astype(float)
+    r = np.array([0.0, 0.1, 1.0, 3.0, 50.0, 1e-3])
+    mats = tuple(sp.identity(3, format="csr") * (k + 1) for k in range(n_terms))
+    S = femodel.SeriesAffineMatrix(mats, a, b, r)
+    A = femodel.AffineMatrix(mats, a)
+    np.testing.assert_allclose(S.coefficients(np.zeros(n_par)), 1.0, rtol=1e-15)
+    p = rng.uniform(-0.4, 0.4, n_par)
+    assert S.coefficients(p)[0] == pytest.approx(A.coefficients(p)[0], rel=1e-15)
+    u, v = A.coefficients(p), femodel.AffineMatrix(mats, b).coefficients(p)
+    np.testing.assert_allclose(S.coefficients(p), (1 + r) / (1 / u + r / v), rtol=1e-14)
+    h = 1e-6
+    fd = np.column_stack([(S.coefficients(p + h * e) - S.coefficients(p - h * e)) / (2 * h) for e in np.eye(n_par)])
+    np.testing.assert_allclose(S.coefficient_jacobian(p), fd, rtol=1e-7, atol=1e-9)
+    with pytest.raises(ValueError, match="series_ratio"):
+        femodel.SeriesAffineMatrix(mats, a, b, -r - 1)
