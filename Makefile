@@ -15,7 +15,7 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install --quiet -e ".[$(EXTRAS)]"
 	@# CHOLMOD (scikit-sparse) makes modes ~2x faster; it needs libsuitesparse-dev.
 	@# Without it femodel falls back to SuperLU, so a failed build is not an error.
-	-$(PY) -m pip install --quiet "scikit-sparse>=0.4.12" 2>/dev/null || echo "note: scikit-sparse not installed (apt-get install libsuitesparse-dev to enable CHOLMOD)"
+	-$(PY) -m pip install --quiet "scikit-sparse>=0.4.12,<0.5" 2>/dev/null || echo "note: scikit-sparse not installed (apt-get install libsuitesparse-dev to enable CHOLMOD)"
 	touch $@
 
 lint: $(STAMP)
