@@ -612,12 +612,10 @@ def run_plan(
             for level in plan.force.levels_n:
                 path = out / f"{plan.name}_{article}_{name}_{level:g}N.h5"
                 if path.exists():
-                    try:
-                        if read_run(path).status == "completed":
-                            results.append(SweepResult(str(path), "completed", "already complete", read_run(path).n_lines, 0, 0, 0.0))
-                            continue
-                    except ValueError:
-                        raise
+                    old = read_run(path)
+                    if old.status == "completed":
+                        results.append(SweepResult(str(path), "completed", "already complete", old.n_lines, 0, 0, 0.0))
+                        continue
                 driver = make_driver(article, k, drives[k])
                 try:
                     chans = driver_channels(sensors, drives[k]) if driver_channels else None

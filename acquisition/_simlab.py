@@ -16,7 +16,7 @@ spike on a channel) to exercise the controller's safety logic.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np

@@ -19,7 +19,6 @@ Units: ordinates in SI (m/s^2/N, m/s/N, m/N). On import, ``g``, ``mm/s^2``,
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -229,4 +228,3 @@ def import_uff(path, out, *, article: str | None = None, overwrite: bool = False
 
 
 __all__ = ["UffError", "export_uff", "import_uff"]
-_ = sys  # byte order: 58b records are written little-endian ("1" in the header)
