@@ -432,7 +432,11 @@ def run_sweep(
     path = Path(path)
     sensors = tuple(sensors)
     quantity = quantity_of(sensors)
-    info = driver.configure(tuple(driver_channels or (sensors + (drive,))), plan.sample_rate_hz)
+    try:
+        info = driver.configure(tuple(driver_channels or (sensors + (drive,))), plan.sample_rate_hz)
+    except BaseException:
+        driver.ramp_down(plan.limits.ramp_down_s)  # safe in any state, per the protocol
+        raise
     hardware = {"driver": info.name, "kind": info.kind, "sample_rate_hz": info.sample_rate_hz,
                 "devices": list(info.devices), "details": info.details}
     if path.exists() and resume:
@@ -455,22 +459,22 @@ def run_sweep(
     added = 0
     search: _PeakSearch | None = None
     probe = None
-    if plan.refine.enabled and n_before:
-        extra: list[float] = []
-        search = _resume_refinement(plan, writer, dense_regions, history, extra)
-        queue = sorted(extra) + queue
-        added += len(extra)
-        if search is not None:
-            probe = search.next_probe()
-            if probe is not None:
-                queue.insert(0, probe)
     status, reason = "aborted", "interrupted"
     bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=len(queue), unit="line", desc=path.stem, dynamic_ncols=True)
     try:
+        if plan.refine.enabled and n_before:
+            extra: list[float] = []
+            search = _resume_refinement(plan, writer, dense_regions, history, extra)
+            queue = sorted(extra) + queue
+            added += len(extra)
+            if search is not None:
+                probe = search.next_probe()
+                if probe is not None:
+                    queue.insert(0, probe)
+        if progress:
+            from tqdm import tqdm
+
+            bar = tqdm(total=len(queue), unit="line", desc=path.stem, dynamic_ncols=True)
         while queue:
             f = float(queue.pop(0))
             res = sweep.measure_line(f, level_n)
