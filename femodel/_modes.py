@@ -216,6 +216,13 @@ def normal_modes(K, M, n_modes: int, *, shift_hz=None, solver: str = "auto", n_t
         raise ModelError("a computed mode has zero generalized mass (massless mechanism)")
     vec = vec / np.sqrt(gm)[None, :]
     freqs = np.sign(lam) * np.sqrt(np.abs(lam)) / (2 * np.pi)
+    if np.any(freqs < -rigid_tol_hz):
+        bad = freqs[freqs < -rigid_tol_hz]
+        raise ModelError(
+            f"negative eigenvalues (frequencies {np.round(bad[:3], 4).tolist()} Hz): K is not positive "
+            "semi-definite on the DOF that carry mass (single-precision or inconsistent matrices, or a "
+            "mechanism without mass); constrain the model or check the matrices"
+        )
     gm2 = np.einsum("ij,ij->j", vec, M @ vec)
     return Modes(
         frequencies_hz=freqs,

@@ -102,3 +102,11 @@ def test_cli_modes_matrices_and_errors(capsys, tmp_path):
     assert main(["modes", str(bad)]) == 2
     err = capsys.readouterr().err
     assert "CQUAD8 x1" in err and len(err.strip().splitlines()) == 1
+
+
+def test_indefinite_stiffness_is_an_error_not_a_frequency():
+    K, M, _, _ = _chain(20, free=False)
+    K = K.tolil()
+    K[3, 3] = -5.0e6  # makes K indefinite
+    with pytest.raises(femodel.ModelError, match="negative eigenvalues"):
+        femodel.normal_modes(K.tocsr(), M, 4)

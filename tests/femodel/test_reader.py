@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 import femodel
 
@@ -59,3 +60,23 @@ def test_cord1r_large_field_and_conm2_cid_minus_one(tmp_path):
     mp = femodel.mass_properties(femodel.assemble(m))
     np.testing.assert_allclose(mp.cg, [1.0, 2.0, 4.0], atol=1e-12)
     assert mp.mass == 5.0
+
+
+def test_unit_systems_convert_mass_and_length(tmp_path):
+    """A 1-unit CONM2 at x=1: 1 t = 1000 kg at 1 mm; 1 lbf s^2/in = 175.127 kg at 1 in."""
+    p = tmp_path / "u.bdf"
+    p.write_text("BEGIN BULK\nGRID,1,,1.,0.,0.\nCONM2,1,1,,1.0\nENDDATA\n")
+    for units, mass, x in (("mm-t-s", 1000.0, 1e-3), ("in-lbf-s", 4.4482216152605 / 0.0254, 0.0254), ("si", 1.0, 1.0)):
+        mp = femodel.mass_properties(femodel.assemble(femodel.read_bdf(p, units=units)))
+        assert mp.mass == pytest.approx(mass, rel=1e-12)
+        assert mp.cg[0] == pytest.approx(x, rel=1e-12)
+
+
+def test_wtmass_scales_all_mass(tmp_path):
+    p = tmp_path / "w.bdf"
+    p.write_text(
+        "BEGIN BULK\nPARAM,WTMASS,0.5\nMAT1,1,2.e11,,0.3,8000.\nPROD,1,1,1.e-4\n"
+        "GRID,1,,0.,0.,0.\nGRID,2,,2.,0.,0.\nCROD,1,1,1,2\nCONM2,2,2,,3.0\nENDDATA\n"
+    )
+    mp = femodel.mass_properties(femodel.assemble(femodel.read_bdf(p)))
+    assert mp.mass == pytest.approx(0.5 * (8000.0 * 1e-4 * 2.0 + 3.0), rel=1e-12)
