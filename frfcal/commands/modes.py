@@ -24,6 +24,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--stiffness", help="matrix name of K in --matrices (default KAAX for DMIG/OP2, KAA for OP4)")
     parser.add_argument("--mass", help="matrix name of M in --matrices (default MAAX for DMIG/OP2, MAA for OP4)")
+    parser.add_argument(
+        "--clamp-grids",
+        action="store_true",
+        help="with --matrices: clamp every grid DOF and keep scalar points "
+        "(the fixed-interface problem of Craig-Bampton matrices)",
+    )
     parser.add_argument("--shift-hz", type=float, default=None, help="Lanczos shift in Hz (negative: below zero; default -1)")
     parser.add_argument("--solver", choices=["auto", "cholmod", "superlu", "dense"], default="auto", help="factorization")
     parser.add_argument("--threads", type=int, default=None, help="BLAS/OpenMP thread limit (default: cores, at most 4)")
@@ -37,6 +43,8 @@ def run(args) -> int:
     import femodel
     from femodel._modes import default_threads
 
+    if args.clamp_grids and not args.matrices:
+        raise ValueError("--clamp-grids applies to --matrices only")
     if (args.model is None) == (args.matrices is None):
         raise ValueError("give exactly one of MODEL.bdf or --matrices FILE")
     if args.n < 1:
@@ -46,6 +54,13 @@ def run(args) -> int:
     info: dict = {}
     if args.matrices:
         mats = femodel.read_matrices(args.matrices, stiffness=args.stiffness, mass=args.mass)
+        if args.clamp_grids:
+            import numpy as np
+
+            grids = np.unique(mats.dofs.grid[mats.dofs.component > 0])
+            if grids.size == 0:
+                raise ValueError(f"{args.matrices}: --clamp-grids: the DOF map has no grid DOF (only scalar points)")
+            mats = mats.without(grids)
         t1 = time.perf_counter()
         K, M, dofs = mats.K, mats.M, mats.dofs
         info.update(source=mats.source, units="as written by Nastran", n_massless=len(mats.massless))

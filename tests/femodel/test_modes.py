@@ -110,3 +110,14 @@ def test_indefinite_stiffness_is_an_error_not_a_frequency():
     K[3, 3] = -5.0e6  # makes K indefinite
     with pytest.raises(femodel.ModelError, match="negative eigenvalues"):
         femodel.normal_modes(K.tocsr(), M, 4)
+
+
+def test_cli_modes_op4_clamped(capsys):
+    from frfcal.cli import main
+    from tests.conftest import reference_path
+
+    op4 = reference_path("nastran", "op4_craig_bampton_n11", "se_test_n11.op4")
+    assert main(["modes", "--matrices", str(op4), "--clamp-grids", "--n", "3", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    np.testing.assert_allclose(out["frequencies_hz"], [365.26, 370.233, 381.422], rtol=2e-5)
+    assert out["n_dof"] == 39
