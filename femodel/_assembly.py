@@ -408,6 +408,7 @@ def _add_bars(model, col, cd_axes, wt):
             model.xyz[nodes[:, 0]], model.xyz[nodes[:, 1]], tab["v"], tab["wa"], tab["wb"],
             prop["A"][pr], prop["I1"][pr], prop["I2"][pr], prop["J"][pr], E, G, prop["k1"][pr], prop["k2"][pr],
             coupled=model.coupmass, torsion_inertia=(card == "CBEAM"), ids=tab.ids, what=card,
+            pins=tab.fields.get("pins"),
         )
         pat = BlockPattern(nodes, model.n_grids)
         kE = _to_cd(out["stiffness_E"], nodes, cd_axes, 6)

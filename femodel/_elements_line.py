@@ -165,7 +165,41 @@ def beam_local_mass(length, mu, coupled: bool, torsion_inertia=None):
     return m
 
 
-def beam_matrices(x_a, x_b, v, wa, wb, A, I1, I2, J, E, G, k1, k2, *, coupled, torsion_inertia, ids=None, what="CBAR"):
+def release_pins(k: np.ndarray, pins: np.ndarray) -> np.ndarray:
+    """Statically condense released end DOF (pin flags) out of local 12x12 matrices.
+
+    Parameters
+    ----------
+    k : (n, 12, 12)
+        Local stiffness (element axes, after offsets).
+    pins : (n, 12) bool
+        Released local DOF (PA digits for 0-5, PB digits for 6-11).
+
+    Returns
+    -------
+    (n, 12, 12) with the released DOF carrying no stiffness:
+    k - k[:, r] k[r, r]^+ k[r, :] (pseudo-inverse: a fully released block,
+    e.g. torsion at both ends, drops out).
+    """
+    out = k.copy()
+    if not np.any(pins):
+        return out
+    codes, inv = np.unique(pins, axis=0, return_inverse=True)
+    inv = np.asarray(inv).ravel()
+    for ci, code in enumerate(codes):
+        r = np.flatnonzero(code)
+        if r.size == 0:
+            continue
+        sel = inv == ci
+        kk = k[sel]
+        krr = kk[:, r][:, :, r]
+        kr_ = kk[:, r, :]
+        out[sel] = kk - np.swapaxes(kr_, 1, 2) @ np.linalg.pinv(krr, hermitian=True) @ kr_
+    return out
+
+
+def beam_matrices(x_a, x_b, v, wa, wb, A, I1, I2, J, E, G, k1, k2, *, coupled, torsion_inertia, ids=None, what="CBAR",
+                  pins=None):
     """CBAR/CBEAM element matrices in basic coordinates.
 
     Parameters
@@ -180,6 +214,9 @@ def beam_matrices(x_a, x_b, v, wa, wb, A, I1, I2, J, E, G, k1, k2, *, coupled, t
         Consistent (True) or lumped (False) mass.
     torsion_inertia : bool
         Add rho J torsional inertia (CBEAM) or not (CBAR).
+    pins : (n, 12) bool, optional
+        Pin flags (released local end DOF), condensed out of the stiffness;
+        the mass is left as is.
 
     Returns
     -------
@@ -198,6 +235,11 @@ def beam_matrices(x_a, x_b, v, wa, wb, A, I1, I2, J, E, G, k1, k2, *, coupled, t
     phi1 = np.nan_to_num(phi1)
     phi2 = np.nan_to_num(phi2)
     kE, kG = beam_local_stiffness(length, A, I1, I2, J, phi1, phi2)
+    if pins is not None:
+        # axial, torsion and the two bending planes are uncoupled blocks of the
+        # local matrix, so condensing the E and G parts separately is exact
+        kE = release_pins(kE, pins)
+        kG = release_pins(kG, pins)
     T = beam_transformation(axes, wa, wb)
     ones = np.ones_like(length)
     m_unit = beam_local_mass(length, ones, coupled)

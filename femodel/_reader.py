@@ -395,13 +395,16 @@ def _convert(bdf, path: Path, us: UnitSystem, ignored: dict) -> FEModel:
         wa = np.zeros((n, 3))
         wb = np.zeros((n, 3))
         pid = np.zeros(n, np.int64)
+        pins = np.zeros((n, 2, 6), bool)
         for i, (eid, e) in enumerate(rows):
             ga, gb = int(e.ga), int(e.gb)
             need_grids(card, eid, (ga, gb, e.g0))
             nodes[i] = ga, gb
             pid[i] = int(e.pid)
-            if e.pa not in (None, 0, "") or e.pb not in (None, 0, ""):
-                raise ModelError(f"{where}: {card} {eid}: pin flags PA/PB are not supported")
+            try:
+                pins[i] = [_comp_mask(e.pa), _comp_mask(e.pb)]
+            except ValueError:
+                raise ModelError(f"{where}: {card} {eid}: bad pin flags PA={e.pa!r} PB={e.pb!r}") from None
             offt = (getattr(e, "offt", None) or "GGG") if card == "CBAR" else (getattr(e, "offt", None) or "GGG")
             if not isinstance(offt, str):
                 offt = "GGG"
@@ -416,7 +419,11 @@ def _convert(bdf, path: Path, us: UnitSystem, ignored: dict) -> FEModel:
             w_b = np.asarray(e.wb if e.wb is not None else np.zeros(3), float) * L
             wa[i] = w_a if offt[1] == "B" else cd_rot(ga) @ w_a
             wb[i] = w_b if offt[2] == "B" else cd_rot(gb) @ w_b
-        elements[card] = Table(card, np.array([r[0] for r in rows], np.int64), {"pid": pid, "nodes": nodes, "v": v, "wa": wa, "wb": wb})
+        elements[card] = Table(
+            card,
+            np.array([r[0] for r in rows], np.int64),
+            {"pid": pid, "nodes": nodes, "v": v, "wa": wa, "wb": wb, "pins": pins.reshape(n, 12)},
+        )
 
     if "CROD" in by_type:
         rows = by_type["CROD"]

@@ -97,3 +97,28 @@ def test_cbush_stiffness_in_its_cid_axes(tmp_path):
     K = asm.stiffness_g().toarray()[:3, :3]
     e = np.array([1.0, 1.0, 0.0]) / np.sqrt(2)
     np.testing.assert_allclose(K, 1000.0 * np.outer(e, e), atol=1e-9)
+
+
+def test_pin_flags_release_end_moments(tmp_path):
+    """Two collinear bars clamped at both far ends, joined at grid 2.
+
+    With PA=456 on bar 2 (rotations released at grid 2) the transverse
+    stiffness at grid 2 is 3EI/L^3 (cantilever) + 3EI/L^3 (clamped-pinned
+    member) = 6EI/L^3; without pins it is 24EI/L^3 (fixed-fixed, 2L span).
+    """
+    L, I = 1.0, 2e-7
+
+    def stiffness(pa):
+        p = tmp_path / f"p{pa}.bdf"
+        p.write_text(
+            f"BEGIN BULK\nMAT1,1,{E!r},,0.3,7800.\nPBAR,1,1,1.e-3,{I!r},{I!r},4.e-7\n"
+            "GRID,1,,0.,0.,0.\nGRID,2,,1.,0.,0.\nGRID,3,,2.,0.,0.\n"
+            f"CBAR,1,1,1,2,0.,0.,1.\nCBAR,2,1,2,3,0.,0.,1.,,+P\n+P,{pa}\nSPC1,1,123456,1,3\nENDDATA\n"
+        )
+        asm = femodel.assemble(femodel.read_bdf(p))
+        C = femodel.sensor_matrix(asm, [2], [[0.0, 1.0, 0.0]])
+        u = spla.spsolve(asm.stiffness().tocsc(), np.asarray(C.toarray()).ravel())
+        return 1.0 / float((C @ u)[0])
+
+    assert stiffness(456) == pytest.approx(6 * E * I / L**3, rel=1e-10)
+    assert stiffness("") == pytest.approx(24 * E * I / L**3, rel=1e-10)
