@@ -538,6 +538,24 @@ def _grouped_terms(assembly, params: ParameterSet, kind: str, source, extra=(), 
     return mats, a, b, ratio
 
 
+def _check_element_thickness(params: ParameterSet, fe, source) -> None:
+    """A PSHELL T parameter cannot move elements that give their own T1..T4."""
+    where = f"{source}: " if source else ""
+    for prm in params.parameters:
+        if prm.card != "PSHELL":
+            continue
+        for card in ("CQUAD4", "CTRIA3"):
+            tab = fe.elements.get(card)
+            if tab is None or len(tab) == 0 or "t" not in tab.fields:
+                continue
+            own = np.isin(tab["pid"], prm.ids) & np.any(~np.isnan(tab["t"]), axis=1)
+            if np.any(own):
+                raise ParameterError(
+                    f"{where}parameter {prm.name!r}: {card} {tab.ids[own][:5].tolist()} give their own corner "
+                    f"thicknesses T1..T4, which PSHELL {list(prm.ids)} T does not scale"
+                )
+
+
 def parametric_model(params, bdf=None, *, units: str | None = None, allow_unsupported: bool = False,
                      assembly=None) -> ParametricModel:
     """Build the :class:`ParametricModel` of a deck and a parameter set.
@@ -596,6 +614,7 @@ def parametric_model(params, bdf=None, *, units: str | None = None, allow_unsupp
                 "no element uses it"
             )
 
+    _check_element_thickness(params, fe, source)
     corrections, series, series_error = _shell_shear_series(assembly, params, _key_index(params))
     kmats, ka, kb, kr = _grouped_terms(assembly, params, "K", source, corrections, series)
     mmats, ma, _, _ = _grouped_terms(assembly, params, "M", source)

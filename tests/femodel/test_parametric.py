@@ -357,3 +357,11 @@ def test_series_coefficients_and_jacobian():
     np.testing.assert_allclose(S.coefficient_jacobian(p), fd, rtol=1e-7, atol=1e-9)
     with pytest.raises(ValueError, match="series_ratio"):
         femodel.SeriesAffineMatrix(mats, a, b, -r - 1)
+
+
+def test_corner_thickness_elements_are_refused(tmp_path):
+    deck = SPRINGS_DECK.replace("CQUAD4,1,5,1,2,3,4", "CQUAD4,1,5,1,2,3,4\n,,,2.5,2.5,2.6,2.6") + SPRINGS_DECK_END
+    (tmp_path / "springs.bdf").write_text(deck)
+    (tmp_path / "p.toml").write_text(SPRINGS_PARAMS)
+    with pytest.raises(ParameterError, match=r"parameter 't': CQUAD4 \[1\] give their own corner thicknesses"):
+        parametric_model(tmp_path / "p.toml")
