@@ -566,10 +566,19 @@ def _add_shells(model, col, cd_axes, wt):
     except ImportError as exc:  # pragma: no cover - the kernel module ships with femodel
         raise ModelError(f"shell elements present but the shell kernels are unavailable: {exc}") from None
     prop = model.properties.get("PSHELL")
-    if prop is None:
-        raise ModelError(f"{'/'.join(cards)} elements but no PSHELL defined")
+    pcomp = model.properties.get("PCOMP")
     for card in cards:
         tab = model.elements[card]
+        if pcomp is not None and len(pcomp):
+            lam = np.isin(tab["pid"], pcomp.ids)
+            if np.any(lam):
+                sub = Table(tab.card, tab.ids[lam], {key: v[lam] for key, v in tab.fields.items()})
+                _add_pcomp(model, col, cd_axes, wt, card, sub, pcomp, shell_stiffness, shell_mass)
+                if np.all(lam):
+                    continue
+                tab = Table(tab.card, tab.ids[~lam], {key: v[~lam] for key, v in tab.fields.items()})
+        if prop is None:
+            raise ModelError(f"{card} elements reference PSHELL {sorted(set(tab['pid'].tolist()))[:5]} but no PSHELL is defined")
         perm = np.argsort(tab["pid"], kind="stable")
         if np.any(perm != np.arange(len(tab))):
             # group elements by property so that each group is a contiguous slice (views, no copies)
@@ -641,6 +650,45 @@ def _add_shells(model, col, cd_axes, wt):
                     col.add("K", [(("MAT1", int(m2[i0]), "E"), 1), (T, 1)], lab + " transverse shear (rigid penalty)", k["shear"][sel], pat.subset(sel), symmetric=True)
             if np.any(nsm[sel] != 0):
                 col.add("M", [], lab + " NSM", mu_unit[sel], pat.subset(sel), wt * nsm[sel])
+
+
+def _rotate_laminate(dm, dmb, db, ds, theta_deg):
+    """Constitutive matrices from material axes (at THETA) to the element axes."""
+    th = np.radians(theta_deg)
+    c, s = np.cos(th), np.sin(th)
+    te = np.zeros((th.size, 3, 3))
+    te[:, 0] = np.stack([c * c, s * s, c * s], axis=1)
+    te[:, 1] = np.stack([s * s, c * c, -c * s], axis=1)
+    te[:, 2] = np.stack([-2 * c * s, 2 * c * s, c * c - s * s], axis=1)
+    r = np.zeros((th.size, 2, 2))
+    r[:, 0] = np.stack([c, s], axis=1)
+    r[:, 1] = np.stack([-s, c], axis=1)
+    tt = np.swapaxes(te, 1, 2)
+    return tt @ dm @ te, tt @ dmb @ te, tt @ db @ te, np.swapaxes(r, 1, 2) @ ds @ r
+
+
+def _add_pcomp(model, col, cd_axes, wt, card, tab, pcomp, shell_stiffness, shell_mass):
+    """CQUAD4/CTRIA3 on PCOMP laminates: constant terms (no card-field monomial describes a laminate)."""
+    if np.any(tab["mcid"] >= 0):
+        bad = tab.ids[tab["mcid"] >= 0][:5].tolist()
+        raise ModelError(f"{card} {bad}: MCID material axes with PCOMP are not supported (use THETA)")
+    if np.any(tab["zoffs"] != 0):
+        raise ModelError(f"{card} {tab.ids[tab['zoffs'] != 0][:5].tolist()}: ZOFFS offsets are not supported")
+    r = pcomp.rows(tab["pid"])
+    dm, dmb, db, ds = _rotate_laminate(pcomp["dm"][r], pcomp["dmb"][r], pcomp["db"][r], pcomp["ds"][r], tab["theta"])
+    # shear-rigid plies (MAT8 G1Z/G2Z blank): a stiff penalty, as for PSHELL without MID3
+    pen = 1e3 * dm[:, 2, 2]
+    ds = np.where(np.isfinite(ds), ds, pen[:, None, None] * np.eye(2)[None])
+    nodes = model.grid_index(tab["nodes"].ravel(), what=f"{card} grid").reshape(len(tab), -1)
+    xyz = model.xyz[nodes]
+    coupled_b = bool(np.any(np.abs(dmb) > 0))
+    k = shell_stiffness(xyz, dm, db, ds, model.k6rot, ids=tab.ids, dmb=dmb if coupled_b else None)
+    m = shell_mass(xyz, pcomp["mu"][r], model.coupmass, ids=tab.ids)
+    pat = BlockPattern(nodes, model.n_grids)
+    pids = ",".join(str(int(p)) for p in np.unique(tab["pid"])[:5])
+    for key, ke in k.items():
+        col.add("K", [], f"{card} PCOMP {pids} {key}", _to_cd(ke, nodes, cd_axes, 6), pat, symmetric=True)
+    col.add("M", [], f"{card} PCOMP {pids} mass", _to_cd(m, nodes, cd_axes, 6), pat, [wt] * len(tab))
 
 
 def _iso_c(E, nu):

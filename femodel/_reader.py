@@ -21,7 +21,7 @@ SUPPORTED_CARDS = frozenset(
     """GRID GRDSET CORD2R CORD2C CORD2S CORD1R CORD1C CORD1S
     CQUAD4 CTRIA3 PSHELL CBAR CBEAM PBAR PBARL PBEAM PBEAML CROD CONROD PROD
     CHEXA CPENTA CTETRA CPYRAM PSOLID CONM2 CELAS1 CELAS2 PELAS CBUSH PBUSH
-    RBE2 RBE3 SPC SPC1 SPCADD MAT1 PARAM""".split()
+    RBE2 RBE3 SPC SPC1 SPCADD MAT1 MAT8 PCOMP PARAM""".split()
 )
 
 #: Cards with no effect on K and M (solution control, loads, output, thermal
@@ -288,6 +288,25 @@ def _convert(bdf, path: Path, us: UnitSystem, ignored: dict) -> FEModel:
         {"E": np.array(E), "G": np.array(G), "NU": np.array(NU), "RHO": np.array(RHO), "g_follows_e": np.array(gfe, bool)},
     )
 
+    rows8 = [(mid, m) for mid, m in sorted(bdf.materials.items()) if m.type == "MAT8"]
+    if rows8:
+        def g8(v):
+            return np.inf if v in (None, 0, 0.0) else float(v) * us.stress_pa
+
+        mats["MAT8"] = Table(
+            "MAT8",
+            np.array([r[0] for r in rows8], np.int64),
+            {
+                "E1": np.array([float(m.e11) for _, m in rows8]) * us.stress_pa,
+                "E2": np.array([float(m.e22) for _, m in rows8]) * us.stress_pa,
+                "NU12": np.array([float(m.nu12 or 0.0) for _, m in rows8]),
+                "G12": np.array([float(m.g12 or 0.0) for _, m in rows8]) * us.stress_pa,
+                "G1Z": np.array([g8(m.g1z) for _, m in rows8]),
+                "G2Z": np.array([g8(m.g2z) for _, m in rows8]),
+                "RHO": np.array([float(m.rho or 0.0) for _, m in rows8]) * us.density_kg_m3,
+            },
+        )
+
     # ---------------- properties
     props = {}
     props_by_type: dict[str, list] = {}
@@ -328,6 +347,8 @@ def _convert(bdf, path: Path, us: UnitSystem, ignored: dict) -> FEModel:
                 "z2": np.array([_f(r[1].z2) for r in rows]) * L,
             },
         )
+    if "PCOMP" in props_by_type:
+        props["PCOMP"] = _pcomp_table(props_by_type["PCOMP"], mats, us, where)
     if "PSOLID" in props_by_type:
         rows = props_by_type["PSOLID"]
         props["PSOLID"] = Table(
@@ -533,6 +554,8 @@ def _convert(bdf, path: Path, us: UnitSystem, ignored: dict) -> FEModel:
         nodes = np.zeros((len(rows), nn), np.int64)
         tn = np.full((len(rows), nn), np.nan)
         zoffs = np.zeros(len(rows))
+        theta = np.zeros(len(rows))
+        mcid = np.full(len(rows), -1, np.int64)
         for i, (eid, e) in enumerate(rows):
             need_grids(card, eid, e.nodes)
             if any(x is None for x in e.nodes):
@@ -543,10 +566,22 @@ def _convert(bdf, path: Path, us: UnitSystem, ignored: dict) -> FEModel:
             tt = [getattr(e, f"T{j + 1}", None) for j in range(nn)]
             tn[i] = [np.nan if x is None or x == -1.0 else float(x) * L for x in tt]
             zoffs[i] = _f(getattr(e, "zoffset", 0.0), 0.0) * L
+            tm = getattr(e, "theta_mcid", 0.0)
+            if isinstance(tm, (int, np.integer)) and not isinstance(tm, bool):
+                mcid[i] = int(tm)
+            else:
+                theta[i] = _f(tm, 0.0)
         elements[card] = Table(
             card,
             np.array([r[0] for r in rows], np.int64),
-            {"pid": np.array([int(e.pid) for _, e in rows], np.int64), "nodes": nodes, "t": tn, "zoffs": zoffs},
+            {
+                "pid": np.array([int(e.pid) for _, e in rows], np.int64),
+                "nodes": nodes,
+                "t": tn,
+                "zoffs": zoffs,
+                "theta": theta,
+                "mcid": mcid,
+            },
         )
 
     for card in ("CTETRA", "CPYRAM", "CPENTA", "CHEXA"):
@@ -698,6 +733,60 @@ def _convert(bdf, path: Path, us: UnitSystem, ignored: dict) -> FEModel:
         coupmass=coupmass,
         k6rot=k6rot,
         ignored_cards=dict(ignored),
+    )
+
+
+def _pcomp_table(rows, mats, us: UnitSystem, where: str) -> Table:
+    """PCOMP laminates resolved to shell constitutive matrices (classical lamination), SI.
+
+    Fields: dm, dmb, db (n, 3, 3) in the material axes of THETA = 0, ds (n, 2, 2)
+    (``inf`` where every ply is shear-rigid), mu (n,) kg/m^2, t (n,) m.
+    """
+    from femodel._elements_shell import laminate_abd, orthotropic_q
+
+    L = us.length_m
+    m1 = mats.get("MAT1")
+    m8 = mats.get("MAT8")
+    n = len(rows)
+    dm, dmb, db = (np.zeros((n, 3, 3)) for _ in range(3))
+    ds = np.zeros((n, 2, 2))
+    mu = np.zeros(n)
+    tt = np.zeros(n)
+    for i, (pid, p) in enumerate(rows):
+        try:
+            t = np.array(p.get_thicknesses(), float) * L
+            th = np.array(p.get_thetas(), float)
+            mids = [int(x) for x in p.get_material_ids()]
+        except (AttributeError, TypeError, ValueError, IndexError) as exc:
+            raise ModelError(f"{where}: PCOMP {pid}: cannot read the plies ({exc})") from None
+        q = np.zeros((t.size, 3, 3))
+        g = np.zeros((t.size, 2))
+        rho = np.zeros(t.size)
+        for k, mid in enumerate(mids):
+            if m8 is not None and mid in set(m8.ids.tolist()):
+                r = m8.rows([mid])[0]
+                q[k] = orthotropic_q(m8["E1"][r], m8["E2"][r], m8["NU12"][r], m8["G12"][r])
+                g[k] = m8["G1Z"][r], m8["G2Z"][r]
+                rho[k] = m8["RHO"][r]
+            elif m1 is not None and mid in set(m1.ids.tolist()):
+                r = m1.rows([mid])[0]
+                e, nu = m1["E"][r], m1["NU"][r]
+                q[k] = e / (1 - nu**2) * np.array([[1, nu, 0], [nu, 1, 0], [0, 0, (1 - nu) / 2]])
+                g[k] = m1["G"][r], m1["G"][r]
+                rho[k] = m1["RHO"][r]
+            else:
+                raise ModelError(f"{where}: PCOMP {pid} ply {k + 1} references undefined MAT1/MAT8 {mid}")
+        z0 = None if p.z0 is None else float(p.z0) * L
+        try:
+            dm[i], dmb[i], db[i], ds[i] = laminate_abd(t, th, q, g, z0)
+        except ValueError as exc:
+            raise ModelError(f"{where}: PCOMP {pid}: {exc}") from None
+        mu[i] = float(np.sum(rho * t)) + _f(p.nsm, 0.0) * us.mass_kg / L**2
+        tt[i] = t.sum()
+    return Table(
+        "PCOMP",
+        np.array([r[0] for r in rows], np.int64),
+        {"dm": dm, "dmb": dmb, "db": db, "ds": ds, "mu": mu, "t": tt},
     )
 
 
