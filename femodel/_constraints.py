@@ -140,6 +140,16 @@ def rigid_rows(model: FEModel, cd_axes=None):
         first = claim(6 * ref + rc, who)
         emit(first, Y[rc], 6 * grids + comps)
 
+    for sid, terms in getattr(model, "mpc", ()):
+        who = f"MPC {sid}"
+        g = model.grid_index(np.array([t[0] for t in terms], np.int64), what=f"{who} grid")
+        dofs = 6 * g + np.array([t[1] - 1 for t in terms], np.int64)
+        a = np.array([t[2] for t in terms], float)
+        first = claim(dofs[:1], who)
+        # sum a_i u_i = 0 with the first DOF dependent: u_1 = -sum_{i>1} (a_i / a_1) u_i
+        if dofs.size > 1:
+            emit(first, (-a[1:] / a[0])[None, :], dofs[1:])
+
     dep = np.concatenate(dep_parts) if dep_parts else np.zeros(0, np.int64)
     if ri:
         R = sp.csr_matrix((np.concatenate(rv), (np.concatenate(ri), np.concatenate(rj))), shape=(dep.size, n_g))

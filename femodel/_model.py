@@ -181,6 +181,9 @@ class FEModel:
         "MAT1" with fields E, G, NU, RHO (SI) and g_follows_e (bool).
     rbe2, rbe3 : tuple
         Rigid elements.
+    mpc : tuple of (sid, ((grid, component, coefficient), ...))
+        Multipoint constraints of the case-control MPC set; the first term's
+        DOF is the dependent one (as Nastran's m-set).
     spc_grid, spc_component : (k,) int64 / int8
         Single-point constraints of the active set (components in CD).
     wtmass : float
@@ -206,6 +209,7 @@ class FEModel:
     materials: Mapping[str, Table]
     rbe2: tuple = ()
     rbe3: tuple = ()
+    mpc: tuple = ()
     spc_grid: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     spc_component: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int8))
     wtmass: float = 1.0

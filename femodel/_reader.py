@@ -21,7 +21,7 @@ SUPPORTED_CARDS = frozenset(
     """GRID GRDSET CORD2R CORD2C CORD2S CORD1R CORD1C CORD1S
     CQUAD4 CTRIA3 PSHELL CBAR CBEAM PBAR PBARL PBEAM PBEAML CROD CONROD PROD
     CHEXA CPENTA CTETRA CPYRAM PSOLID CONM2 CELAS1 CELAS2 PELAS CBUSH PBUSH
-    RBE2 RBE3 SPC SPC1 SPCADD MAT1 MAT8 PCOMP PARAM""".split()
+    RBE2 RBE3 SPC SPC1 SPCADD MPC MPCADD MAT1 MAT8 PCOMP PARAM""".split()
 )
 
 #: Cards with no effect on K and M (solution control, loads, output, thermal
@@ -702,6 +702,42 @@ def _convert(bdf, path: Path, us: UnitSystem, ignored: dict) -> FEModel:
             else:
                 raise ModelError(f"{where}: constraint {spc.type} {sid} is not supported")
 
+    # ---------------- MPCs (only the case-control MPC set, as Nastran)
+    mpc_id = None
+    if cc is not None:
+        for sc_id in sorted(cc.subcases):
+            val = cc.subcases[sc_id].params.get("MPC") if hasattr(cc.subcases[sc_id], "params") else None
+            if val is not None:
+                try:
+                    mpc_id = int(val[0])
+                except (TypeError, ValueError):
+                    raise ModelError(f"{where}: case control MPC = {val[0]!r} is not a set id") from None
+                if sc_id != 0:
+                    break
+    mpcs = []
+    if mpc_id is not None:
+        adds = getattr(bdf, "mpcadds", {}) or {}
+
+        def expand(sid):
+            if sid in adds:
+                return [x for card in adds[sid] for s_ in card.sets for x in expand(int(s_))]
+            return [sid]
+
+        for sid in expand(mpc_id):
+            for card in bdf.mpcs.get(sid, []):
+                if card.type != "MPC":
+                    raise ModelError(f"{where}: {card.type} {sid} is not supported")
+                terms = []
+                for g, c, a in zip(card.nodes, card.components, card.coefficients):
+                    need_grids("MPC", sid, [g])
+                    cc_ = _comps(c)
+                    if len(cc_) != 1:
+                        raise ModelError(f"{where}: MPC {sid}: component {c!r} of GRID {g} must be one of 1..6")
+                    terms.append((int(g), int(cc_), float(a)))
+                if not terms or terms[0][2] == 0.0:
+                    raise ModelError(f"{where}: MPC {sid}: the first (dependent) coefficient must be non-zero")
+                mpcs.append((int(sid), tuple(terms)))
+
     # ---------------- params
     def param(name, default):
         p = bdf.params.get(name)
@@ -727,6 +763,7 @@ def _convert(bdf, path: Path, us: UnitSystem, ignored: dict) -> FEModel:
         materials=mats,
         rbe2=tuple(rbe2),
         rbe3=tuple(rbe3),
+        mpc=tuple(mpcs),
         spc_grid=np.array(sg, np.int64),
         spc_component=np.array(sc_, np.int8),
         wtmass=wtmass,
@@ -819,15 +856,19 @@ def _bar_properties(props_by_type: dict, us: UnitSystem, where: str) -> dict:
                 else:
                     btype = p.beam_type
                     if card == "PBEAML":
-                        if len(p.dim) > 1:
-                            raise ModelError(f"{where}: PBEAML {pid}: tapered sections are not supported")
                         from pyNastran.bdf.cards.properties.bars import PBARL
 
-                        sec = PBARL(pid, p.mid, btype, list(p.dim[0]))
+                        # a tapered PBEAML uses the mean of its stations' section
+                        # properties (an approximation; Nastran integrates along the beam)
+                        secs = [PBARL(pid, p.mid, btype, list(d)) for d in p.dim]
+                        vals = np.array([[_section(x, btype, k) for k in range(5)] for x in secs], float)
+                        A, I1, I2, I12, J = vals.mean(axis=0)
+                        nsm = float(np.mean(p.nsm))
+                        sec = secs[0]
                     else:
                         sec = p
-                    A, I1, I2, I12, J = sec.Area(), sec.I11(), sec.I22(), sec.I12(), sec.J()
-                    nsm = p.nsm if card == "PBARL" else p.nsm[0]
+                        A, I1, I2, I12, J = (_section(sec, btype, k) for k in range(5))
+                        nsm = p.nsm
                     kf = _shear_factor(btype, p.dim if card == "PBARL" else p.dim[0], A)
                     k1 = k2 = kf
             except ModelError:
@@ -859,6 +900,23 @@ def _bar_properties(props_by_type: dict, us: UnitSystem, where: str) -> dict:
     }
 
 
+def _section(sec, btype: str, k: int) -> float:
+    """A, I1, I2, I12, J (k = 0..4) of a PBARL-type section; T2 computed here (pyNastran lacks it)."""
+    if btype == "T2":
+        # DIM1 flange width, DIM2 total height, DIM3 flange thickness, DIM4 web thickness
+        b, h, tf, tw = (float(x) for x in sec.dim[:4])
+        hw = h - tf
+        a_f, a_w = b * tf, tw * hw
+        area = a_f + a_w
+        yf, yw = hw + 0.5 * tf, 0.5 * hw  # centroid heights from the web foot
+        yc = (a_f * yf + a_w * yw) / area
+        i_strong = b * tf**3 / 12 + a_f * (yf - yc) ** 2 + tw * hw**3 / 12 + a_w * (yw - yc) ** 2
+        i_weak = tf * b**3 / 12 + hw * tw**3 / 12
+        j = (b * tf**3 + hw * tw**3) / 3.0
+        return (area, i_strong, i_weak, 0.0, j)[k]
+    return [sec.Area, sec.I11, sec.I22, sec.I12, sec.J][k]()
+
+
 def _shear_factor(btype: str, dim, area: float) -> float:
     if btype in _SHEAR_FACTOR_PBARL:
         return _SHEAR_FACTOR_PBARL[btype]
@@ -866,6 +924,9 @@ def _shear_factor(btype: str, dim, area: float) -> float:
         # web shear area / total area
         w, h, t1, t2 = (float(x) for x in dim[:4])
         return float(2 * t2 * (h - 2 * t1) / area) if area > 0 else np.nan
+    if btype == "T2":
+        b, h, tf, tw = (float(x) for x in dim[:4])
+        return float(tw * (h - tf) / area) if area > 0 else np.nan
     if btype == "I":
         d1, d2, d3, d4, d5, d6 = (float(x) for x in dim[:6])
         return float(d4 * (d1 - d5 - d6) / area) if area > 0 else np.nan

@@ -21,13 +21,13 @@ def test_unsupported_cards_listed_once_with_counts(tmp_path):
     body = (
         "CBAR,1,1,1,2,0.,1.,0.\nGRID,3,,0.,1.,0.\nGRID,4,,1.,1.,0.\nGRID,5,,0.5,0.5,0.\n"
         "CQUAD8,10,7,1,2,4,3\nCQUAD8,11,7,1,2,4,3\nPSHELL,7,1,0.01,1\n"
-        "MPC,5,1,1,1.,2,1,-1.\n"
+        "CDAMP2,5,1.,1,1,2,1\n"
     )
     p = _deck(tmp_path, body)
     with pytest.raises(femodel.ModelError) as exc:
         femodel.read_bdf(p)
     msg = str(exc.value)
-    assert "CQUAD8 x2" in msg and "MPC x1" in msg and str(p) in msg
+    assert "CQUAD8 x2" in msg and "CDAMP2 x1" in msg and str(p) in msg
     assert msg.count("unsupported card types") == 1
     with warnings.catch_warnings(record=True) as w:
         warnings.simplefilter("always")

@@ -80,3 +80,21 @@ def test_wtmass_scales_all_mass(tmp_path):
     )
     mp = femodel.mass_properties(femodel.assemble(femodel.read_bdf(p)))
     assert mp.mass == pytest.approx(0.5 * (8000.0 * 1e-4 * 2.0 + 3.0), rel=1e-12)
+
+
+def test_mpc_of_the_case_control_set_ties_dof(tmp_path):
+    """MPC u(3,T2) - 2 u(2,T2) = 0 (set 5 selected); set 6 is not applied."""
+    p = tmp_path / "mpc.bdf"
+    p.write_text(
+        "SOL 103\nCEND\nMPC = 5\nBEGIN BULK\n" + BULK.replace("SPC1,2,2,3\n", "")
+        + "MPC,5,3,2,1.,2,2,-2.\nMPC,6,3,3,1.,2,3,-1.\nENDDATA\n"
+    )
+    m = femodel.read_bdf(p)
+    assert m.mpc == ((5, ((3, 2, 1.0), (2, 2, -2.0))),)
+    asm = femodel.assemble(m)
+    assert not np.any((asm.aset.grid == 3) & (asm.aset.component == 2))
+    ua = np.zeros(len(asm.aset))
+    ua[asm.aset.index(2, 2)] = 1.5
+    ug = asm.expand(ua)
+    assert ug[asm.gset.index(3, 2)] == pytest.approx(3.0)
+    assert ug[asm.gset.index(3, 3)] == 0.0
