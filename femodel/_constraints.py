@@ -10,13 +10,12 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
 from femodel._dofs import DofMap
 from femodel._elements_line import rigid_offset
 from femodel._model import FEModel, ModelError
 
-#: Relative size below which a diagonal counts as zero for AUTOSPC.
+#: Relative size below which a stiffness diagonal counts as zero for AUTOSPC.
 AUTOSPC_RTOL = 1e-12
 
 
@@ -167,7 +166,7 @@ def constraint_transformation(model: FEModel, gset: DofMap, kg, mg):
     T : csr (n_g, n_a)
     aset : DofMap
     autospc : DofMap
-        DOF removed for having neither stiffness nor mass.
+        DOF removed for having no stiffness (Nastran's AUTOSPC on the diagonal).
     selection : (n_a,) int
         g-set row of each independent DOF (T = P + D, P this selection).
     dep : (k,) int
@@ -193,12 +192,19 @@ def constraint_transformation(model: FEModel, gset: DofMap, kg, mg):
         Rdd = Rc[:, dep]
         Rdi = Rc[:, indep]
         if Rdd.nnz:
-            A = (sp.identity(dep.size, format="csc") - Rdd).tocsc()
-            try:
-                lu = spla.splu(A)
-            except RuntimeError:
-                raise ModelError("rigid elements form a circular chain of dependencies") from None
-            C = sp.csr_matrix(lu.solve(Rdi.toarray())) if dep.size * indep.size < 5e7 else _sparse_solve(A, Rdi)
+            # chains (a dependent DOF referring to another dependent DOF): substitute
+            # u_d = Rdi u_i + Rdd u_d repeatedly; an acyclic chain of depth k
+            # settles after k sweeps, a cycle never does
+            Rdd = Rdd.tocsr()
+            C = Rdi.tocsr()
+            for _ in range(64):
+                nxt = (Rdi + Rdd @ C).tocsr()
+                diff = abs(nxt - C)
+                C = nxt
+                if diff.nnz == 0 or diff.max() == 0.0:
+                    break
+            else:
+                raise ModelError("rigid elements/MPCs form a circular chain of dependencies (or one deeper than 64)")
         else:
             C = Rdi.tocsr()
         C.eliminate_zeros()
@@ -224,11 +230,10 @@ def constraint_transformation(model: FEModel, gset: DofMap, kg, mg):
         raise ModelError(f"SPC on DOF that rigid elements make dependent (grid, component): {lst}")
     keep = ~spc[indep]
 
-    # AUTOSPC: independent DOF with neither stiffness nor mass
+    # AUTOSPC: independent DOF without stiffness
     kept_idx = indep[keep]
     if dep.size == 0:
         kd = kg.diagonal()[kept_idx]
-        md = mg.diagonal()[kept_idx]
     else:
         # diag(T^T A T) with T = P + D (D: rows of dependent DOF only)
         Dk = C[:, np.flatnonzero(keep)].tocsr()
@@ -241,17 +246,16 @@ def constraint_transformation(model: FEModel, gset: DofMap, kg, mg):
             return d0 + 2.0 * cross + quad
 
         kd = tdiag(kg)
-        md = tdiag(mg)
     is_rot = gset.component[kept_idx] >= 4
     empty = np.zeros(kept_idx.size, bool)
     for sel in (is_rot, ~is_rot):
         if not np.any(sel):
             continue
         kmax = np.abs(kd[sel]).max() if np.any(sel) else 0.0
-        mmax = np.abs(md[sel]).max() if np.any(sel) else 0.0
         ktol = AUTOSPC_RTOL * kmax if kmax > 0 else 0.0
-        mtol = AUTOSPC_RTOL * mmax if mmax > 0 else 0.0
-        empty[sel] = (np.abs(kd[sel]) <= ktol) & (np.abs(md[sel]) <= mtol)
+        # as Nastran's AUTOSPC: a DOF without stiffness is constrained (its mass,
+        # if any, would only produce a spurious zero-frequency mode)
+        empty[sel] = np.abs(kd[sel]) <= ktol
     auto = gset.subset(kept_idx[empty])
     final = np.flatnonzero(keep)[~empty]
     T = T[:, final].tocsr()
@@ -259,16 +263,3 @@ def constraint_transformation(model: FEModel, gset: DofMap, kg, mg):
     selection = indep[final]
     ddep = C[:, final].tocsr() if dep.size else sp.csr_matrix((0, final.size))
     return T, aset, auto, selection, dep, ddep
-
-
-def _sparse_solve(A, B):
-    lu = spla.splu(A.tocsc())
-    cols = []
-    B = B.tocsc()
-    for j in range(B.shape[1]):
-        b = B[:, [j]].toarray().ravel()
-        if not b.any():
-            cols.append(sp.csc_matrix((A.shape[0], 1)))
-            continue
-        cols.append(sp.csc_matrix(lu.solve(b)[:, None]))
-    return sp.hstack(cols).tocsr()
