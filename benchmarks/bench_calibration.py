@@ -117,7 +117,7 @@ def main(argv=None) -> int:
     executor = make_executor(workers=args.workers)
     t_cal = time.perf_counter()
     t = time.perf_counter()
-    sur0, _ = build_surrogate(model, np.zeros(pm.n_params), band, enrich=True, enrich_tol=1e-4)
+    sur0, T0 = build_surrogate(model, np.zeros(pm.n_params), band, enrich=True, enrich_tol=1e-4)
     T["basis + reduced terms"] = time.perf_counter() - t
     T["model, basis, gradients"] = T["parametric model"] + T["basis + reduced terms"]
     print(f"surrogate: r = {sur0.size} ({len(sur0.basis_frequencies_hz)} modes, {sur0.n_static} static, "
@@ -130,7 +130,7 @@ def main(argv=None) -> int:
     T["200 LHS evaluations"] = time.perf_counter() - t
     t = time.perf_counter()
     res = calibrate_cycles(model, data, band, pm.lower, pm.upper, zeta0, args.starts, 0, executor,
-                           surrogate=sur0, continuation=cont, max_cycles=3, tol=1e-3,
+                           surrogate=sur0, basis=T0, continuation=cont, max_cycles=3, tol=1e-3,
                            log=lambda m: print("  " + m, flush=True))
     T["LM (21 starts)"] = res.cycles[0]["fit_s"]
     T["re-basis cycles"] = sum(c["basis_s"] + c["fit_s"] for c in res.cycles[1:])

@@ -459,6 +459,8 @@ def calibrate_cycles(
     continuation=(),
     enrich: bool = True,
     max_nfev: int = 100,
+    basis=None,
+    refresh: bool = True,
 ) -> CycleResult:
     """Calibrate; re-build the basis at the calibrated point and refine until p stops moving.
 
@@ -466,14 +468,18 @@ def calibrate_cycles(
     given ``surrogate``). Each further cycle recomputes the basis at the
     current p and runs one start from it; cycles stop when
     ``max |dp| < tol`` or after ``max_cycles``. ``continuation`` applies to
-    cycle 1 (see :func:`calibrate`).
+    cycle 1 (see :func:`calibrate`). With ``refresh`` (default) a new basis
+    starts from the previous one (``basis``, the (n, r) basis of ``surrogate``
+    when that is given) by one block inverse iteration instead of a fresh
+    Lanczos solution (see :func:`build_surrogate`).
     """
     from calibration._surrogate import build_surrogate
 
     say = log or (lambda msg: None)
     t0 = time.perf_counter()
+    basis = None
     if surrogate is None:
-        surrogate, _ = build_surrogate(model, np.zeros(model.n_params), band_hz, basis_factor, enrich=enrich)
+        surrogate, basis = build_surrogate(model, np.zeros(model.n_params), band_hz, basis_factor, enrich=enrich)
     t1 = time.perf_counter()
     say(f"cycle 1: basis {surrogate.size} ({len(surrogate.basis_frequencies_hz)} modes), {n_starts + 1} starts")
     cal = calibrate(surrogate, data, lower, upper, zeta0, n_starts, seed, executor, quantity,
@@ -484,7 +490,8 @@ def calibrate_cycles(
     p, sd = cal.p, cal.sd
     for k in range(2, max_cycles + 1):
         ta = time.perf_counter()
-        surrogate, _ = build_surrogate(model, p, band_hz, basis_factor, enrich=enrich)
+        surrogate, basis = build_surrogate(model, p, band_hz, basis_factor, enrich=enrich,
+                                           previous_basis=basis if refresh else None)
         tb = time.perf_counter()
         sub = calibrate(surrogate, data, lower, upper, zeta0, 0, seed, None, quantity, p_start=p, max_nfev=max_nfev)
         tc = time.perf_counter()

@@ -232,7 +232,7 @@ def run_campaign(camp: Campaign, log=print) -> dict:
     outdir.mkdir(parents=True, exist_ok=True)
     lower, upper = pm.lower, pm.upper
     t = time.perf_counter()
-    sur0, _ = build_surrogate(model, np.zeros(pm.n_params), band, c.basis_factor, enrich=c.enrich)
+    sur0, T0 = build_surrogate(model, np.zeros(pm.n_params), band, c.basis_factor, enrich=c.enrich)
     timings["basis_s"] = time.perf_counter() - t
     log(f"surrogate: {sur0.size} ({len(sur0.basis_frequencies_hz)} modes, {sur0.n_static} static, "
         f"{sur0.n_enrich} enrichment) in {timings['basis_s']:.1f} s")
@@ -250,7 +250,8 @@ def run_campaign(camp: Campaign, log=print) -> dict:
                 f"{len(camp.channels.calibrate)} channels, {c.starts + 1} starts")
             cyc = calibrate_cycles(model, data, band, lower, upper, c.zeta0, c.starts, c.seed, executor,
                                    arts[0].quantity, c.max_cycles, c.cycle_tol, c.basis_factor, surrogate=sur0,
-                                   log=log, continuation=cont, enrich=c.enrich, max_nfev=c.max_evaluations)
+                                   log=log, continuation=cont, enrich=c.enrich, max_nfev=c.max_evaluations,
+                                   basis=T0)
             t_cal = time.perf_counter() - t
             log(f"[{label}] SD {cyc.calibration.sd_nominal:.4g} -> {cyc.sd:.4g} ({t_cal:.1f} s)")
             val = None
