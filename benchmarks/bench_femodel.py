@@ -5,7 +5,8 @@ Each case runs in a fresh subprocess so that its peak RSS (ru_maxrss) is its own
     .venv/bin/python benchmarks/bench_femodel.py [--dof 200000] [--modes 30] [--deck PATH --units U]
 
 Default cases: the example subframe at --dof (generated into a temp dir) and,
-when ../shared is present, the femap_exhaust reference deck (27k DOF shells).
+when ../shared is present, the bwb (51k independent DOF) and femap_exhaust
+(27k DOF) reference decks.
 Prints a table and writes benchmarks/results/femodel.json.
 """
 
@@ -83,9 +84,10 @@ def main(argv=None):
 
             ex = example_subframe(tmp, target_dof=args.dof, units="mm-t-s")
             cases.append(run_case(f"example subframe {ex.n_dof} DOF", ex.bdf, "mm-t-s", args.modes, args.solver))
-        ref = REPO.parent / "shared" / "reference" / "nastran" / "femap_exhaust" / "modal_example_from_op2.bdf"
-        if ref.is_file():
-            cases.append(run_case("femap_exhaust (reference)", ref, "in-lbf-s", args.modes, args.solver))
+        nas = REPO.parent / "shared" / "reference" / "nastran"
+        for name, rel in (("bwb (reference)", "bwb/bwb_freq.bdf"), ("femap_exhaust (reference)", "femap_exhaust/modal_example_from_op2.bdf")):
+            if (nas / rel).is_file():
+                cases.append(run_case(name, nas / rel, "in-lbf-s", args.modes, args.solver))
         if args.deck:
             cases.append(run_case(Path(args.deck).name, args.deck, args.units, args.modes, args.solver))
 
