@@ -102,3 +102,9 @@ def test_read_matrices_dispatch_and_missing_name():
     assert d.K.shape == (45, 45)
     with pytest.raises(femodel.ModelError, match="KXX.*KAAX"):
         femodel.read_dmig(path, stiffness="KXX")
+
+
+def test_op2_without_matrices_names_what_it_found():
+    op2 = reference_path("nastran", "beam_modes", "beam_modes_m1.op2")
+    with pytest.raises(femodel.ModelError, match=r"no matrix 'KAAX' in the OP2"):
+        femodel.read_op2_matrices(op2)
