@@ -153,10 +153,11 @@ def test_property_random_problems_match_textbook():
     from hypothesis import given, settings
     from hypothesis import strategies as st
 
-    @settings(max_examples=15, deadline=None)
+    # derandomized: the same 15 cases on every run, so CI cannot flake
+    @settings(max_examples=15, deadline=None, derandomize=True)
     @given(
         seed=st.integers(0, 10_000),
-        n_groups=st.integers(6, 30),
+        n_groups=st.integers(8, 30),  # >= 7 so that n_keep below can reach m = 6 single-axis sensors
         k=st.sampled_from([1, 2, 3]),
         m=st.integers(1, 6),
         keep_extra=st.integers(0, 5),
