@@ -113,6 +113,7 @@ def _live_plot():
 def run(args) -> int:
     import json
     import signal
+    import sys
 
     from acquisition import load_plan, plan_channels, plan_lines, run_plan, summarize_plan
     from acquisition._plan import estimate_duration_s
@@ -141,10 +142,19 @@ def run(args) -> int:
     def _term(signum, frame):  # SIGTERM takes the same safe path as Ctrl-C
         raise KeyboardInterrupt
 
+    from acquisition import AcquisitionAbort, DriverError
+
     old = signal.signal(signal.SIGTERM, _term)
     try:
         results = run_plan(plan, make, args.out, progress=not (args.no_progress or args.json),
                            on_line=_live_plot() if args.plot else None, driver_channels=channels)
+    except (AcquisitionAbort, DriverError, KeyboardInterrupt) as exc:
+        # The controller has already ramped the drive to zero and closed the run
+        # file as "aborted"; say so in one line instead of a traceback.
+        what = "interrupted" if isinstance(exc, KeyboardInterrupt) else f"{type(exc).__name__}: {exc}"
+        print(f"frfcal acquire: aborted ({what}); drive ramped to zero, every completed line is kept in "
+              f"{args.out}; run the same command again to resume", file=sys.stderr)
+        return 3 if not isinstance(exc, KeyboardInterrupt) else 130
     finally:
         signal.signal(signal.SIGTERM, old)
     if args.json:
