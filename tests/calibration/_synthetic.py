@@ -64,11 +64,13 @@ def make_campaign(tmp, units="mm-t-s", target_dof=3000, p_true=None, articles=1,
     rng = np.random.default_rng(seed)
     if p_true is None:
         p_true = np.zeros(pm.n_params)
+    # p_true: (n_p,) for every article, or (n_articles, n_p), one row per article
     grids, dirs = layout(pm)
     f = np.arange(80.0, 520.0, step_hz)
     runs = []
-    for a in range(articles):
-        H = truth_frf(pm, grids, dirs, np.asarray(p_true), f, lambda fh: 0.002 + 0.003 * (fh / 500.0))
+    p_articles = [np.asarray(p_true)] * articles if np.ndim(p_true) == 1 else [np.asarray(x) for x in p_true]
+    for a in range(len(p_articles)):
+        H = truth_frf(pm, grids, dirs, p_articles[a], f, lambda fh: 0.002 + 0.003 * (fh / 500.0))
         if noise:
             H = H * (1 + noise * (rng.standard_normal(H.shape) + 1j * rng.standard_normal(H.shape)) / np.sqrt(2))
         g_run = grids.copy()

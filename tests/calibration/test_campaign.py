@@ -59,6 +59,27 @@ def test_campaign_end_to_end_cli_json(campaign, capsys):
         assert fig.endswith(".png")
 
 
+@pytest.mark.slow
+def test_articles_grouped_and_calibrated_per_group(tmp_path):
+    """Three articles, one with stiffer welds and heavier bushings: two groups, each calibrated."""
+    odd = P_TRUE.copy()
+    odd[16] += 0.3
+    odd[12:16] += 0.3
+    path, _, pm = make_campaign(tmp_path, p_true=np.array([P_TRUE, P_TRUE, odd]), target_dof=1500,
+                                starts=0, realizations=0, extra='figures = false')
+    text = path.read_text().replace("[calibration]", '[calibration]\nensemble = "group"')
+    path.write_text(text)
+    res = run_campaign(load_campaign(path), log=lambda m: None)
+    groups = [m["articles"] for m in res["members"]]
+    assert sorted(groups) == [["SF1", "SF2"], ["SF3"]]
+    D = np.array(res["pairwise_sd"])
+    assert D[0, 1] < 0.1 * D[0, 2]
+    by = {tuple(m["articles"]): m for m in res["members"]}
+    p_odd = np.array([r["p"] for r in by[("SF3",)]["parameters"]])
+    p_main = np.array([r["p"] for r in by[("SF1", "SF2")]["parameters"]])
+    assert p_odd[16] - p_main[16] > 0.15  # the stiffer welds show up in the odd group
+
+
 def _variant(path, tmp_path, **subs):
     text = path.read_text()
     base = path.parent

@@ -36,7 +36,6 @@ def test_same_physics_in_both_unit_systems(both):
     np.testing.assert_allclose(Ha, Hb, rtol=1e-6)
 
 
-@pytest.mark.slow
 def test_same_calibration_in_both_unit_systems(both):
     rng = np.random.default_rng(4)
     p_true = rng.uniform(-0.1, 0.1, 17)
