@@ -254,12 +254,13 @@ def full_modes(K, M, max_hz: float, shift_hz: float, max_modes: int = 600, dense
 def refreshed_modes(K, M, T_old, max_hz: float, shift_hz: float):
     """Modes of (K, M) up to ``max_hz`` from one block inverse iteration on an old basis.
 
-    Returns the same triple as :func:`full_modes`.
+    Returns the triple of :func:`full_modes` and the inverse-iterated basis
+    (n, r) itself (M-orthonormal Ritz vectors), which is reused as enrichment.
     """
     s = (2 * np.pi * shift_hz) ** 2
     n = K.shape[0]
     if n <= 1500:
-        return full_modes(K, M, max_hz, shift_hz)
+        return (*full_modes(K, M, max_hz, shift_hz), None)
     solve = _factor(sp.csc_matrix(K) + s * sp.csc_matrix(M))
     Q = solve(M @ T_old)
     Q = _m_complement(Q, np.zeros((n, 0)), M, 1e-12)
@@ -267,8 +268,9 @@ def refreshed_modes(K, M, T_old, max_hz: float, shift_hz: float):
     Mq = Q.T @ (M @ Q)
     lam, V = sla.eigh(0.5 * (Kq + Kq.T), 0.5 * (Mq + Mq.T))
     keep = lam <= (2 * np.pi * max_hz) ** 2
+    Q = Q @ V
     lam = np.clip(lam[keep], 0.0, None)
-    return np.sqrt(lam) / (2 * np.pi), Q @ V[:, keep], solve
+    return np.sqrt(lam) / (2 * np.pi), Q[:, keep], solve, Q[:, ~keep]
 
 
 def build_surrogate(
@@ -336,10 +338,11 @@ def build_surrogate(
     K0 = model.stiffness(p)
     M0 = model.mass(p)
     t1 = time.perf_counter()
+    carried = None
     if previous_basis is None:
         freqs, Phi, solve = full_modes(K0, M0, basis_factor * high, shift_hz, max_modes=max_modes)
     else:
-        freqs, Phi, solve = refreshed_modes(K0, M0, previous_basis, basis_factor * high, shift_hz)
+        freqs, Phi, solve, carried = refreshed_modes(K0, M0, previous_basis, basis_factor * high, shift_hz)
     t2 = time.perf_counter()
     B = model.inputs.toarray() if sp.issparse(model.inputs) else np.asarray(model.inputs, float)
     C = model.outputs.toarray() if sp.issparse(model.outputs) else np.asarray(model.outputs, float)
@@ -347,7 +350,12 @@ def build_surrogate(
     S = _m_complement(static, Phi, M0, 1e-10)
     n_static = S.shape[1]
     n_enrich = 0
-    if enrich:
+    if enrich and carried is not None:
+        # the inverse-iterated old basis already spans the mode corrections: keep it
+        E = _m_complement(carried, np.hstack([Phi, S]), M0, enrich_tol)
+        n_enrich = E.shape[1]
+        S = np.hstack([S, E])
+    elif enrich:
         sel = np.flatnonzero((freqs <= enrich_factor * high) & (freqs > max(1e-3 * max(low, 1.0), 1e-6 * high)))
         if sel.size:
             lam = (2 * np.pi * freqs[sel]) ** 2
