@@ -194,7 +194,8 @@ class BlockPattern:
         self.indices = np.empty(self.nnz, idx_t)
         self.indices[pos.ravel()] = np.broadcast_to((6 * bcol)[:, None, None] + i[None, None, :], pos.shape).ravel()
         emap = pos[inv.reshape(n, nn, nn)]  # (n, nn, nn, d, d)
-        self.map = np.ascontiguousarray(emap.transpose(0, 1, 3, 2, 4)).ravel()
+        # intp: np.bincount would otherwise convert (copy) the map on every call
+        self.map = np.ascontiguousarray(emap.transpose(0, 1, 3, 2, 4), dtype=np.intp).ravel()
 
     def subset(self, sel) -> "BlockPattern":
         """The pattern of the selected elements (boolean mask or slice), cached."""
@@ -244,6 +245,12 @@ class _Collector:
         key = (kind, tuple(sorted(factors)))
         self.parts.setdefault(key, []).append(m)
         lab = self.labels.setdefault(key, [])
+        if label not in lab:
+            lab.append(label)
+
+    def note(self, kind: str, factors, label: str):
+        """Add a label to the term (kind, factors) without a matrix (its part was summed into another add)."""
+        lab = self.labels.setdefault((kind, tuple(sorted(factors))), [])
         if label not in lab:
             lab.append(label)
 
@@ -562,7 +569,7 @@ def _add_shells(model, col, cd_axes, wt):
     if not cards:
         return
     try:
-        from femodel._elements_shell import shell_mass, shell_stiffness
+        from femodel._elements_shell import _shell_stiffness, shell_mass, shell_stiffness
     except ImportError as exc:  # pragma: no cover - the kernel module ships with femodel
         raise ModelError(f"shell elements present but the shell kernels are unavailable: {exc}") from None
     prop = model.properties.get("PSHELL")
@@ -622,7 +629,8 @@ def _add_shells(model, col, cd_axes, wt):
             # MID3 blank: no transverse shear flexibility; a stiff penalty stands in for it
             _, G2r, _, _, _ = _mat(model, m2[rigid_shear], f"{card} PSHELL MID2")
             ds[rigid_shear] = np.eye(2)[None] * (1e3 * G2r * t[rigid_shear])[:, None, None]
-        k = shell_stiffness(xyz, dm, db, ds, model.k6rot, ids=tab.ids)
+        # membrane and drilling scale alike (E1 t): transformed and scattered as one term
+        k = _shell_stiffness(xyz, dm, db, ds, model.k6rot, ids=tab.ids, merge={"membrane": ("membrane", "drill")})
         mu_unit = shell_mass(xyz, np.ones(n), model.coupmass, ids=tab.ids)
         pat = BlockPattern(nodes, model.n_grids)
         for key in k:
@@ -638,7 +646,7 @@ def _add_shells(model, col, cd_axes, wt):
             if m1[i0] > 0:
                 f = [(("MAT1", int(m1[i0]), "E"), 1), (T, 1)]
                 col.add("K", f, lab + " membrane", k["membrane"][sel], pat.subset(sel), symmetric=True)
-                col.add("K", f, lab + " drilling", k["drill"][sel], pat.subset(sel), symmetric=True)
+                col.note("K", f, lab + " drilling")
                 col.add("M", [(("MAT1", int(m1[i0]), "RHO"), 1), (T, 1)], lab + " mass", mu_unit[sel], pat.subset(sel), wt * rho[sel] * t[sel])
             if m2[i0] > 0:
                 col.add("K", [(("MAT1", int(m2[i0]), "E"), 1), (T, 3)], lab + " bending", k["bending"][sel], pat.subset(sel), symmetric=True)

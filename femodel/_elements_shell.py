@@ -232,6 +232,25 @@ def _cols(nn: int, comps) -> np.ndarray:
 _MEM, _PLATE, _DRILL, _COUP = (0, 1), (2, 3, 4), (0, 1, 5), (0, 1, 2, 3, 4)
 
 
+def _mitc4_tying(xy):
+    """MITC4 covariant shear rows at the tying points, (n, 12) each on the plate DOF (w, theta_x, theta_y)."""
+    cp = _cols(4, _PLATE)
+    # gamma_xi at (0, -1) and (0, +1); gamma_eta at (-1, 0), (+1, 0)
+    tying = {}
+    for key, (xi, eta, a) in {"A": (0.0, -1.0, 0), "C": (0.0, 1.0, 0), "D": (-1.0, 0.0, 1), "B": (1.0, 0.0, 1)}.items():
+        nsh, dn = _quad_derivs(xi, eta)
+        jac, _, _ = _jacobian(dn, xy)
+        tying[key] = _covariant_shear(nsh, dn[a], jac[:, a, :], 4)[:, cp]
+    return tying
+
+
+def _mitc4_bs(tying, inv, xi, eta):
+    """(n, 2, 12) MITC4 assumed transverse shear strains (gxz, gyz) at (xi, eta) on the plate DOF."""
+    g_xi = 0.5 * (1 - eta) * tying["A"] + 0.5 * (1 + eta) * tying["C"]
+    g_eta = 0.5 * (1 - xi) * tying["D"] + 0.5 * (1 + xi) * tying["B"]
+    return np.einsum("nab,nbm->nam", inv, np.stack([g_xi, g_eta], axis=1))
+
+
 def _quad_local(xy, dm, db, ds, kdrill, ids, dmb=None):
     """Local stiffness terms of CQUAD4 as (matrix, column indices) pairs on their own DOF subsets."""
     n = xy.shape[0]
@@ -250,12 +269,7 @@ def _quad_local(xy, dm, db, ds, kdrill, ids, dmb=None):
         kc = np.zeros((n, 20, 20))
         kuac = np.zeros((n, 20, 4))
         kab = np.zeros((n, 4, 20))
-    # MITC4 tying points: gamma_xi at (0, -1) and (0, +1); gamma_eta at (-1, 0), (+1, 0)
-    tying = {}
-    for key, (xi, eta, a) in {"A": (0.0, -1.0, 0), "C": (0.0, 1.0, 0), "D": (-1.0, 0.0, 1), "B": (1.0, 0.0, 1)}.items():
-        nsh, dn = _quad_derivs(xi, eta)
-        jac, _, _ = _jacobian(dn, xy)
-        tying[key] = _covariant_shear(nsh, dn[a], jac[:, a, :], 4)[:, cp]
+    tying = _mitc4_tying(xy)
     for xi, eta in _QUAD_GAUSS:
         nsh, dn = _quad_derivs(xi, eta)
         _, det, inv = _jacobian(dn, xy)
@@ -284,10 +298,7 @@ def _quad_local(xy, dm, db, ds, kdrill, ids, dmb=None):
             kc += np.matmul(np.swapaxes(bmc, 1, 2), cbb)
             kab += np.matmul(np.swapaxes(ba, 1, 2), cbb)
             kuac += np.matmul(np.swapaxes(bmc, 1, 2), dba)
-        g_xi = 0.5 * (1 - eta) * tying["A"] + 0.5 * (1 + eta) * tying["C"]
-        g_eta = 0.5 * (1 - xi) * tying["D"] + 0.5 * (1 + xi) * tying["B"]
-        bs = np.einsum("nab,nbm->nam", inv, np.stack([g_xi, g_eta], axis=1))
-        ks += _btdb(bs, ds, det)
+        ks += _btdb(_mitc4_bs(tying, inv, xi, eta), ds, det)
         bd = _drill_b(nsh, dxy, 4)[:, cd]
         kd += np.einsum("ni,nj->nij", bd, bd * (kdrill * det)[:, None])
     terms = [(kb, cp), (ks, cp), (kd, cd)]
@@ -301,6 +312,25 @@ def _quad_local(xy, dm, db, ds, kdrill, ids, dmb=None):
     half = kc - np.matmul(kuac, xb)
     kcp = half + np.swapaxes(half, 1, 2) - np.matmul(np.swapaxes(kab, 1, 2), xb)
     return [(km, cm)] + terms + [(kcp, cc)]
+
+
+def _tri_shape(r, s):
+    return np.array([1.0 - r - s, r, s])
+
+
+def _mitc3_bs(xy, inv):
+    """(n, 2, 9) MITC3 assumed transverse shear strains at the 3 Gauss points, on the plate DOF."""
+    cp = _cols(3, _PLATE)
+    dn = np.array([[-1.0, 1.0, 0.0], [-1.0, 0.0, 1.0]])
+    jac = np.einsum("ak,nkb->nab", dn, xy)
+
+    def cov(r, s, a):
+        return _covariant_shear(_tri_shape(r, s), dn[a], jac[:, a, :], 3)[:, cp]
+
+    e1 = cov(0.5, 0.0, 0)
+    e2 = cov(0.0, 0.5, 1)
+    c = e2 - e1 - cov(0.5, 0.5, 1) + cov(0.5, 0.5, 0)
+    return [np.einsum("nab,nbm->nam", inv, np.stack([e1 + c * s, e2 - c * r], axis=1)) for r, s in _TRI_GAUSS]
 
 
 def _tri_local(xy, dm, db, ds, kdrill, ids, dmb=None):
@@ -321,24 +351,11 @@ def _tri_local(xy, dm, db, ds, kdrill, ids, dmb=None):
     if dmb is not None:
         half = np.matmul(np.swapaxes(bm[:, :, cc], 1, 2), np.matmul(dmb, bb[:, :, cc])) * area[:, None, None]
         coupling = (half + np.swapaxes(half, 1, 2), cc)
-    jac = np.einsum("ak,nkb->nab", dn, xy)
-
-    def shape(r, s):
-        return np.array([1.0 - r - s, r, s])
-
-    def cov(r, s, a):
-        return _covariant_shear(shape(r, s), dn[a], jac[:, a, :], 3)[:, cp]
-
-    e1 = cov(0.5, 0.0, 0)
-    e2 = cov(0.0, 0.5, 1)
-    c = e2 - e1 - cov(0.5, 0.5, 1) + cov(0.5, 0.5, 0)
     ks = np.zeros((n, 9, 9))
     kd = np.zeros((n, 9, 9))
-    for r, s in _TRI_GAUSS:
-        g = np.stack([e1 + c * s, e2 - c * r], axis=1)
-        bs = np.einsum("nab,nbm->nam", inv, g)
+    for (r, s), bs in zip(_TRI_GAUSS, _mitc3_bs(xy, inv)):
         ks += _btdb(bs, ds, det / 6.0)
-        bd = _drill_b(shape(r, s), dxy, 3)[:, cd]
+        bd = _drill_b(_tri_shape(r, s), dxy, 3)[:, cd]
         kd += np.einsum("ni,nj->nij", bd, bd * (kdrill * det / 6.0)[:, None])
     return [(km, cm), (kb, cp), (ks, cp), (kd, cd), coupling]
 
@@ -391,39 +408,56 @@ def _effective_shear(ds: np.ndarray, db: np.ndarray, lengths: np.ndarray, coeff:
     return out
 
 
-def _to_basic(rot: np.ndarray, h: np.ndarray) -> np.ndarray:
-    """(n, nn, 6, 6) per-grid blocks of the map from basic grid DOF to local DOF of the projected points.
+#: Elements per batch in the element-to-basic transformation: the batched
+#: (batch, 6nn, 6nn) intermediates then stay in cache (about 4x faster than
+#: one pass over all elements at 200k DOF).
+_BATCH = 512
 
-    Local translation of a projected point = R u + h * (n x theta) in the
-    element frame, i.e. u_p = u - h theta_y, v_p = v + h theta_x.
+
+def _congruence(terms, rot: np.ndarray, h: np.ndarray, out: np.ndarray) -> np.ndarray:
+    """T^T K T of compact local terms into basic, written to ``out`` (n, 6nn, 6nn).
+
+    ``terms`` is a list of (k, cols): k (n, c, c) on the element DOF subset
+    ``cols`` (the same local components at every grid, grid-major); they are
+    summed.  The map T from basic grid DOF to local DOF of the projected
+    points is block-diagonal per grid, ``t_i = S_i diag(R, R)``: the rotation
+    R (rows of ``rot``) on translations and rotations, and the rigid warp
+    offset ``S_i`` (u_p = u - h theta_y, v_p = v + h theta_x in the element
+    frame).  So the product is taken in two sparse steps: S^T K S as row and
+    column updates in the local frame, then R^T B R on each 3x3 block
+    (64 small products instead of two dense 24x24 ones).  The result is made
+    exactly symmetric by mirroring the upper triangle.
     """
     n, nn = h.shape
-    t = np.zeros((n, nn, 6, 6))
-    t[:, :, 0:3, 0:3] = rot[:, None]
-    t[:, :, 3:6, 3:6] = rot[:, None]
-    # warp offset in local coordinates acting on local rotations (= rot @ theta_basic)
-    t[:, :, 0, 3:6] = -h[:, :, None] * rot[:, None, 1, :]
-    t[:, :, 1, 3:6] = h[:, :, None] * rot[:, None, 0, :]
-    return t
-
-
-def _congruence(term, t: np.ndarray) -> np.ndarray:
-    """T_c^T K_c T_c: a compact local term (matrix on DOF subset ``cols``) to basic (n, 6nn, 6nn).
-
-    ``t`` holds the per-grid 6x6 blocks of the local-from-basic map; T_c is
-    its rows ``cols``, so only the small matrices are multiplied.
-    """
-    k, cols = term
-    n, nn = t.shape[:2]
-    tc = np.zeros((n, cols.size, 6 * nn))
-    for j, col in enumerate(cols):
-        i, a = divmod(int(col), 6)
-        tc[:, j, 6 * i:6 * i + 6] = t[:, i, a, :]
-    # contiguous operands keep numpy's stacked matmul on its fast BLAS path
-    out = np.matmul(np.ascontiguousarray(np.swapaxes(tc, 1, 2)), np.matmul(k, tc))
-    # exact symmetry: mirror the upper triangle (cheaper than averaging with the transpose)
-    iu, ju = np.triu_indices(6 * nn, 1)
-    out[:, ju, iu] = out[:, iu, ju]
+    nd = 6 * nn
+    iu, ju = np.triu_indices(nd, 1)
+    # flat positions of each term's compact entries in the (6nn, 6nn) local matrix
+    flat = [(cols[:, None] * nd + cols[None, :]).ravel() for _, cols in terms]
+    warp = any(bool(np.any(cols % 6 < 2)) for _, cols in terms)
+    for s0 in range(0, n, _BATCH):
+        sl = slice(s0, min(n, s0 + _BATCH))
+        m = sl.stop - sl.start
+        loc = np.zeros((m, nd * nd))
+        for i, ((k, _), idx) in enumerate(zip(terms, flat)):
+            if i == 0:
+                loc[:, idx] = k[sl].reshape(m, -1)
+            else:
+                loc[:, idx] += k[sl].reshape(m, -1)
+        loc = loc.reshape(m, nn, 6, nn, 6)
+        hh = h[sl]
+        if warp and np.any(hh != 0):
+            hc = hh[:, None, None, :]
+            loc[..., 4] -= hc * loc[..., 0]
+            loc[..., 3] += hc * loc[..., 1]
+            hr = hh[:, :, None, None]
+            loc[:, :, 4] -= hr * loc[:, :, 0]
+            loc[:, :, 3] += hr * loc[:, :, 1]
+        r = rot[sl]
+        x = np.matmul(loc.reshape(m, nd * 2 * nn, 3), r)
+        blk = out[sl]
+        np.matmul(np.swapaxes(r, 1, 2)[:, None], x.reshape(m, 2 * nn, 3, nd), out=blk.reshape(m, 2 * nn, 3, nd))
+        # exact symmetry: mirror the upper triangle
+        blk[:, ju, iu] = blk[:, iu, ju]
     return out
 
 
@@ -487,6 +521,11 @@ def shell_stiffness(xyz, dm, db, ds, k6rot, ids=None, residual_bending=True, dmb
     ElementGeometryError
         Zero-area, inverted or re-entrant elements (listed by id or index).
     """
+    return _shell_stiffness(xyz, dm, db, ds, k6rot, ids, residual_bending, dmb)
+
+
+def _shell_stiffness(xyz, dm, db, ds, k6rot, ids=None, residual_bending=True, dmb=None, merge=None):
+    """:func:`shell_stiffness` with ``merge`` (see :func:`_basic_terms`): terms that scale alike summed."""
     xyz = _check_xyz(xyz, (3, 4), "shell")
     n, nn = xyz.shape[:2]
     dm = np.broadcast_to(np.asarray(dm, dtype=float), (n, 3, 3))
@@ -501,10 +540,97 @@ def shell_stiffness(xyz, dm, db, ds, k6rot, ids=None, residual_bending=True, dmb
     kdrill = 1e-6 * k6rot * dm[:, 2, 2]
     if dmb is not None:
         dmb = np.broadcast_to(np.asarray(dmb, dtype=float), (n, 3, 3))
-    local = (_quad_local if nn == 4 else _tri_local)(xy, dm, db, ds, kdrill, ids, dmb)
-    t = _to_basic(rot, h)
-    names = ("membrane", "bending", "shear", "drill", "coupling")
-    return {name: _congruence(term, t) for name, term in zip(names, local) if term is not None}
+    return _basic_terms(xy, rot, h, dm, db, ds, kdrill, ids, dmb, merge)
+
+
+_TERM_NAMES = ("membrane", "bending", "shear", "drill", "coupling")
+
+
+def _basic_terms(xy, rot, h, dm, db, ds, kdrill, ids, dmb=None, merge=None) -> dict[str, np.ndarray]:
+    """Local kernels and the transformation to basic, batched over elements.
+
+    ``merge`` maps an output name to the term names summed into it (e.g.
+    ``{"membrane": ("membrane", "drill")}`` for terms that scale alike); by
+    default every term is returned on its own.  Batches keep the kernels'
+    intermediates in cache; a geometry error is re-raised from the whole set
+    so that its message lists every offending element.
+    """
+    n, nn = xy.shape[:2]
+    kernel = _quad_local if nn == 4 else _tri_local
+    merged = {name for names in (merge or {}).values() for name in names}
+    groups = dict(merge or {})
+    for name in _TERM_NAMES:
+        if name not in merged and name not in groups:
+            groups[name] = (name,)
+    nd = 6 * nn
+    step = 8 * _BATCH
+    out: dict[str, np.ndarray] = {}
+    for s0 in range(0, n, step):
+        sl = slice(s0, min(n, s0 + step))
+        try:
+            # contiguous batches: the kernels are about twice as fast as on broadcast views
+            local = kernel(xy[sl], np.ascontiguousarray(dm[sl]), np.ascontiguousarray(db[sl]),
+                           np.ascontiguousarray(ds[sl]), kdrill[sl], None if ids is None else np.asarray(ids)[sl],
+                           None if dmb is None else np.ascontiguousarray(dmb[sl]))
+        except ElementGeometryError:
+            if sl.start == 0 and sl.stop == n:
+                raise
+            kernel(xy, dm, db, ds, kdrill, ids, dmb)  # raises with the complete list
+            raise
+        terms = dict(zip(_TERM_NAMES, local))
+        for name, members in groups.items():
+            parts = [terms[m] for m in members if terms.get(m) is not None]
+            if not parts:
+                continue
+            if name not in out:
+                out[name] = np.empty((n, nd, nd))
+            _congruence(parts, rot[sl], h[sl], out[name][sl])
+    return {name: out[name] for name in groups if name in out}
+
+
+def _unit_shear(xyz, ids=None) -> tuple[np.ndarray, np.ndarray]:
+    """Transverse shear stiffness per direction for unit shear stiffness, in basic.
+
+    Returns the two (n, 6nn, 6nn) matrices of the shear term for
+    ``ds = diag(1, 0)`` and ``ds = diag(0, 1)`` (no residual bending
+    flexibility), i.e. the shear term of :func:`shell_stiffness` with
+    ``ds = diag(a, b)`` and ``residual_bending=False`` is ``a U0 + b U1``.
+    """
+    xyz = _check_xyz(xyz, (3, 4), "shell")
+    n, nn = xyz.shape[:2]
+    rot, xy, h = shell_frames(xyz, ids)
+    cp = _cols(nn, _PLATE)
+    nd = 6 * nn
+    out = (np.empty((n, nd, nd)), np.empty((n, nd, nd)))
+    step = 8 * _BATCH
+    for s0 in range(0, n, step):
+        sl = slice(s0, min(n, s0 + step))
+        m = sl.stop - sl.start
+        ks = np.zeros((2, m, cp.size, cp.size))
+        if nn == 4:
+            x = xy[sl]
+            tying = _mitc4_tying(x)
+            for xi, eta in _QUAD_GAUSS:
+                _, dn = _quad_derivs(xi, eta)
+                _, det, inv = _jacobian(dn, x)
+                if np.any(det <= 0):
+                    shell_stiffness(xyz, np.eye(3), np.eye(3), np.eye(2), 0.0, ids)  # raises the full message
+                bs = _mitc4_bs(tying, inv, xi, eta) * np.sqrt(det)[:, None, None]
+                for d in range(2):
+                    ks[d] += bs[:, d, :, None] * bs[:, d, None, :]
+        else:
+            dn = np.array([[-1.0, 1.0, 0.0], [-1.0, 0.0, 1.0]])
+            _, det, inv = _jacobian(dn, xy[sl])
+            if np.any(det <= 0):
+                shell_stiffness(xyz, np.eye(3), np.eye(3), np.eye(2), 0.0, ids)  # raises the full message
+            w = np.sqrt(det / 6.0)[:, None, None]
+            for bs in _mitc3_bs(xy[sl], inv):
+                bs = bs * w
+                for d in range(2):
+                    ks[d] += bs[:, d, :, None] * bs[:, d, None, :]
+        for d in range(2):
+            _congruence([(ks[d], cp)], rot[sl], h[sl], out[d][sl])
+    return out
 
 
 def orthotropic_q(e1, e2, nu12, g12) -> np.ndarray:
