@@ -204,6 +204,45 @@ def _factor(A):
     return lambda F: lu.solve(np.asarray(F, dtype=float))
 
 
+def _shift_invert_modes(Ks, Ms, s, solve, max_hz: float, max_modes: int, k0: int = 40):
+    """Lanczos (ARPACK shift-invert, sigma = -s) with an existing solver for K + s M.
+
+    The factorization of the static solves is reused, so one factorization
+    serves modes, statics and enrichment. ``k`` doubles (same factor) until a
+    mode above ``max_hz`` is found.
+    """
+    n = Ks.shape[0]
+    op = spla.LinearOperator((n, n), matvec=lambda b: solve(np.asarray(b, dtype=float).reshape(n, -1)).ravel(),
+                             dtype=float)
+    k = min(k0, n - 2)
+    with _blas_threads(1):  # single-vector Lanczos: extra BLAS threads only spin
+        while True:
+            ncv = min(n, max(2 * k + 1, k + 20))
+            lam, vec = spla.eigsh(Ks, k=k, M=Ms, sigma=-s, which="LM", OPinv=op, mode="normal", ncv=ncv, tol=1e-10)
+            order = np.argsort(lam)
+            lam, vec = lam[order], vec[:, order]
+            if lam[-1] > (2 * np.pi * max_hz) ** 2 or k >= min(max_modes, n - 2):
+                break
+            k = min(2 * k, max_modes, n - 2)
+    gm = np.einsum("ij,ij->j", vec, Ms @ vec)
+    if np.any(gm <= 0):
+        raise CalibrationError("a computed mode has zero generalized mass (massless mechanism)")
+    vec = vec / np.sqrt(gm)[None, :]
+    keep = lam <= (2 * np.pi * max_hz) ** 2
+    freqs = np.sqrt(np.clip(lam[keep], 0.0, None)) / (2 * np.pi)
+    return freqs, vec[:, keep]
+
+
+def _blas_threads(n):
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:
+        import contextlib
+
+        return contextlib.nullcontext()
+    return threadpool_limits(limits=n, user_api="blas")
+
+
 def full_modes(K, M, max_hz: float, shift_hz: float, max_modes: int = 600, dense_below: int = 1500):
     """Undamped modes of (K, M) up to ``max_hz`` and a solver for K + s M.
 
@@ -214,7 +253,8 @@ def full_modes(K, M, max_hz: float, shift_hz: float, max_modes: int = 600, dense
         Highest natural frequency wanted (Hz).
     shift_hz : float
         Shift s = (2 pi shift_hz)^2 > 0 of the static solves (K + s M is
-        definite also for free-free models).
+        definite also for free-free models); the Lanczos shift-invert runs at
+        sigma = -s with the same factorization.
     max_modes : int
         Safety cap on the number of modes.
 
@@ -235,20 +275,11 @@ def full_modes(K, M, max_hz: float, shift_hz: float, max_modes: int = 600, dense
         solve = lambda F: sla.cho_solve(lu, np.asarray(F.toarray() if sp.issparse(F) else F))  # noqa: E731
         lam = np.clip(lam[keep], 0.0, None)
         return np.sqrt(lam) / (2 * np.pi), X[:, keep], solve
-    from femodel import normal_modes
-
     Ks = sp.csc_matrix(K)
     Ms = sp.csc_matrix(M)
     solve = _factor(Ks + s * Ms)
-    k = min(40, n - 2)
-    while True:
-        modes = normal_modes(Ks, Ms, k)
-        freqs = np.asarray(modes.frequencies_hz)
-        if freqs[-1] > max_hz or k >= min(max_modes, n - 2):
-            break
-        k = min(2 * k, max_modes, n - 2)
-    keep = freqs <= max_hz
-    return np.clip(freqs[keep], 0.0, None), np.asarray(modes.shapes)[:, keep], solve
+    freqs, Phi = _shift_invert_modes(Ks, Ms, s, solve, max_hz, max_modes)
+    return freqs, Phi, solve
 
 
 def refreshed_modes(K, M, T_old, max_hz: float, shift_hz: float):
@@ -359,12 +390,7 @@ def build_surrogate(
         sel = np.flatnonzero((freqs <= enrich_factor * high) & (freqs > max(1e-3 * max(low, 1.0), 1e-6 * high)))
         if sel.size:
             lam = (2 * np.pi * freqs[sel]) ** 2
-            rhs = []
-            for j in range(model.n_params):
-                dK = model.dK(p, j)
-                dM = model.dM(p, j)
-                rhs.append(dK @ Phi[:, sel] - (dM @ Phi[:, sel]) * lam[None, :])
-            rhs = np.hstack(rhs)
+            rhs = _derivative_loads(model, p, Phi[:, sel], lam)
             nz = np.linalg.norm(rhs, axis=0) > 0
             if nz.any():
                 E = solve(rhs[:, nz])
@@ -394,6 +420,49 @@ def build_surrogate(
     return sur, T
 
 
+def _local_terms(A: AffineMatrix) -> list:
+    """Per term: (rows, A_k[rows]) for sparse terms, (None, A_k) for dense ones (cached on ``A``)."""
+    cached = A.__dict__.get("_local_rows")
+    if cached is None:
+        cached = []
+        for m in A.matrices:
+            if sp.issparse(m):
+                m = sp.csr_matrix(m)
+                rows = np.flatnonzero(np.diff(m.indptr))
+                cached.append((rows, m[rows]))
+            else:
+                cached.append((None, np.asarray(m)))
+        object.__setattr__(A, "_local_rows", cached)
+    return cached
+
+
+def _derivative_loads(model: FRFModel, p, Phi: np.ndarray, lam: np.ndarray) -> np.ndarray:
+    """``(dK/dp_j - lambda_i dM/dp_j) phi_i`` for every parameter j and mode i: (n, n_p * m).
+
+    Built term by term from the local AffineMatrix terms (each touches only its
+    own rows), not from full-size dK/dp_j matrices.
+    """
+    n, m = Phi.shape
+    n_p = model.n_params
+    rhs = np.zeros((n, n_p * m))
+    view = rhs.reshape(n, n_p, m)
+    for A, scale in ((model.K, None), (model.M, lam)):
+        dc = A.coefficient_jacobian(p)  # (n_terms, n_p)
+        for (rows, mk), d in zip(_local_terms(A), dc):
+            js = np.flatnonzero(d)
+            if js.size == 0:
+                continue
+            Y = mk @ Phi  # (rows, m)
+            if scale is not None:
+                Y = -Y * scale[None, :]
+            if rows is None:
+                view += d[None, :, None] * Y[:, None, :]
+            else:
+                for j in js:
+                    view[rows, j, :] += d[j] * Y
+    return rhs
+
+
 def _projected(A: AffineMatrix, T: np.ndarray) -> AffineMatrix:
     """``T^T A_k T`` for every term, touching only the rows where a (local) term is non-zero.
 
@@ -401,15 +470,14 @@ def _projected(A: AffineMatrix, T: np.ndarray) -> AffineMatrix:
     (rows of A_k) x r^2 instead of n x r^2 per term: parameter terms are local.
     """
     reduced = []
-    for m in A.matrices:
-        if sp.issparse(m):
-            m = sp.csr_matrix(m)
-            rows = np.flatnonzero(np.diff(m.indptr))
-            AT = m[rows] @ T
-            r = T[rows].T @ AT
+    for rows, mk in _local_terms(A):
+        if rows is None:
+            r = T.T @ (mk @ T)
         else:
-            r = T.T @ (np.asarray(m) @ T)
+            r = T[rows].T @ (mk @ T)
         reduced.append(0.5 * (r + r.T))
+    if getattr(A, "series_ratio", None) is not None:  # keep series (e.g. shell shear) coefficients exact
+        return type(A)(tuple(reduced), A.exponents.copy(), A.series_exponents.copy(), A.series_ratio.copy())
     return AffineMatrix(tuple(reduced), A.exponents.copy())
 
 
