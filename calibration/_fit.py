@@ -22,6 +22,10 @@ from calibration._metric import LN10, log_deviation, square_deviation
 from calibration._surrogate import Surrogate, surrogate_frf, surrogate_frf_jacobian
 
 
+#: Convergence tolerance (xtol, ftol, gtol) of the damping-continuation stages before the last.
+STAGE_TOL = 1e-4
+
+
 @dataclass(frozen=True)
 class FitData:
     """Test FRFs that a model is fitted to / compared with.
@@ -163,7 +167,13 @@ class Objective:
         return r, J
 
     def residual(self, p):
-        return self.evaluate(p)[0]
+        """Real residual (2N,) only: no Jacobian (trial points of the minimizer are often rejected)."""
+        p = np.asarray(p, dtype=float)
+        if self._memo_p is not None and np.array_equal(p, self._memo_p):
+            return self._memo[0]
+        eps = [e.ravel() for e in self.deviation(p)]
+        e = np.concatenate(eps)
+        return np.concatenate([e.real, e.imag]) / np.sqrt(e.size)
 
     def jacobian(self, p):
         return self.evaluate(p)[1]
@@ -307,7 +317,10 @@ def _run_start(args) -> StartOutcome:
     its = nfev = 0
     res = None
     try:
-        for obj in objs:
+        for k, obj in enumerate(objs):
+            # a continuation stage only hands its end point to the next, narrower one:
+            # it needs no tight convergence (STAGE_TOL); the last stage runs to xtol
+            last = k == len(objs) - 1
             res = least_squares(
                 obj.residual,
                 x,
@@ -315,9 +328,9 @@ def _run_start(args) -> StartOutcome:
                 bounds=(lower, upper),
                 method="trf",
                 x_scale="jac",
-                xtol=xtol,
-                ftol=1e-12,
-                gtol=1e-12,
+                xtol=xtol if last else max(xtol, STAGE_TOL),
+                ftol=1e-12 if last else STAGE_TOL,
+                gtol=1e-12 if last else STAGE_TOL,
                 max_nfev=max_nfev,
             )
             x = np.asarray(res.x)
@@ -477,7 +490,6 @@ def calibrate_cycles(
 
     say = log or (lambda msg: None)
     t0 = time.perf_counter()
-    basis = None
     if surrogate is None:
         surrogate, basis = build_surrogate(model, np.zeros(model.n_params), band_hz, basis_factor, enrich=enrich)
     t1 = time.perf_counter()
