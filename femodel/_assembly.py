@@ -193,9 +193,14 @@ class BlockPattern:
         ).astype(idx_t)
         self.indices = np.empty(self.nnz, idx_t)
         self.indices[pos.ravel()] = np.broadcast_to((6 * bcol)[:, None, None] + i[None, None, :], pos.shape).ravel()
-        emap = pos[inv.reshape(n, nn, nn)]  # (n, nn, nn, d, d)
-        # intp: np.bincount would otherwise convert (copy) the map on every call
-        self.map = np.ascontiguousarray(emap.transpose(0, 1, 3, 2, 4), dtype=np.intp).ravel()
+        # element entry (e, a, i, b, j) -> slot of (block inv[e, a, b], row i, col j), formed straight in
+        # its final layout (intp: np.bincount would otherwise convert the map on every call)
+        row0 = self.indptr[6 * self.nodes[:, :, None] + i[None, None, :]]  # (n, nn, d)
+        off = (inv.reshape(n, nn, nn) - bptr[self.nodes][:, :, None]) * d  # (n, nn, nn)
+        emap = np.empty((n, nn, d, nn, d), dtype=np.intp)
+        np.add(row0[:, :, :, None, None], off[:, :, None, :, None], out=emap)
+        emap += i[None, None, None, None, :]
+        self.map = emap.ravel()
 
     def subset(self, sel) -> "BlockPattern":
         """The pattern of the selected elements (boolean mask or slice), cached."""
@@ -212,6 +217,20 @@ class BlockPattern:
         if key not in self._subsets:
             self._subsets[key] = BlockPattern(self.nodes[sel], self.n_grids, self.dpn)
         return self._subsets[key]
+
+    def accumulate(self, data: np.ndarray, ke: np.ndarray, start: int) -> None:
+        """Add element matrices ke (m, nn*dpn, nn*dpn) of elements start..start+m to CSR ``data`` (nnz,)."""
+        if self.map is None:
+            self._build()
+        e = ke.shape[1] * ke.shape[2]
+        np.add.at(data, self.map[start * e:(start + ke.shape[0]) * e], np.ascontiguousarray(ke, dtype=float).ravel())
+
+    def csr(self, data: np.ndarray) -> sp.csr_matrix:
+        """The (n_g, n_g) CSR matrix with ``data`` on this pattern."""
+        if self.map is None:
+            self._build()
+        n_g = 6 * self.n_grids
+        return sp.csr_matrix((data, self.indices, self.indptr), shape=(n_g, n_g))
 
     def matrix(self, ke: np.ndarray) -> sp.csr_matrix:
         """Sum element matrices ke (n_el, nn*dpn, nn*dpn) into an (n_g, n_g) CSR matrix."""
@@ -268,6 +287,10 @@ class _Collector:
         if not symmetric:
             ke = 0.5 * (ke + np.swapaxes(ke, 1, 2))
         self._store(kind, factors, label, pattern.matrix(ke))
+
+    def add_csr(self, kind: str, factors, label: str, m: sp.csr_matrix):
+        """An already summed (n, n) CSR term."""
+        self._store(kind, factors, label, m)
 
     def add_dofs(self, kind: str, factors, label: str, ke: np.ndarray, dofs: np.ndarray, scale=None):
         """Element matrices ke (n_el, d, d) on explicit g-set DOF (n_el, d) (scalar springs)."""
@@ -569,7 +592,7 @@ def _add_shells(model, col, cd_axes, wt):
     if not cards:
         return
     try:
-        from femodel._elements_shell import _shell_stiffness, shell_mass, shell_stiffness
+        from femodel._elements_shell import _shell_stiffness_batches, shell_mass, shell_stiffness
     except ImportError as exc:  # pragma: no cover - the kernel module ships with femodel
         raise ModelError(f"shell elements present but the shell kernels are unavailable: {exc}") from None
     prop = model.properties.get("PSHELL")
@@ -629,35 +652,62 @@ def _add_shells(model, col, cd_axes, wt):
             # MID3 blank: no transverse shear flexibility; a stiff penalty stands in for it
             _, G2r, _, _, _ = _mat(model, m2[rigid_shear], f"{card} PSHELL MID2")
             ds[rigid_shear] = np.eye(2)[None] * (1e3 * G2r * t[rigid_shear])[:, None, None]
-        # membrane and drilling scale alike (E1 t): transformed and scattered as one term
-        k = _shell_stiffness(xyz, dm, db, ds, model.k6rot, ids=tab.ids, merge={"membrane": ("membrane", "drill")})
-        mu_unit = shell_mass(xyz, np.ones(n), model.coupmass, ids=tab.ids)
-        pat = BlockPattern(nodes, model.n_grids)
-        for key in k:
-            k[key] = _to_cd(k[key], nodes, cd_axes, 6)
-        mu_unit = _to_cd(mu_unit, nodes, cd_axes, 6)
         pids = tab["pid"]
-        mat = model.materials.get("MAT1")
         upids, first, counts = np.unique(pids, return_index=True, return_counts=True)
-        for pid, i0, cnt in zip(upids, first, counts):
-            sel = slice(int(i0), int(i0 + cnt))
+        pat = BlockPattern(nodes, model.n_grids)
+        sub = [pat.subset(slice(int(i0), int(i0 + c))) for i0, c in zip(first, counts)]
+        has_nsm = [bool(np.any(nsm[int(i0):int(i0 + c)] != 0)) for i0, c in zip(first, counts)]
+        wnsm = wt * nsm
+        data: dict = {}
+
+        def acc(g, name, ke, start):
+            if (g, name) not in data:
+                if sub[g].map is None:
+                    sub[g]._build()
+                data[(g, name)] = np.zeros(sub[g].nnz)
+            sub[g].accumulate(data[(g, name)], ke, start)
+
+        # element matrices are formed, rotated and scattered batch by batch (no (n, 24, 24) arrays);
+        # membrane and drilling scale alike (E1 t): transformed and scattered as one term
+        mscale = wt * rho * t
+        for sl, blocks in _shell_stiffness_batches(xyz, dm, db, ds, model.k6rot, ids=tab.ids,
+                                                   merge={"membrane": ("membrane", "drill")}, bounds=first):
+            g = int(np.searchsorted(first, sl.start, side="right") - 1)
+            start = sl.start - int(first[g])
+            nod = nodes[sl]
+            for name, ke in blocks.items():
+                acc(g, name, _to_cd(ke, nod, cd_axes, 6), start)
+            mu_unit = _to_cd(shell_mass(xyz[sl], np.ones(sl.stop - sl.start), model.coupmass, ids=tab.ids[sl]),
+                             nod, cd_axes, 6)
+            for name, scale in (("mass", mscale), ("nsm", wnsm)):
+                if name == "nsm" and not has_nsm[g]:
+                    continue
+                ke = mu_unit * np.asarray(scale[sl], dtype=float)[:, None, None]
+                acc(g, name, 0.5 * (ke + np.swapaxes(ke, 1, 2)), start)
+        mat = model.materials.get("MAT1")
+        for g, (pid, i0) in enumerate(zip(upids, first)):
             lab = f"{card} PSHELL {int(pid)}"
             T = ("PSHELL", int(pid), "T")
+
+            def term(name):
+                return sub[g].csr(data[(g, name)])
+
             if m1[i0] > 0:
                 f = [(("MAT1", int(m1[i0]), "E"), 1), (T, 1)]
-                col.add("K", f, lab + " membrane", k["membrane"][sel], pat.subset(sel), symmetric=True)
+                col.add_csr("K", f, lab + " membrane", term("membrane"))
                 col.note("K", f, lab + " drilling")
-                col.add("M", [(("MAT1", int(m1[i0]), "RHO"), 1), (T, 1)], lab + " mass", mu_unit[sel], pat.subset(sel), wt * rho[sel] * t[sel])
+                col.add_csr("M", [(("MAT1", int(m1[i0]), "RHO"), 1), (T, 1)], lab + " mass", term("mass"))
             if m2[i0] > 0:
-                col.add("K", [(("MAT1", int(m2[i0]), "E"), 1), (T, 3)], lab + " bending", k["bending"][sel], pat.subset(sel), symmetric=True)
+                col.add_csr("K", [(("MAT1", int(m2[i0]), "E"), 1), (T, 3)], lab + " bending", term("bending"))
                 if m3[i0] > 0:
                     r3 = mat.rows([m3[i0]])[0]
                     gf = _g_factor(int(m3[i0]), bool(mat["g_follows_e"][r3]))
-                    col.add("K", [gf, (T, 1)], lab + " transverse shear", k["shear"][sel], pat.subset(sel), symmetric=True)
+                    col.add_csr("K", [gf, (T, 1)], lab + " transverse shear", term("shear"))
                 else:
-                    col.add("K", [(("MAT1", int(m2[i0]), "E"), 1), (T, 1)], lab + " transverse shear (rigid penalty)", k["shear"][sel], pat.subset(sel), symmetric=True)
-            if np.any(nsm[sel] != 0):
-                col.add("M", [], lab + " NSM", mu_unit[sel], pat.subset(sel), wt * nsm[sel])
+                    col.add_csr("K", [(("MAT1", int(m2[i0]), "E"), 1), (T, 1)],
+                                lab + " transverse shear (rigid penalty)", term("shear"))
+            if has_nsm[g]:
+                col.add_csr("M", [], lab + " NSM", term("nsm"))
 
 
 def _rotate_laminate(dm, dmb, db, ds, theta_deg):

@@ -525,7 +525,29 @@ def shell_stiffness(xyz, dm, db, ds, k6rot, ids=None, residual_bending=True, dmb
 
 
 def _shell_stiffness(xyz, dm, db, ds, k6rot, ids=None, residual_bending=True, dmb=None, merge=None):
-    """:func:`shell_stiffness` with ``merge`` (see :func:`_basic_terms`): terms that scale alike summed."""
+    """:func:`shell_stiffness` with ``merge`` (see :func:`_batches`): terms that scale alike summed."""
+    xyz = _check_xyz(xyz, (3, 4), "shell")
+    n, nn = xyz.shape[:2]
+    out: dict[str, np.ndarray] = {}
+    for sl, blocks in _shell_stiffness_batches(xyz, dm, db, ds, k6rot, ids, residual_bending, dmb, merge):
+        for name, blk in blocks.items():
+            if name not in out:
+                out[name] = np.empty((n, 6 * nn, 6 * nn))
+            out[name][sl] = blk
+    return out
+
+
+def _shell_stiffness_batches(xyz, dm, db, ds, k6rot, ids=None, residual_bending=True, dmb=None, merge=None,
+                            bounds=()):
+    """:func:`shell_stiffness` in batches of elements (for assembly without the full (n, 6nn, 6nn) arrays).
+
+    Yields ``(slice, {name: ndarray (m, 6nn, 6nn)})`` per batch of elements;
+    the arrays are only valid until the next batch.  ``merge`` maps an
+    output name to the term names summed into it (e.g. ``{"membrane":
+    ("membrane", "drill")}`` for terms that scale alike); other terms come
+    on their own.  No batch straddles an element index in ``bounds``.  A
+    geometry error is raised with the complete list of offending elements.
+    """
     xyz = _check_xyz(xyz, (3, 4), "shell")
     n, nn = xyz.shape[:2]
     dm = np.broadcast_to(np.asarray(dm, dtype=float), (n, 3, 3))
@@ -540,22 +562,6 @@ def _shell_stiffness(xyz, dm, db, ds, k6rot, ids=None, residual_bending=True, dm
     kdrill = 1e-6 * k6rot * dm[:, 2, 2]
     if dmb is not None:
         dmb = np.broadcast_to(np.asarray(dmb, dtype=float), (n, 3, 3))
-    return _basic_terms(xy, rot, h, dm, db, ds, kdrill, ids, dmb, merge)
-
-
-_TERM_NAMES = ("membrane", "bending", "shear", "drill", "coupling")
-
-
-def _basic_terms(xy, rot, h, dm, db, ds, kdrill, ids, dmb=None, merge=None) -> dict[str, np.ndarray]:
-    """Local kernels and the transformation to basic, batched over elements.
-
-    ``merge`` maps an output name to the term names summed into it (e.g.
-    ``{"membrane": ("membrane", "drill")}`` for terms that scale alike); by
-    default every term is returned on its own.  Batches keep the kernels'
-    intermediates in cache; a geometry error is re-raised from the whole set
-    so that its message lists every offending element.
-    """
-    n, nn = xy.shape[:2]
     kernel = _quad_local if nn == 4 else _tri_local
     merged = {name for names in (merge or {}).values() for name in names}
     groups = dict(merge or {})
@@ -563,10 +569,7 @@ def _basic_terms(xy, rot, h, dm, db, ds, kdrill, ids, dmb=None, merge=None) -> d
         if name not in merged and name not in groups:
             groups[name] = (name,)
     nd = 6 * nn
-    step = 8 * _BATCH
-    out: dict[str, np.ndarray] = {}
-    for s0 in range(0, n, step):
-        sl = slice(s0, min(n, s0 + step))
+    for sl in _batch_slices(n, 8 * _BATCH, bounds):
         try:
             # contiguous batches: the kernels are about twice as fast as on broadcast views
             local = kernel(xy[sl], np.ascontiguousarray(dm[sl]), np.ascontiguousarray(db[sl]),
@@ -578,14 +581,24 @@ def _basic_terms(xy, rot, h, dm, db, ds, kdrill, ids, dmb=None, merge=None) -> d
             kernel(xy, dm, db, ds, kdrill, ids, dmb)  # raises with the complete list
             raise
         terms = dict(zip(_TERM_NAMES, local))
+        m = sl.stop - sl.start
+        blocks = {}
         for name, members in groups.items():
-            parts = [terms[m] for m in members if terms.get(m) is not None]
-            if not parts:
-                continue
-            if name not in out:
-                out[name] = np.empty((n, nd, nd))
-            _congruence(parts, rot[sl], h[sl], out[name][sl])
-    return {name: out[name] for name in groups if name in out}
+            parts = [terms[t] for t in members if terms.get(t) is not None]
+            if parts:
+                blocks[name] = _congruence(parts, rot[sl], h[sl], np.empty((m, nd, nd)))
+        yield sl, blocks
+
+
+_TERM_NAMES = ("membrane", "bending", "shear", "drill", "coupling")
+
+
+def _batch_slices(n: int, step: int, bounds=()):
+    """Slices of at most ``step`` elements covering 0..n, cut at every index in ``bounds``."""
+    cuts = sorted({0, n} | {int(b) for b in bounds if 0 < int(b) < n})
+    for a, b in zip(cuts[:-1], cuts[1:]):
+        for s0 in range(a, b, step):
+            yield slice(s0, min(b, s0 + step))
 
 
 def _unit_shear(xyz, ids=None) -> tuple[np.ndarray, np.ndarray]:
@@ -602,9 +615,7 @@ def _unit_shear(xyz, ids=None) -> tuple[np.ndarray, np.ndarray]:
     cp = _cols(nn, _PLATE)
     nd = 6 * nn
     out = (np.empty((n, nd, nd)), np.empty((n, nd, nd)))
-    step = 8 * _BATCH
-    for s0 in range(0, n, step):
-        sl = slice(s0, min(n, s0 + step))
+    for sl in _batch_slices(n, 8 * _BATCH):
         m = sl.stop - sl.start
         ks = np.zeros((2, m, cp.size, cp.size))
         if nn == 4:
