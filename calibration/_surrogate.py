@@ -194,17 +194,18 @@ def _factor(A):
     if cholesky is not None:
         try:
             f = cholesky(A)
-            return lambda F: f(np.asarray(F, dtype=float))
+            # C order: the results meet CSR @ dense products, which would copy F-ordered operands each time
+            return lambda F: np.ascontiguousarray(f(np.asfortranarray(F, dtype=float)))
         except Exception:  # not positive definite in floating point: fall back to LU
             pass
     try:
         lu = spla.splu(A, permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True})
     except RuntimeError as exc:  # singular factor
         raise CalibrationError(f"stiffness (+ shift) is singular: {exc}") from exc
-    return lambda F: lu.solve(np.asarray(F, dtype=float))
+    return lambda F: np.ascontiguousarray(lu.solve(np.asarray(F, dtype=float)))
 
 
-def _shift_invert_modes(Ks, Ms, s, solve, max_hz: float, max_modes: int, k0: int = 40):
+def _shift_invert_modes(Ks, Ms, s, solve, max_hz: float, max_modes: int, k0: int = 30):
     """Lanczos (ARPACK shift-invert, sigma = -s) with an existing solver for K + s M.
 
     The factorization of the static solves is reused, so one factorization
@@ -282,18 +283,24 @@ def full_modes(K, M, max_hz: float, shift_hz: float, max_modes: int = 600, dense
     return freqs, Phi, solve
 
 
-def refreshed_modes(K, M, T_old, max_hz: float, shift_hz: float):
+def refreshed_modes(K, M, T_old, max_hz: float, shift_hz: float, extra=None):
     """Modes of (K, M) up to ``max_hz`` from one block inverse iteration on an old basis.
 
     Returns the triple of :func:`full_modes` and the inverse-iterated basis
     (n, r) itself (M-orthonormal Ritz vectors), which is reused as enrichment.
+    With ``extra`` (n, k) given, ``(K + s M)^-1 extra`` is solved in the same
+    block solve and returned as a fifth item.
     """
     s = (2 * np.pi * shift_hz) ** 2
     n = K.shape[0]
     if n <= 1500:
-        return (*full_modes(K, M, max_hz, shift_hz), None)
+        out = (*full_modes(K, M, max_hz, shift_hz), None)
+        return out if extra is None else (*out, out[2](extra))
     solve = _factor(sp.csc_matrix(K) + s * sp.csc_matrix(M))
-    Q = solve(M @ T_old)
+    r_old = T_old.shape[1]
+    Q = solve(M @ T_old if extra is None else np.hstack([M @ T_old, extra]))
+    if extra is not None:
+        Q, X_extra = Q[:, :r_old], np.ascontiguousarray(Q[:, r_old:])
     Q = _m_complement(Q, np.zeros((n, 0)), M, 1e-12)
     Kq = Q.T @ (K @ Q)
     Mq = Q.T @ (M @ Q)
@@ -301,7 +308,8 @@ def refreshed_modes(K, M, T_old, max_hz: float, shift_hz: float):
     keep = lam <= (2 * np.pi * max_hz) ** 2
     Q = Q @ V
     lam = np.clip(lam[keep], 0.0, None)
-    return np.sqrt(lam) / (2 * np.pi), Q[:, keep], solve, Q[:, ~keep]
+    out = (np.sqrt(lam) / (2 * np.pi), np.ascontiguousarray(Q[:, keep]), solve, np.ascontiguousarray(Q[:, ~keep]))
+    return out if extra is None else (*out, X_extra)
 
 
 def build_surrogate(
@@ -370,14 +378,18 @@ def build_surrogate(
     M0 = model.mass(p)
     t1 = time.perf_counter()
     carried = None
-    if previous_basis is None:
-        freqs, Phi, solve = full_modes(K0, M0, basis_factor * high, shift_hz, max_modes=max_modes)
-    else:
-        freqs, Phi, solve, carried = refreshed_modes(K0, M0, previous_basis, basis_factor * high, shift_hz)
-    t2 = time.perf_counter()
     B = model.inputs.toarray() if sp.issparse(model.inputs) else np.asarray(model.inputs, float)
     C = model.outputs.toarray() if sp.issparse(model.outputs) else np.asarray(model.outputs, float)
-    static = solve(np.hstack([B, C.T]))
+    loads = np.hstack([B, C.T])
+    if previous_basis is None:
+        freqs, Phi, solve = full_modes(K0, M0, basis_factor * high, shift_hz, max_modes=max_modes)
+        static = None
+    else:  # statics in the same block solve as the inverse iteration
+        freqs, Phi, solve, carried, static = refreshed_modes(K0, M0, previous_basis, basis_factor * high,
+                                                             shift_hz, extra=loads)
+    t2 = time.perf_counter()
+    if static is None:
+        static = solve(loads)
     S = _m_complement(static, Phi, M0, 1e-10)
     n_static = S.shape[1]
     n_enrich = 0
@@ -495,7 +507,8 @@ def _m_complement(V, Q, M, tol):
     V = V - Q @ (Q.T @ (M @ V))
     G = V.T @ (M @ V)
     L = np.linalg.cholesky(0.5 * (G + G.T))
-    return np.linalg.solve(L, V.T).T
+    Linv = sla.solve_triangular(L, np.eye(L.shape[0]), lower=True)  # small (k, k)
+    return V @ Linv.T
 
 
 # ----------------------------------------------------------------------------- reduced FRFs
