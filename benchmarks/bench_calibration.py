@@ -59,6 +59,7 @@ def main(argv=None) -> int:
     band = (100.0, 400.0)
     zeta0 = 0.01
     T = {}
+    CPU = {}  # main-process CPU (time.process_time); worker CPU is summed separately at the end
     tmp = Path(tempfile.mkdtemp(prefix="bench_cal_"))
     t0 = time.perf_counter()
     ex = femodel.example_subframe(tmp, target_dof=args.dof)
@@ -66,8 +67,10 @@ def main(argv=None) -> int:
     print(f"example: {ex.n_dof} DOF, {ex.n_elements} elements ({T['example deck']:.1f} s)", flush=True)
 
     t_model = time.perf_counter()
+    c_model = time.process_time()
     pm = femodel.parametric_model(ex.params)
     T["parametric model"] = time.perf_counter() - t_model
+    CPU["parametric model"] = time.process_time() - c_model
     print(f"parametric model: {pm.K.shape[0]} independent DOF ({T['parametric model']:.1f} s)", flush=True)
     g = np.asarray(pm.assembly.model.grid_ids)
     grids = g[np.linspace(3, len(g) - 10, 20).astype(int)]
@@ -83,9 +86,11 @@ def main(argv=None) -> int:
 
     # one nominal modal solution (the unit of the ratio)
     t = time.perf_counter()
+    c = time.process_time()
     K0, M0 = pm.stiffness(np.zeros(pm.n_params)), pm.mass(np.zeros(pm.n_params))
     md = femodel.normal_modes(K0, M0, 30)
     T["one nominal modal solution"] = time.perf_counter() - t
+    CPU["one nominal modal solution"] = time.process_time() - c
     del K0, M0
     print(f"nominal modes (30): {T['one nominal modal solution']:.1f} s ({md.solver})", flush=True)
 
@@ -116,18 +121,24 @@ def main(argv=None) -> int:
 
     executor = make_executor(workers=args.workers)
     t_cal = time.perf_counter()
+    c_cal = time.process_time()
     t = time.perf_counter()
+    c = time.process_time()
     sur0, T0 = build_surrogate(model, np.zeros(pm.n_params), band, enrich=True, enrich_tol=1e-4)
     T["basis + reduced terms"] = time.perf_counter() - t
+    CPU["basis + reduced terms"] = time.process_time() - c
     T["model, basis, gradients"] = T["parametric model"] + T["basis + reduced terms"]
+    CPU["model, basis, gradients"] = CPU["parametric model"] + CPU["basis + reduced terms"]
     print(f"surrogate: r = {sur0.size} ({len(sur0.basis_frequencies_hz)} modes, {sur0.n_static} static, "
           f"{sur0.n_enrich} enrichment) {T['basis + reduced terms']:.1f} s {sur0.timings_s}", flush=True)
     t = time.perf_counter()
+    c = time.process_time()
     obj = Objective(sur0, data, zeta0)
     lhs = latin_hypercube_starts(pm.lower, pm.upper, 200, seed=5)
     with single_thread():
         sds = [obj.sd(x) for x in lhs]
     T["200 LHS evaluations"] = time.perf_counter() - t
+    CPU["200 LHS evaluations"] = time.process_time() - c
     t = time.perf_counter()
     res = calibrate_cycles(model, data, band, pm.lower, pm.upper, zeta0, args.starts, 0, executor,
                            surrogate=sur0, basis=T0, continuation=cont, max_cycles=3, tol=1e-3,
@@ -135,18 +146,24 @@ def main(argv=None) -> int:
     T["LM (21 starts)"] = res.cycles[0]["fit_s"]
     T["re-basis cycles"] = sum(c["basis_s"] + c["fit_s"] for c in res.cycles[1:])
     T["calibration total"] = T["parametric model"] + (time.perf_counter() - t_cal)
+    CPU["calibration total (main process)"] = CPU["parametric model"] + (time.process_time() - c_cal)
     cal_only = time.perf_counter() - t_cal
     err = np.abs((1 + res.p) / (1 + p_true) - 1)
     print(f"calibration: SD {res.calibration.sd_nominal:.4g} -> {res.sd:.3g}; max |P/P_true - 1| = {err.max():.2e} "
           f"({cal_only:.1f} s after the model)", flush=True)
     n_ok = sum(np.abs((1 + o.p) / (1 + p_true) - 1).max() < 0.005 for o in res.calibration.outcomes)
     t = time.perf_counter()
+    c = time.process_time()
     val = validate(sur0, res.surrogate, res.p, raw, modes, zeta0, None, 0.6, "accelerance", band)
     T["hold-out validation"] = time.perf_counter() - t
+    CPU["hold-out validation"] = time.process_time() - c
     t = time.perf_counter()
     cv = cross_validate(res.surrogate, data, res.p, pm.lower, pm.upper, zeta0, args.realizations, 1, executor)
     T["cross-validation (10)"] = time.perf_counter() - t
     executor.close()
+    CPU["workers (all starts and CV)"] = resource.getrusage(resource.RUSAGE_CHILDREN).ru_utime + \
+        resource.getrusage(resource.RUSAGE_CHILDREN).ru_stime
+    CPU["main process total"] = time.process_time()
     T["overall"] = T["calibration total"] + T["hold-out validation"] + T["cross-validation (10)"]
     mem = peak_memory_gb()
 
@@ -159,13 +176,16 @@ def main(argv=None) -> int:
               "re-basis cycles"]:
         print(f"{k:<30}{'':>16}{T[k]:>15.1f}s")
     ratio = cal_only / T["one nominal modal solution"]
+    for k, v in CPU.items():
+        print(f"cpu: {k:<40}{v:>10.1f}s")
     print(f"calibration (after model) / one nominal modal solution: {ratio:.1f}")
     print(f"peak memory: {mem:.2f} GB; starts within 0.5 % of truth: {n_ok}/{len(res.calibration.outcomes)}; "
           f"hold-out SD {val.sd_nominal:.3g} -> {val.sd_calibrated:.3g}; CV RSE {cv.rse:.3g}")
     out = {
         "dof": int(pm.K.shape[0]), "grid_dof": int(ex.n_dof), "n_params": pm.n_params, "starts": args.starts + 1,
         "realizations": args.realizations, "cores": os.cpu_count(), "load_avg": os.getloadavg(),
-        "timings_s": T, "paper_s": PAPER, "calibration_over_modal": ratio, "peak_memory_gb": mem,
+        "cycles": [{k: v for k, v in c.items() if k != "p"} for c in res.cycles],
+        "timings_s": T, "cpu_s": CPU, "paper_s": PAPER, "calibration_over_modal": ratio, "peak_memory_gb": mem,
         "surrogate_size": sur0.size, "max_param_error": float(err.max()), "starts_within_0.5pct": int(n_ok),
         "sd_calibration": [res.calibration.sd_nominal, res.sd],
         "sd_validation": [val.sd_nominal, val.sd_calibrated], "rse": cv.rse,
