@@ -354,12 +354,13 @@ def _selection_map(T) -> np.ndarray:
     return amap
 
 
-def _to_aset(assembly, amap, m_g) -> sp.csr_matrix:
-    """A canonical g-set CSR matrix of element blocks as T^T A T on the a-set.
+def _to_aset(assembly, amap, m_g, drop_zeros: bool = False) -> sp.csr_matrix:
+    """A canonical g-set CSR matrix as T^T A T on the a-set.
 
     Where every involved row of T is a unit selection (or empty) and the
     selection keeps the g-set order, the entries map straight to a-set
-    indices (already in canonical order); otherwise the matrix is reduced.
+    indices (already in canonical order; exact zeros removed with
+    ``drop_zeros``); otherwise the matrix is reduced.
     """
     n_a = assembly.T.shape[1]
     rows = np.repeat(np.arange(m_g.shape[0]), np.diff(m_g.indptr))
@@ -369,9 +370,14 @@ def _to_aset(assembly, amap, m_g) -> sp.csr_matrix:
         ar, ac = ar[keep], ac[keep]
         if ar.size < 2 or np.all((np.diff(ar) > 0) | ((np.diff(ar) == 0) & (np.diff(ac) > 0))):
             indptr = np.concatenate([[0], np.cumsum(np.bincount(ar, minlength=n_a))])
-            return sp.csr_matrix((m_g.data[keep], ac.astype(m_g.indices.dtype), indptr.astype(m_g.indptr.dtype)),
-                                 shape=(n_a, n_a))
+            m = sp.csr_matrix((m_g.data[keep], ac.astype(m_g.indices.dtype), indptr.astype(m_g.indptr.dtype)),
+                              shape=(n_a, n_a))
+            if drop_zeros:
+                m.eliminate_zeros()
+            return m
         m = sp.csr_matrix((m_g.data[keep], (ar, ac)), shape=(n_a, n_a))
+        if drop_zeros:
+            m.eliminate_zeros()
     else:
         m = assembly.reduce(m_g)
     return _canonical(m)
@@ -523,7 +529,10 @@ def _grouped_terms(assembly, params: ParameterSet, kind: str, source, extra=(), 
     if not groups:
         groups[tuple([0] * len(params))] = sp.csr_matrix((assembly.T.shape[0],) * 2)
     rows = sorted(groups)
-    mats = [_canonical(assembly.reduce(groups[r])) for r in rows]
+    amap = _selection_map(assembly.T)
+    # assembly.reduce sums with the dependent-DOF products, which drops exact zeros; keep that pattern
+    drop_zeros = assembly.selection is None or (assembly.dependent is not None and assembly.dependent.size > 0)
+    mats = [_to_aset(assembly, amap, _canonical(groups[r]), drop_zeros) for r in rows]
     a = np.array(rows, dtype=float).reshape(len(rows), len(params))
     b = a.copy()
     ratio = np.zeros(len(rows))
