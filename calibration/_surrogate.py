@@ -433,15 +433,19 @@ def build_surrogate(
 
 
 def _local_terms(A: AffineMatrix) -> list:
-    """Per term: (rows, A_k[rows]) for sparse terms, (None, A_k) for dense ones (cached on ``A``)."""
+    """Per term: (rows, A_k[rows][:, rows]) for sparse terms, (None, A_k) for dense ones (cached on ``A``).
+
+    The terms are symmetric, so their non-zero columns are their non-zero rows
+    and ``A_k T`` needs only ``T[rows]`` (contiguous, cache-friendly).
+    """
     cached = A.__dict__.get("_local_rows")
     if cached is None:
         cached = []
         for m in A.matrices:
             if sp.issparse(m):
                 m = sp.csr_matrix(m)
-                rows = np.flatnonzero(np.diff(m.indptr))
-                cached.append((rows, m[rows]))
+                rows = np.flatnonzero(np.diff(m.indptr) | np.diff(sp.csc_matrix(m).indptr))
+                cached.append((rows, sp.csr_matrix(m[rows][:, rows])))
             else:
                 cached.append((None, np.asarray(m)))
         object.__setattr__(A, "_local_rows", cached)
@@ -464,7 +468,7 @@ def _derivative_loads(model: FRFModel, p, Phi: np.ndarray, lam: np.ndarray) -> n
             js = np.flatnonzero(d)
             if js.size == 0:
                 continue
-            Y = mk @ Phi  # (rows, m)
+            Y = mk @ (Phi if rows is None else Phi[rows])  # (rows, m)
             if scale is not None:
                 Y = -Y * scale[None, :]
             if rows is None:
@@ -486,7 +490,8 @@ def _projected(A: AffineMatrix, T: np.ndarray) -> AffineMatrix:
         if rows is None:
             r = T.T @ (mk @ T)
         else:
-            r = T[rows].T @ (mk @ T)
+            Tr = T[rows]
+            r = Tr.T @ (mk @ Tr)
         reduced.append(0.5 * (r + r.T))
     if getattr(A, "series_ratio", None) is not None:  # keep series (e.g. shell shear) coefficients exact
         return type(A)(tuple(reduced), A.exponents.copy(), A.series_exponents.copy(), A.series_ratio.copy())
