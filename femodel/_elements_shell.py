@@ -525,7 +525,7 @@ def shell_stiffness(xyz, dm, db, ds, k6rot, ids=None, residual_bending=True, dmb
 
 
 def _shell_stiffness(xyz, dm, db, ds, k6rot, ids=None, residual_bending=True, dmb=None, merge=None):
-    """:func:`shell_stiffness` with ``merge`` (see :func:`_batches`): terms that scale alike summed."""
+    """:func:`shell_stiffness` with ``merge`` (see :func:`_shell_stiffness_batches`): terms that scale alike summed."""
     xyz = _check_xyz(xyz, (3, 4), "shell")
     n, nn = xyz.shape[:2]
     out: dict[str, np.ndarray] = {}
