@@ -654,18 +654,18 @@ def surrogate_frf_jacobian(
     R = rho[None] * A + sig[None] * Bm
     n_p, m = A.shape[0], A.shape[1]
     n_f, n_in = w.size, v.shape[1]
-    # right factor diag(r) X^T B for every frequency: (m, n_f * n_in)
-    vr = (r.T[:, :, None] * v[:, None, :]).reshape(m, n_f * n_in)
+    # right factor diag(r) X^T B for every frequency: (m, n_f * n_in), complex C-contiguous
+    vr = np.ascontiguousarray((r.T[:, :, None] * v[:, None, :]).reshape(m, n_f * n_in))
     mats = np.concatenate([A, Bm, R], axis=0).reshape(3 * n_p * m, m)
-    # (contiguous real operands keep numpy on the BLAS path)
-    W = mats @ np.ascontiguousarray(vr.real) + 1j * (mats @ np.ascontiguousarray(vr.imag))
-    # W[(c, j, k), (f, i)] -> (f, k, (c, j, i)) for one batched product with C X diag(r)
-    W = np.ascontiguousarray(W.reshape(3 * n_p, m, n_f, n_in).transpose(2, 1, 0, 3)).reshape(n_f, m, 3 * n_p * n_in)
-    ur = u[None, :, :] * r[:, None, :]  # (n_f, n_out, m)
-    T3 = np.matmul(ur, W).reshape(n_f, -1, 3, n_p, n_in)  # (f, o, c, j, i)
-    w2 = (w**2)[:, None, None, None]
-    dH = -T3[:, :, 0] + w2 * T3[:, :, 1] - 1j * w[:, None, None, None] * T3[:, :, 2]  # (f, o, j, i)
-    dH = (dH * q[:, None, None, None]).transpose(2, 0, 1, 3)
+    # real operator times complex block as ONE real product on the interleaved (re, im) view
+    W = (mats @ vr.view(float)).view(complex).reshape(3 * n_p, m, n_f, n_in)
+    # left factor C X diag(r): scale W by r over (k, f), then contract k with the real C X
+    W *= r.T[None, :, :, None]
+    T3 = (u @ W.reshape(3 * n_p, m, -1).view(float)).view(complex)  # (3 n_p, n_out, n_f * n_in)
+    T3 = T3.reshape(3, n_p, -1, n_f, n_in)  # (c, j, o, f, i)
+    wf = w[None, None, :, None]
+    dH = (-T3[0] + wf**2 * T3[1] - 1j * wf * T3[2]) * q[None, None, :, None]  # (j, o, f, i)
+    dH = dH.transpose(0, 2, 1, 3)  # (j, f, o, i)
     return H, dH
 
 
