@@ -500,17 +500,25 @@ def _projected(A: AffineMatrix, T: np.ndarray) -> AffineMatrix:
 
 def _m_complement(V, Q, M, tol):
     """M-orthonormal basis of span(V) minus span(Q) (Q M-orthonormal), cut at ``tol``."""
-    for _ in range(2):
-        V = V - Q @ (Q.T @ (M @ V))
-    G = V.T @ (M @ V)
+    has_q = Q.shape[1] > 0
+    if has_q:  # (nothing to remove for an empty Q: skip the products)
+        for _ in range(2):
+            V = V - Q @ (Q.T @ (M @ V))
+    MV = M @ V
+    G = V.T @ MV
     G = 0.5 * (G + G.T)
     w, U = np.linalg.eigh(G)
     if w.size == 0 or w.max() <= 0:
         return V[:, :0]
     keep = w > tol * w.max()
-    V = V @ (U[:, keep] / np.sqrt(w[keep]))
-    V = V - Q @ (Q.T @ (M @ V))
-    G = V.T @ (M @ V)
+    Y = U[:, keep] / np.sqrt(w[keep])
+    V = V @ Y
+    if has_q:
+        V = V - Q @ (Q.T @ (M @ V))
+        MV = M @ V
+    else:
+        MV = MV @ Y
+    G = V.T @ MV
     L = np.linalg.cholesky(0.5 * (G + G.T))
     Linv = sla.solve_triangular(L, np.eye(L.shape[0]), lower=True)  # small (k, k)
     return V @ Linv.T
