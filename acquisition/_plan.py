@@ -320,3 +320,32 @@ def summarize_plan(plan: Plan, n_drives: int | None = None) -> str:
         + (" (excluding lines added by refinement)" if plan.refine.enabled else ""),
     ]
     return "\n".join(lines)
+
+
+def sim_plant_arrays(plan: "Plan"):
+    """The modal plant of a plan's ``[sim]`` section (inline ``[sim.modes]`` or a ``.npz`` model).
+
+    Returns
+    -------
+    frequencies_hz, damping, shapes_out, shapes_in : float arrays
+        As :class:`acquisition.ModalPlant` takes them.
+
+    Raises
+    ------
+    ValueError
+        No ``[sim]`` section, a missing model file or a missing array (named).
+    """
+    sim = plan.sim
+    if sim is None:
+        raise ValueError("the plan has no [sim] section: the simulated plant needs [sim.modes] or sim.model")
+    if sim.modes is not None:
+        m = sim.modes
+        return tuple(np.asarray(v, float) for v in (m.frequencies_hz, m.damping, m.shapes_out, m.shapes_in))
+    path = plan.resolve(sim.model)
+    try:
+        with np.load(path) as z:
+            return tuple(np.asarray(z[k], float) for k in ("frequencies_hz", "damping", "shapes_out", "shapes_in"))
+    except FileNotFoundError:
+        raise ValueError(f"sim.model: file {path} not found") from None
+    except KeyError as exc:
+        raise ValueError(f"sim.model {path}: missing array {exc}") from None

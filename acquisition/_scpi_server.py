@@ -688,25 +688,11 @@ def make_visa_driver(plant, **options):
 
 
 def _plan_plant(plan):
-    """The plant of a plan's ``[sim]`` section (inline modes or a ``.npz`` model), as ``--driver sim`` builds it."""
+    """The plant of a plan's ``[sim]`` section, as ``--driver sim`` builds it."""
+    from acquisition._plan import sim_plant_arrays
     from acquisition._plant import ModalPlant
 
-    sim = plan.sim
-    if sim is None:
-        raise ValueError("the plan has no [sim] section: the loopback lab needs the plant ([sim.modes] or sim.model)")
-    if sim.modes is not None:
-        m = sim.modes
-        return ModalPlant(np.asarray(m.frequencies_hz, float), np.asarray(m.damping, float),
-                          np.asarray(m.shapes_out, float), np.asarray(m.shapes_in, float))
-    path = plan.resolve(sim.model)
-    try:
-        with np.load(path) as z:
-            arrays = [np.asarray(z[k], float) for k in ("frequencies_hz", "damping", "shapes_out", "shapes_in")]
-    except FileNotFoundError:
-        raise ValueError(f"sim.model: file {path} not found") from None
-    except KeyError as exc:
-        raise ValueError(f"sim.model {path}: missing array {exc}") from None
-    return ModalPlant(*arrays)
+    return ModalPlant(*sim_plant_arrays(plan))
 
 
 def serve_plan(plan, *, drive: str | None = None, clock=None, noise_v_per_rthz: float = 20e-9,

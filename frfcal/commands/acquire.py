@@ -22,23 +22,10 @@ def _sim_factory(plan):
     import numpy as np
 
     from acquisition import ModalPlant, ShakerModel, SimulatedLab
+    from acquisition._plan import sim_plant_arrays
 
     sim = plan.sim
-    if sim is None:
-        raise ValueError("plan has no [sim] section: --driver sim needs the plant ([sim.modes] or sim.model)")
-    if sim.modes is not None:
-        m = sim.modes
-        fr, zeta = np.asarray(m.frequencies_hz, float), np.asarray(m.damping, float)
-        po, pi = np.asarray(m.shapes_out, float), np.asarray(m.shapes_in, float)
-    else:
-        path = plan.resolve(sim.model)
-        try:
-            with np.load(path) as z:
-                fr, zeta, po, pi = (np.asarray(z[k], float) for k in ("frequencies_hz", "damping", "shapes_out", "shapes_in"))
-        except FileNotFoundError:
-            raise ValueError(f"sim.model: file {path} not found") from None
-        except KeyError as exc:
-            raise ValueError(f"sim.model {path}: missing array {exc}") from None
+    fr, zeta, po, pi = sim_plant_arrays(plan)
     articles = list(plan.ensemble.articles)
 
     def make(article: str, drive_index: int, drive):
