@@ -39,23 +39,70 @@ class _Pattern:
         return sp.csr_matrix((data, self.indices, self.indptr), shape=self.shape)
 
 
+#: Term entries merged per chunk of rows in :func:`_shared_pattern` (keeps the
+#: temporaries small enough to be reused by the allocator instead of faulted in).
+_PATTERN_CHUNK = 1 << 21
+
+
 def _shared_pattern(matrices) -> _Pattern:
-    """Union CSR pattern of the terms (linear-time COO -> CSR) and each term's positions in it."""
+    """Union CSR pattern of canonical CSR terms and each term's positions in it.
+
+    Works on chunks of rows. In a chunk every term's keys ``row * n_col + col``
+    are already sorted, so a stable argsort of their concatenation merges
+    sorted runs; the union is the distinct keys and a term entry's position is
+    the rank of its key.
+    """
     n = matrices[0].shape
+    n_rows = int(n[0])
     ncol = np.int64(n[1])
-    rows = np.concatenate([np.repeat(np.arange(n[0], dtype=np.int32), np.diff(m.indptr)) for m in matrices])
-    cols = np.concatenate([m.indices for m in matrices])
-    pat = sp.csr_matrix((np.ones(rows.shape[0], dtype=np.int8), (rows, cols)), shape=n)
-    del rows, cols
-    pat.sum_duplicates()
-    pat.sort_indices()
-    keys = np.repeat(np.arange(n[0], dtype=np.int64), np.diff(pat.indptr)) * ncol + pat.indices
-    dtype = np.int32 if keys.shape[0] < 2**31 else np.int64
-    positions = []
-    for m in matrices:
-        k = np.repeat(np.arange(n[0], dtype=np.int64), np.diff(m.indptr)) * ncol + m.indices
-        positions.append(np.searchsorted(keys, k).astype(dtype))
-    return _Pattern(pat.indptr.copy(), pat.indices.copy(), n, tuple(positions))
+    indptrs = [np.asarray(m.indptr, dtype=np.int64) for m in matrices]
+    total = np.zeros(n_rows + 1, dtype=np.int64)
+    for ip in indptrs:
+        total += ip
+    n_entries = int(total[-1])
+    # union size <= entries; positions and indices fit int32 when the entries do
+    dtype = np.int32 if max(n_entries, int(n[1])) < 2**31 else np.int64
+    cuts = np.unique(np.concatenate([[0], np.searchsorted(total, np.arange(1, n_entries // _PATTERN_CHUNK + 1)
+                                                            * _PATTERN_CHUNK), [n_rows]]))
+    positions = [np.empty(m.indices.shape[0], dtype=dtype) for m in matrices]
+    counts = np.zeros(n_rows, dtype=np.int64)
+    indices_parts = []
+    base = 0
+    for r0, r1 in zip(cuts[:-1].tolist(), cuts[1:].tolist()):
+        if r1 <= r0:
+            continue
+        row_key = np.arange(r1 - r0, dtype=np.int64) * ncol
+        spans = [(int(ip[r0]), int(ip[r1])) for ip in indptrs]
+        keys = np.empty(sum(b - a for a, b in spans), dtype=np.int64)
+        s0 = 0
+        for m, ip, (a, b) in zip(matrices, indptrs, spans):
+            if b > a:
+                np.add(np.repeat(row_key, np.diff(ip[r0:r1 + 1])), m.indices[a:b], out=keys[s0:s0 + b - a])
+            s0 += b - a
+        if keys.shape[0] == 0:
+            continue
+        order = np.argsort(keys, kind="stable")
+        sk = keys[order]
+        new = np.empty(sk.shape[0], dtype=bool)
+        new[0] = True
+        np.not_equal(sk[1:], sk[:-1], out=new[1:])
+        ukeys = sk[new]
+        rank = np.cumsum(new, dtype=dtype)
+        rank += base - 1
+        pos = np.empty(order.shape[0], dtype=dtype)
+        pos[order] = rank
+        s0 = 0
+        for out, (a, b) in zip(positions, spans):
+            out[a:b] = pos[s0:s0 + b - a]
+            s0 += b - a
+        rows, cols = np.divmod(ukeys, ncol)
+        indices_parts.append(cols.astype(dtype))
+        counts[r0:r1] = np.bincount(rows, minlength=r1 - r0)
+        base += ukeys.shape[0]
+    indices = np.concatenate(indices_parts) if indices_parts else np.zeros(0, dtype=dtype)
+    indptr = np.zeros(n_rows + 1, dtype=dtype)
+    np.cumsum(counts, out=indptr[1:])
+    return _Pattern(indptr, indices, n, tuple(positions))
 
 
 def _canonical(m) -> sp.csr_matrix:
@@ -383,6 +430,124 @@ def _to_aset(assembly, amap, m_g, drop_zeros: bool = False) -> sp.csr_matrix:
     return _canonical(m)
 
 
+#: Element matrices scattered per call of ``np.add.at`` in :class:`_SubsetScatter`.
+_SCATTER_CHUNK = 2048
+_FAR = np.int64(1) << 40  # sentinel slot offset: entries on removed DOF
+
+
+class _SubsetScatter:
+    """Grid-pair blocks of a fixed element set, for summing selections of its elements.
+
+    :meth:`matrix` gives exactly what ``BlockPattern(nodes[sel], n_grids).matrix(ke)``
+    gives (same pattern, every entry summed in the same order), optionally
+    mapped straight to the a-set as :func:`_to_aset` maps it where T is an
+    order-keeping selection, without finding the selection's blocks again:
+    they are marked among the blocks of the whole set. Six DOF per grid.
+
+    Parameters
+    ----------
+    nodes : (n_el, nn) int
+        Grid rows of the elements.
+    n_grids : int
+    """
+
+    def __init__(self, nodes: np.ndarray, n_grids: int):
+        self.nodes = np.asarray(nodes, dtype=np.int64)
+        self.n_grids = int(n_grids)
+        n, nn = self.nodes.shape
+        keys = (self.nodes[:, :, None] * self.n_grids + self.nodes[:, None, :]).reshape(n, nn * nn)
+        ublocks, inv = np.unique(keys, return_inverse=True)
+        self.inv = inv.reshape(n, nn * nn)
+        self.brow = ublocks // self.n_grids
+        self.bcol = ublocks % self.n_grids
+        self.bptr = np.concatenate([[0], np.cumsum(np.bincount(self.brow, minlength=self.n_grids))])
+        self._set_map(np.arange(6 * self.n_grids, dtype=np.int64), 6 * self.n_grids)
+
+    def _set_map(self, amap: np.ndarray, n_out: int) -> None:
+        kept = (amap >= 0).reshape(self.n_grids, 6)
+        self.amap = amap
+        self.n_out = int(n_out)
+        self.krow = np.flatnonzero(kept.ravel())
+        self.width = kept.sum(axis=1)[self.bcol]  # kept columns of each block
+        jrank = np.cumsum(kept, axis=1) - 1
+        self.jrank = np.where(kept, jrank, _FAR).ravel()  # rank of a kept DOF among its grid's kept DOF
+
+    def to_aset(self, amap: np.ndarray, n_a: int):
+        """The same element set with output on the a-set, or None where that is not a plain selection.
+
+        ``amap`` as :func:`_selection_map`; the direct map needs every DOF of
+        the elements to be kept (>= 0) or removed (-1), and the kept DOF in
+        g-set order (then the rows and columns stay sorted).
+        """
+        amap = np.asarray(amap, dtype=np.int64)
+        dofs = (6 * self.nodes[:, :, None] + np.arange(6)).ravel()
+        kept = amap[amap >= 0]
+        if np.any(amap[dofs] < -1) or np.any(np.diff(kept) <= 0):
+            return None
+        out = object.__new__(_SubsetScatter)
+        out.__dict__.update(self.__dict__)
+        out._set_map(np.where(amap >= 0, amap, -1), n_a)
+        return out
+
+    def matrix(self, sel: np.ndarray, element_matrices) -> sp.csr_matrix:
+        """Sum of the element matrices of entries ``sel`` (m,) (element indices, repeats allowed).
+
+        ``element_matrices(lo, hi)`` returns the (hi - lo, 6nn, 6nn) matrices of
+        entries lo..hi of ``sel``; they are summed in entry order.
+        """
+        d = 6
+        m, nn = sel.shape[0], self.nodes.shape[1]
+        nb = self.brow.shape[0]
+        inv = self.inv[sel]
+        mark = np.zeros(nb, dtype=bool)
+        mark[inv.ravel()] = True
+        # csw[k]: output entries per row in the selected blocks before block k
+        csw = np.zeros(nb + 1, dtype=np.int64)
+        np.cumsum(np.where(mark, self.width, 0), out=csw[1:])
+        row_len = csw[self.bptr[1:]] - csw[self.bptr[:-1]]
+        out_len = np.zeros(self.n_out, dtype=np.int64)
+        out_len[self.amap[self.krow]] = row_len[self.krow // 6]
+        indptr = np.zeros(self.n_out + 1, dtype=np.int64)
+        np.cumsum(out_len, out=indptr[1:])
+        nnz = int(indptr[-1])
+        idx_t = np.int32 if max(nnz, self.n_out) < 2**31 - 1 else np.int64
+        row_start = np.full(6 * self.n_grids, _FAR, dtype=np.int64)
+        row_start[self.krow] = indptr[self.amap[self.krow]]
+        i = np.arange(d)
+        k = np.flatnonzero(mark)
+        br = self.brow[k]
+        cols = (6 * self.bcol[k])[:, None] + i[None, :]  # (K, d)
+        pos = (row_start[(6 * br)[:, None] + i[None, :]][:, :, None]
+               + (csw[k] - csw[self.bptr[br]])[:, None, None] + self.jrank[cols][:, None, :])  # (K, d, d)
+        ok = pos < _FAR
+        indices = np.empty(nnz, idx_t)
+        indices[pos[ok]] = np.broadcast_to(self.amap[cols][:, None, :], pos.shape)[ok]
+        del pos, ok
+        data = None
+        for lo in range(0, m, _SCATTER_CHUNK):
+            hi = min(m, lo + _SCATTER_CHUNK)
+            nod = self.nodes[sel[lo:hi]]
+            dofs = 6 * nod[:, :, None] + i[None, None, :]  # (c, nn, d)
+            rows = row_start[dofs]
+            # slot of (node a, row i, node b, col j) = start of row (a, i) + offset of block (a, b) + rank of col j
+            off = ((csw[inv[lo:hi]].reshape(hi - lo, nn, nn) - csw[self.bptr[nod]][:, :, None])[:, :, :, None]
+                   + self.jrank[dofs][:, None, :, :])  # (c, nn, nn, d)
+            emap = np.empty((hi - lo, nn, d, nn, d), dtype=np.intp)
+            np.add(rows[:, :, :, None, None], off[:, :, None, :, :], out=emap)
+            if np.any(rows >= _FAR) or np.any(off >= _FAR):
+                np.minimum(emap, nnz, out=emap)  # entries on removed DOF -> one spare slot
+            ke = np.ascontiguousarray(element_matrices(lo, hi), dtype=float)
+            if data is None and hi == m:
+                data = np.bincount(emap.ravel(), weights=ke.ravel(), minlength=nnz + 1)
+            else:
+                if data is None:
+                    data = np.zeros(nnz + 1)
+                np.add.at(data, emap.ravel(), ke.ravel())
+        if data is None:
+            data = np.zeros(nnz + 1)
+        return sp.csr_matrix((data[:nnz], indices, indptr), shape=(self.n_out, self.n_out))
+
+
 def _shell_shear_series(assembly, params: ParameterSet, key_index: dict):
     """Exact parametric form of shell transverse shear with residual bending flexibility.
 
@@ -398,7 +563,7 @@ def _shell_shear_series(assembly, params: ParameterSet, key_index: dict):
       coefficient of :class:`SeriesAffineMatrix`, elements grouped by equal
       (rows, ratio) per direction.
     """
-    from femodel._assembly import BlockPattern, _to_cd
+    from femodel._assembly import _to_cd
     from femodel._elements_shell import RESIDUAL_BENDING_COEFF, _bending_lengths, _unit_shear, shell_frames
 
     fe = assembly.model
@@ -449,33 +614,49 @@ def _shell_shear_series(assembly, params: ParameterSet, key_index: dict):
         _, xy, _ = shell_frames(xyz, tab.ids[idx])
         L = _bending_lengths(xy)
         # the shear term per direction for unit shear stiffness (only the shear kernel is evaluated)
-        unit = tuple(_to_cd(u, nodes, cd_axes, 6) for u in _unit_shear(xyz, tab.ids[idx]))
-        ea = np.zeros((n, n_par))
-        eb = np.zeros((n, n_par))
-        for e_, j_, w_ in ((ea, jt, 1), (ea, ja, 1), (eb, jt, 3), (eb, jb, 1)):
-            ok = j_[idx] >= 0
-            np.add.at(e_, (np.flatnonzero(ok), j_[idx][ok]), w_)
+        unit = [_to_cd(u, nodes, cd_axes, 6) for u in _unit_shear(xyz, tab.ids[idx])]
+        # exponent rows depend on (jt, ja, jb) only: form them per distinct triple
+        code = np.column_stack([jt[idx], ja[idx], jb[idx]])
+        triples, tinv = np.unique(code, axis=0, return_inverse=True)
+        tinv = tinv.ravel()
+        ea_t = np.zeros((triples.shape[0], n_par))
+        eb_t = np.zeros((triples.shape[0], n_par))
+        for e_, col, w_ in ((ea_t, 0, 1), (ea_t, 1, 1), (eb_t, 0, 3), (eb_t, 2, 1)):
+            ok = triples[:, col] >= 0
+            np.add.at(e_, (np.flatnonzero(ok), triples[ok, col]), w_)
         w0s, ratios = [], []
         for i in range(2):
             b0 = 12.0 * dbd / (coeff * L[:, i] ** 2)
             w0s.append(1.0 / (1.0 / a0 + 1.0 / b0))
             ratios.append(a0 / b0)
         ratio = np.concatenate(ratios)
+        # element shear matrices w0 U_i (in place: the unit matrices are not needed otherwise)
+        for i in range(2):
+            unit[i] *= w0s[i][:, None, None]
+        scatter = _SubsetScatter(nodes, fe.n_grids)
+        direct = scatter.to_aset(amap, assembly.T.shape[1])
 
         def contrib(sel):
-            """Element shear matrices w0 U_i of entries ``sel`` of the (direction, element) list and their grids."""
+            """(elements, element-matrix callback) of entries ``sel`` (sorted) of the (direction, element) list."""
             d, e = np.divmod(sel, n)
-            out = np.empty((sel.size,) + unit[0].shape[1:])
-            for i in range(2):
-                on = d == i
-                out[on] = unit[i][e[on]] * w0s[i][e[on]][:, None, None]
-            return out, nodes[e]
+            cut = int(np.searchsorted(d, 1))
 
-        ea2, eb2 = np.tile(ea, (2, 1)), np.tile(eb, (2, 1))
-        urows, rinv = np.unique(np.column_stack([ea2, eb2]), axis=0, return_inverse=True)
-        rinv = rinv.ravel()
-        for g in range(urows.shape[0]):
+            def ke(lo, hi):
+                out = np.empty((hi - lo,) + unit[0].shape[1:])
+                a, b = min(lo, cut), min(hi, cut)
+                np.take(unit[0], e[a:b], axis=0, out=out[:b - a])
+                a, b = max(lo, cut), max(hi, cut)
+                np.take(unit[1], e[a:b], axis=0, out=out[hi - lo - (b - a):])
+                return out
+
+            return e, ke
+
+        urows_t, gtinv = np.unique(np.column_stack([ea_t, eb_t]), axis=0, return_inverse=True)
+        rinv = np.tile(gtinv.ravel()[tinv], 2)
+        for g in range(urows_t.shape[0]):
             members = np.flatnonzero(rinv == g)
+            if members.size == 0:
+                continue
             logr = np.log(ratio[members])
             levels, linv = np.unique(np.round(logr, 12), return_inverse=True)
             linv = linv.ravel()
@@ -483,25 +664,33 @@ def _shell_shear_series(assembly, params: ParameterSet, key_index: dict):
                 # irregular mesh: bin log(r); the representative ratio is the bin's log-midpoint
                 edges = np.linspace(logr.min(), logr.max(), MAX_SERIES_TERMS_PER_GROUP + 1)
                 linv = np.clip(np.searchsorted(edges, logr, side="right") - 1, 0, MAX_SERIES_TERMS_PER_GROUP - 1)
-            for b in np.unique(linv):
-                sel = members[linv == b]
+            border = np.argsort(linv, kind="stable")
+            _, bstart = np.unique(linv[border], return_index=True)
+            bstop = np.append(bstart[1:], border.size)
+            for b0_, b1_ in zip(bstart, bstop):
+                sel = members[border[b0_:b1_]]
                 lr = np.log(ratio[sel])
                 r_rep = float(np.exp(0.5 * (lr.min() + lr.max())))
                 if lr.max() - lr.min() > 1e-11:
-                    errors.append(_series_error(ratio[sel], r_rep, urows[g, :n_par], urows[g, n_par:],
+                    errors.append(_series_error(ratio[sel], r_rep, urows_t[g, :n_par], urows_t[g, n_par:],
                                                 params.lower, params.upper))
-                ke, nod = contrib(sel)
-                series.append((urows[g, :n_par], urows[g, n_par:], r_rep,
-                               _to_aset(assembly, amap, BlockPattern(nod, fe.n_grids).matrix(ke))))
+                els, ke = contrib(sel)
+                m_a = direct.matrix(els, ke) if direct is not None else _to_aset(assembly, amap, scatter.matrix(els, ke))
+                series.append((urows_t[g, :n_par], urows_t[g, n_par:], r_rep, m_a))
         # remove the nominal shear from the monomial term it was assembled in (exponent row a)
-        urows, inv = np.unique(ea, axis=0, return_inverse=True)
-        inv = inv.ravel()
-        for g in range(urows.shape[0]):
+        urows_a, ginv = np.unique(ea_t, axis=0, return_inverse=True)
+        inv = ginv.ravel()[tinv]
+        for g in range(urows_a.shape[0]):
             sel = np.flatnonzero(inv == g)
-            k0, nod = contrib(sel)
-            k1, _ = contrib(sel + n)
-            m = BlockPattern(nod, fe.n_grids).matrix(-(k0 + k1))
-            corrections.append((urows[g], m))
+            if sel.size == 0:
+                continue
+
+            def ke(lo, hi, sel=sel):
+                k = np.take(unit[0], sel[lo:hi], axis=0)
+                k += np.take(unit[1], sel[lo:hi], axis=0)
+                return np.negative(k, out=k)
+
+            corrections.append((urows_a[g], scatter.matrix(sel, ke)))
     return corrections, series, float(max(errors, default=0.0))
 
 
