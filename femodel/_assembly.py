@@ -393,10 +393,9 @@ def assemble(model: FEModel) -> Assembly:
     t2 = time.perf_counter()
     n = len(gset)
     kl = [t.matrix for t in terms if t.kind == "K"]
-    ml = [t.matrix for t in terms if t.kind == "M"]
     kg = _tree_sum(kl).tocsr() if kl else sp.csr_matrix((n, n))
-    mg = _tree_sum(ml).tocsr() if ml else sp.csr_matrix((n, n))
-    T, aset, auto, selection, dep, ddep = constraint_transformation(model, gset, kg, mg)
+    # T needs the stiffness only (AUTOSPC); the mass sum is formed when first asked for (Assembly.mass_g)
+    T, aset, auto, selection, dep, ddep = constraint_transformation(model, gset, kg, None)
     t3 = time.perf_counter()
     asm = Assembly(
         model=model,
@@ -410,9 +409,8 @@ def assemble(model: FEModel) -> Assembly:
         dependent=dep,
         dependent_rows=ddep,
     )
-    # seed the cached sums with the matrices already formed
+    # seed the cached stiffness sum with the matrix already formed
     asm.__dict__["_kg"] = kg
-    asm.__dict__["_mg"] = mg
     return asm
 
 

@@ -12,6 +12,7 @@ vectors: no reassembly, no sparse-matrix algebra.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -41,7 +42,7 @@ class _Pattern:
 
 #: Term entries merged per chunk of rows in :func:`_shared_pattern` (keeps the
 #: temporaries small enough to be reused by the allocator instead of faulted in).
-_PATTERN_CHUNK = 1 << 21
+_PATTERN_CHUNK = 1 << 20
 
 
 def _shared_pattern(matrices) -> _Pattern:
@@ -68,31 +69,39 @@ def _shared_pattern(matrices) -> _Pattern:
     counts = np.zeros(n_rows, dtype=np.int64)
     indices_parts = []
     base = 0
+    # work arrays reused by every chunk (fresh memory is expensive to fault in)
+    size = int(np.max(np.diff(total[cuts]), initial=0))
+    keys_buf = np.empty(size, dtype=np.int64)
+    sk_buf = np.empty(size, dtype=np.int64)
+    new_buf = np.empty(size, dtype=bool)
+    rank_buf = np.empty(size, dtype=dtype)
+    pos_buf = np.empty(size, dtype=dtype)
     for r0, r1 in zip(cuts[:-1].tolist(), cuts[1:].tolist()):
-        if r1 <= r0:
+        n_chunk = int(total[r1] - total[r0])
+        if r1 <= r0 or n_chunk == 0:
             continue
         row_key = np.arange(r1 - r0, dtype=np.int64) * ncol
-        spans = [(int(ip[r0]), int(ip[r1])) for ip in indptrs]
-        keys = np.empty(sum(b - a for a, b in spans), dtype=np.int64)
+        keys = keys_buf[:n_chunk]
         s0 = 0
-        for m, ip, (a, b) in zip(matrices, indptrs, spans):
+        for m, ip in zip(matrices, indptrs):
+            a, b = int(ip[r0]), int(ip[r1])
             if b > a:
                 np.add(np.repeat(row_key, np.diff(ip[r0:r1 + 1])), m.indices[a:b], out=keys[s0:s0 + b - a])
             s0 += b - a
-        if keys.shape[0] == 0:
-            continue
         order = np.argsort(keys, kind="stable")
-        sk = keys[order]
-        new = np.empty(sk.shape[0], dtype=bool)
+        sk = np.take(keys, order, out=sk_buf[:n_chunk])
+        new = new_buf[:n_chunk]
         new[0] = True
         np.not_equal(sk[1:], sk[:-1], out=new[1:])
         ukeys = sk[new]
-        rank = np.cumsum(new, dtype=dtype)
+        rank = np.cumsum(new, dtype=dtype, out=rank_buf[:n_chunk])
         rank += base - 1
-        pos = np.empty(order.shape[0], dtype=dtype)
+        pos = pos_buf[:n_chunk]
         pos[order] = rank
+        del order
         s0 = 0
-        for out, (a, b) in zip(positions, spans):
+        for out, ip in zip(positions, indptrs):
+            a, b = int(ip[r0]), int(ip[r1])
             out[a:b] = pos[s0:s0 + b - a]
             s0 += b - a
         rows, cols = np.divmod(ukeys, ncol)
@@ -410,6 +419,31 @@ def _to_aset(assembly, amap, m_g, drop_zeros: bool = False) -> sp.csr_matrix:
     ``drop_zeros``); otherwise the matrix is reduced.
     """
     n_a = assembly.T.shape[1]
+    kept_rows = np.flatnonzero(amap >= 0)
+    if kept_rows.size and np.all(np.diff(amap[kept_rows]) > 0):
+        # order-keeping selection: a row's kept entries stay sorted, rows keep their order
+        row_len = np.diff(m_g.indptr)
+        if np.all(amap[row_len > 0] >= -1):
+            ac = amap.astype(np.int32)[m_g.indices] if n_a < 2**31 else amap[m_g.indices]
+            if ac.size == 0 or ac.min() >= -1:
+                keep = ac >= 0
+                keep &= np.repeat(amap >= 0, row_len)
+                if drop_zeros:
+                    keep &= m_g.data != 0.0
+                count = np.zeros(n_a, dtype=np.int64)
+                n_keep = int(np.count_nonzero(keep))
+                if n_keep < keep.size // 8:  # few entries kept (e.g. a lumped mass on full blocks)
+                    at = np.flatnonzero(keep)
+                    rows = np.searchsorted(m_g.indptr, at, side="right") - 1
+                    count[amap[kept_rows]] = np.bincount(rows, minlength=m_g.shape[0])[kept_rows]
+                else:
+                    cs = np.zeros(keep.size + 1, dtype=np.int64)
+                    np.cumsum(keep, out=cs[1:])
+                    count[amap[kept_rows]] = cs[m_g.indptr[kept_rows + 1]] - cs[m_g.indptr[kept_rows]]
+                    at = keep
+                indptr = np.zeros(n_a + 1, dtype=m_g.indptr.dtype)
+                np.cumsum(count, out=indptr[1:])
+                return sp.csr_matrix((m_g.data[at], ac[at].astype(m_g.indices.dtype), indptr), shape=(n_a, n_a))
     rows = np.repeat(np.arange(m_g.shape[0]), np.diff(m_g.indptr))
     ar, ac = amap[rows], amap[m_g.indices]
     if np.all(ar >= -1) and np.all(ac >= -1):
@@ -548,7 +582,7 @@ class _SubsetScatter:
         return sp.csr_matrix((data[:nnz], indices, indptr), shape=(self.n_out, self.n_out))
 
 
-def _shell_shear_series(assembly, params: ParameterSet, key_index: dict):
+def _shell_shear_series(assembly, params: ParameterSet, key_index: dict, prepared=None):
     """Exact parametric form of shell transverse shear with residual bending flexibility.
 
     The shell kernel puts the transverse shear stiffness G ts t of each element
@@ -562,20 +596,94 @@ def _shell_shear_series(assembly, params: ParameterSet, key_index: dict):
     * ``series``: (a row, b row, ratio, a-set matrix) terms with the exact
       coefficient of :class:`SeriesAffineMatrix`, elements grouped by equal
       (rows, ratio) per direction.
+
+    ``prepared`` is :func:`_shell_shear_elements` of the assembly's model (formed here when None).
+    """
+    if prepared is None:
+        prepared = _shell_shear_elements(assembly.model, params, key_index)
+    n_par = len(params)
+    amap = _selection_map(assembly.T)
+    corrections, series, errors = [], [], []
+    for n, unit, ratio, scatter, urows_t, gtinv, tinv, ea_t in prepared:
+        direct = scatter.to_aset(amap, assembly.T.shape[1])
+
+        def contrib(sel):
+            """(elements, element-matrix callback) of entries ``sel`` (sorted) of the (direction, element) list."""
+            d, e = np.divmod(sel, n)
+            cut = int(np.searchsorted(d, 1))
+
+            def ke(lo, hi):
+                out = np.empty((hi - lo,) + unit[0].shape[1:])
+                a, b = min(lo, cut), min(hi, cut)
+                np.take(unit[0], e[a:b], axis=0, out=out[:b - a])
+                a, b = max(lo, cut), max(hi, cut)
+                np.take(unit[1], e[a:b], axis=0, out=out[hi - lo - (b - a):])
+                return out
+
+            return e, ke
+
+        rinv = np.tile(gtinv.ravel()[tinv], 2)
+        for g in range(urows_t.shape[0]):
+            members = np.flatnonzero(rinv == g)
+            if members.size == 0:
+                continue
+            logr = np.log(ratio[members])
+            levels, linv = np.unique(np.round(logr, 12), return_inverse=True)
+            linv = linv.ravel()
+            if levels.size > MAX_SERIES_TERMS_PER_GROUP:
+                # irregular mesh: bin log(r); the representative ratio is the bin's log-midpoint
+                edges = np.linspace(logr.min(), logr.max(), MAX_SERIES_TERMS_PER_GROUP + 1)
+                linv = np.clip(np.searchsorted(edges, logr, side="right") - 1, 0, MAX_SERIES_TERMS_PER_GROUP - 1)
+            border = np.argsort(linv, kind="stable")
+            _, bstart = np.unique(linv[border], return_index=True)
+            bstop = np.append(bstart[1:], border.size)
+            for b0_, b1_ in zip(bstart, bstop):
+                sel = members[border[b0_:b1_]]
+                lr = np.log(ratio[sel])
+                r_rep = float(np.exp(0.5 * (lr.min() + lr.max())))
+                if lr.max() - lr.min() > 1e-11:
+                    errors.append(_series_error(ratio[sel], r_rep, urows_t[g, :n_par], urows_t[g, n_par:],
+                                                params.lower, params.upper))
+                els, ke = contrib(sel)
+                m_a = direct.matrix(els, ke) if direct is not None else _to_aset(assembly, amap, scatter.matrix(els, ke))
+                series.append((urows_t[g, :n_par], urows_t[g, n_par:], r_rep, m_a))
+        # remove the nominal shear from the monomial term it was assembled in (exponent row a)
+        urows_a, ginv = np.unique(ea_t, axis=0, return_inverse=True)
+        inv = ginv.ravel()[tinv]
+        for g in range(urows_a.shape[0]):
+            sel = np.flatnonzero(inv == g)
+            if sel.size == 0:
+                continue
+
+            def ke(lo, hi, sel=sel):
+                k = np.take(unit[0], sel[lo:hi], axis=0)
+                k += np.take(unit[1], sel[lo:hi], axis=0)
+                return np.negative(k, out=k)
+
+            corrections.append((urows_a[g], scatter.matrix(sel, ke)))
+    return corrections, series, float(max(errors, default=0.0))
+
+
+def _shell_shear_elements(fe, params: ParameterSet, key_index: dict) -> list:
+    """The model-only part of :func:`_shell_shear_series` (no assembly needed).
+
+    Per shell card with elements whose shear is a series term: (n elements,
+    [w0_x U_x, w0_y U_y] element matrices (n, 6nn, 6nn) in the grids' CD
+    systems, ratios r (2n,), their :class:`_SubsetScatter`, the distinct
+    (a, b) exponent rows, the row of each (jt, ja, jb) triple, the triple of
+    each element, the a rows of the triples).
     """
     from femodel._assembly import _to_cd
     from femodel._elements_shell import RESIDUAL_BENDING_COEFF, _bending_lengths, _unit_shear, shell_frames
 
-    fe = assembly.model
     coeff = float(RESIDUAL_BENDING_COEFF)
     prop = fe.properties.get("PSHELL")
     mat = fe.materials.get("MAT1")
     n_par = len(params)
     if coeff == 0.0 or prop is None or mat is None:
-        return [], [], 0.0
+        return []
     cd_axes = fe.cd_axes() if np.any(fe.cd != 0) else None
-    amap = _selection_map(assembly.T)
-    corrections, series, errors = [], [], []
+    out = []
     for card in ("CQUAD4", "CTRIA3"):
         tab = fe.elements.get(card)
         if tab is None or len(tab) == 0:
@@ -634,64 +742,9 @@ def _shell_shear_series(assembly, params: ParameterSet, key_index: dict):
         for i in range(2):
             unit[i] *= w0s[i][:, None, None]
         scatter = _SubsetScatter(nodes, fe.n_grids)
-        direct = scatter.to_aset(amap, assembly.T.shape[1])
-
-        def contrib(sel):
-            """(elements, element-matrix callback) of entries ``sel`` (sorted) of the (direction, element) list."""
-            d, e = np.divmod(sel, n)
-            cut = int(np.searchsorted(d, 1))
-
-            def ke(lo, hi):
-                out = np.empty((hi - lo,) + unit[0].shape[1:])
-                a, b = min(lo, cut), min(hi, cut)
-                np.take(unit[0], e[a:b], axis=0, out=out[:b - a])
-                a, b = max(lo, cut), max(hi, cut)
-                np.take(unit[1], e[a:b], axis=0, out=out[hi - lo - (b - a):])
-                return out
-
-            return e, ke
-
         urows_t, gtinv = np.unique(np.column_stack([ea_t, eb_t]), axis=0, return_inverse=True)
-        rinv = np.tile(gtinv.ravel()[tinv], 2)
-        for g in range(urows_t.shape[0]):
-            members = np.flatnonzero(rinv == g)
-            if members.size == 0:
-                continue
-            logr = np.log(ratio[members])
-            levels, linv = np.unique(np.round(logr, 12), return_inverse=True)
-            linv = linv.ravel()
-            if levels.size > MAX_SERIES_TERMS_PER_GROUP:
-                # irregular mesh: bin log(r); the representative ratio is the bin's log-midpoint
-                edges = np.linspace(logr.min(), logr.max(), MAX_SERIES_TERMS_PER_GROUP + 1)
-                linv = np.clip(np.searchsorted(edges, logr, side="right") - 1, 0, MAX_SERIES_TERMS_PER_GROUP - 1)
-            border = np.argsort(linv, kind="stable")
-            _, bstart = np.unique(linv[border], return_index=True)
-            bstop = np.append(bstart[1:], border.size)
-            for b0_, b1_ in zip(bstart, bstop):
-                sel = members[border[b0_:b1_]]
-                lr = np.log(ratio[sel])
-                r_rep = float(np.exp(0.5 * (lr.min() + lr.max())))
-                if lr.max() - lr.min() > 1e-11:
-                    errors.append(_series_error(ratio[sel], r_rep, urows_t[g, :n_par], urows_t[g, n_par:],
-                                                params.lower, params.upper))
-                els, ke = contrib(sel)
-                m_a = direct.matrix(els, ke) if direct is not None else _to_aset(assembly, amap, scatter.matrix(els, ke))
-                series.append((urows_t[g, :n_par], urows_t[g, n_par:], r_rep, m_a))
-        # remove the nominal shear from the monomial term it was assembled in (exponent row a)
-        urows_a, ginv = np.unique(ea_t, axis=0, return_inverse=True)
-        inv = ginv.ravel()[tinv]
-        for g in range(urows_a.shape[0]):
-            sel = np.flatnonzero(inv == g)
-            if sel.size == 0:
-                continue
-
-            def ke(lo, hi, sel=sel):
-                k = np.take(unit[0], sel[lo:hi], axis=0)
-                k += np.take(unit[1], sel[lo:hi], axis=0)
-                return np.negative(k, out=k)
-
-            corrections.append((urows_a[g], scatter.matrix(sel, ke)))
-    return corrections, series, float(max(errors, default=0.0))
+        out.append((n, unit, ratio, scatter, urows_t, gtinv, tinv, ea_t))
+    return out
 
 
 def _grouped_terms(assembly, params: ParameterSet, kind: str, source, extra=(), series=()):
@@ -789,9 +842,15 @@ def parametric_model(params, bdf=None, *, units: str | None = None, allow_unsupp
     if bdf is None:
         raise ParameterError(f"{source or 'parameters'}: no deck given and no [model] bdf in the parameter file")
     units = units or params.units or "si"
+    key_index = _key_index(params)
+    shear_elements = None
     if assembly is None:
         fe = read_bdf(bdf, units=units, allow_unsupported=allow_unsupported)
-        assembly = assemble(fe)
+        # the shell shear series' element matrices need the model only: formed while it is assembled
+        # (numpy releases the GIL in the kernels; each thread keeps its own summation order)
+        with ThreadPoolExecutor(max_workers=1) as pool:
+            shear_elements = pool.submit(_shell_shear_elements, fe, params, key_index)
+            assembly = assemble(fe)
     fe = assembly.model
     nominal_values = _nominal_from_model(params, fe, source)
 
@@ -810,7 +869,8 @@ def parametric_model(params, bdf=None, *, units: str | None = None, allow_unsupp
             )
 
     _check_element_thickness(params, fe, source)
-    corrections, series, series_error = _shell_shear_series(assembly, params, _key_index(params))
+    prepared = shear_elements.result() if shear_elements is not None else None
+    corrections, series, series_error = _shell_shear_series(assembly, params, key_index, prepared)
     kmats, ka, kb, kr = _grouped_terms(assembly, params, "K", source, corrections, series)
     mmats, ma, _, _ = _grouped_terms(assembly, params, "M", source)
     K = SeriesAffineMatrix(tuple(kmats), ka, kb, kr) if series else AffineMatrix(tuple(kmats), ka)
