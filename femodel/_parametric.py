@@ -582,7 +582,7 @@ class _SubsetScatter:
         return sp.csr_matrix((data[:nnz], indices, indptr), shape=(self.n_out, self.n_out))
 
 
-def _shell_shear_series(assembly, params: ParameterSet, key_index: dict, prepared=None):
+def _shell_shear_series(assembly, params: ParameterSet, prepared: list):
     """Exact parametric form of shell transverse shear with residual bending flexibility.
 
     The shell kernel puts the transverse shear stiffness G ts t of each element
@@ -603,7 +603,7 @@ def _shell_shear_series(assembly, params: ParameterSet, key_index: dict, prepare
         prepared = _shell_shear_elements(assembly.model, params, key_index)
     n_par = len(params)
     amap = _selection_map(assembly.T)
-    corrections, series, errors = [], [], []
+    series, errors = [], []
     for n, unit, ratio, scatter, urows_t, gtinv, tinv, ea_t in prepared:
         direct = scatter.to_aset(amap, assembly.T.shape[1])
 
@@ -647,7 +647,17 @@ def _shell_shear_series(assembly, params: ParameterSet, key_index: dict, prepare
                 els, ke = contrib(sel)
                 m_a = direct.matrix(els, ke) if direct is not None else _to_aset(assembly, amap, scatter.matrix(els, ke))
                 series.append((urows_t[g, :n_par], urows_t[g, n_par:], r_rep, m_a))
-        # remove the nominal shear from the monomial term it was assembled in (exponent row a)
+    return series, float(max(errors, default=0.0))
+
+
+def _shell_shear_corrections(prepared: list) -> list:
+    """(exponent row, g-set matrix) pairs that remove the nominal shell shear from the monomial terms.
+
+    The assembly puts each element's nominal shear in the monomial term of its
+    a row (G t or E t); :func:`_shell_shear_series` carries it instead.
+    """
+    corrections = []
+    for n, unit, ratio, scatter, urows_t, gtinv, tinv, ea_t in prepared:
         urows_a, ginv = np.unique(ea_t, axis=0, return_inverse=True)
         inv = ginv.ravel()[tinv]
         for g in range(urows_a.shape[0]):
@@ -661,7 +671,7 @@ def _shell_shear_series(assembly, params: ParameterSet, key_index: dict, prepare
                 return np.negative(k, out=k)
 
             corrections.append((urows_a[g], scatter.matrix(sel, ke)))
-    return corrections, series, float(max(errors, default=0.0))
+    return corrections
 
 
 def _shell_shear_elements(fe, params: ParameterSet, key_index: dict) -> list:
@@ -778,8 +788,13 @@ def _grouped_terms(assembly, params: ParameterSet, kind: str, source, extra=(), 
     a = np.array(rows, dtype=float).reshape(len(rows), len(params))
     b = a.copy()
     ratio = np.zeros(len(rows))
+    return _with_series(mats, a, b, ratio, series)
+
+
+def _with_series(mats, a, b, ratio, series):
+    """Append (a row, b row, ratio, a-set matrix) series terms to grouped terms."""
     if series:  # already on the a-set
-        mats += [m for _, _, _, m in series]
+        mats = list(mats) + [m for _, _, _, m in series]
         a = np.vstack([a, np.array([s_[0] for s_ in series])])
         b = np.vstack([b, np.array([s_[1] for s_ in series])])
         ratio = np.concatenate([ratio, [s_[2] for s_ in series]])
@@ -869,10 +884,25 @@ def parametric_model(params, bdf=None, *, units: str | None = None, allow_unsupp
             )
 
     _check_element_thickness(params, fe, source)
-    prepared = shear_elements.result() if shear_elements is not None else None
-    corrections, series, series_error = _shell_shear_series(assembly, params, key_index, prepared)
-    kmats, ka, kb, kr = _grouped_terms(assembly, params, "K", source, corrections, series)
-    mmats, ma, _, _ = _grouped_terms(assembly, params, "M", source)
+    if shear_elements is not None:
+        prepared = shear_elements.result()
+    else:
+        prepared = _shell_shear_elements(fe, params, key_index)
+    corrections = _shell_shear_corrections(prepared)
+
+    def mass():
+        mats, a, _, _ = _grouped_terms(assembly, params, "M", source)
+        return mats, a, _shared_pattern(mats)
+
+    # independent parts on two threads (each result formed exactly as on one)
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        kmono = pool.submit(_grouped_terms, assembly, params, "K", source, corrections)
+        mfut = pool.submit(mass)
+        series, series_error = _shell_shear_series(assembly, params, prepared)
+        del prepared, corrections
+        kmats, ka, kb, kr = _with_series(*kmono.result(), series)
+        kpat = _shared_pattern(kmats)
+        mmats, ma, mpat = mfut.result()
     K = SeriesAffineMatrix(tuple(kmats), ka, kb, kr) if series else AffineMatrix(tuple(kmats), ka)
     M = AffineMatrix(tuple(mmats), ma)
     return ParametricModel(
@@ -886,6 +916,6 @@ def parametric_model(params, bdf=None, *, units: str | None = None, allow_unsupp
         bdf=Path(bdf),
         units=units,
         series_error_bound=series_error,
-        _kpat=_shared_pattern(kmats),
-        _mpat=_shared_pattern(mmats),
+        _kpat=kpat,
+        _mpat=mpat,
     )
