@@ -10,6 +10,7 @@ that a parametric model can rescale them exactly without reassembly.
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 from functools import cached_property
 
@@ -585,6 +586,10 @@ def _plane_stress(E, nu):
     return c * d
 
 
+#: Shell elements of one card from which the property groups are formed on two threads.
+_PARALLEL_MIN_ELEMENTS = 4096
+
+
 def _add_shells(model, col, cd_axes, wt):
     cards = [c for c in ("CQUAD4", "CTRIA3") if c in model.elements and len(model.elements[c])]
     if not cards:
@@ -668,20 +673,41 @@ def _add_shells(model, col, cd_axes, wt):
         # element matrices are formed, rotated and scattered batch by batch (no (n, 24, 24) arrays);
         # membrane and drilling scale alike (E1 t): transformed and scattered as one term
         mscale = wt * rho * t
-        for sl, blocks in _shell_stiffness_batches(xyz, dm, db, ds, model.k6rot, ids=tab.ids,
-                                                   merge={"membrane": ("membrane", "drill")}, bounds=first):
-            g = int(np.searchsorted(first, sl.start, side="right") - 1)
-            start = sl.start - int(first[g])
-            nod = nodes[sl]
-            for name, ke in blocks.items():
-                acc(g, name, _to_cd(ke, nod, cd_axes, 6), start)
-            mu_unit = _to_cd(shell_mass(xyz[sl], np.ones(sl.stop - sl.start), model.coupmass, ids=tab.ids[sl]),
-                             nod, cd_axes, 6)
-            for name, scale in (("mass", mscale), ("nsm", wnsm)):
-                if name == "nsm" and not has_nsm[g]:
-                    continue
-                ke = mu_unit * np.asarray(scale[sl], dtype=float)[:, None, None]
-                acc(g, name, 0.5 * (ke + np.swapaxes(ke, 1, 2)), start)
+
+        def scatter_groups(groups):
+            """Form and scatter the batches of the property groups ``groups`` (each in element order)."""
+            for sl, blocks in _shell_stiffness_batches(xyz, dm, db, ds, model.k6rot, ids=tab.ids,
+                                                       merge={"membrane": ("membrane", "drill")}, bounds=first,
+                                                       select=lambda sl: group_of[sl.start] in groups):
+                g = int(group_of[sl.start])
+                start = sl.start - int(first[g])
+                nod = nodes[sl]
+                for name, ke in blocks.items():
+                    acc(g, name, _to_cd(ke, nod, cd_axes, 6), start)
+                mu_unit = _to_cd(shell_mass(xyz[sl], np.ones(sl.stop - sl.start), model.coupmass, ids=tab.ids[sl]),
+                                 nod, cd_axes, 6)
+                for name, scale in (("mass", mscale), ("nsm", wnsm)):
+                    if name == "nsm" and not has_nsm[g]:
+                        continue
+                    ke = mu_unit * np.asarray(scale[sl], dtype=float)[:, None, None]
+                    acc(g, name, 0.5 * (ke + np.swapaxes(ke, 1, 2)), start)
+
+        group_of = np.repeat(np.arange(upids.size), counts)
+        # property groups write to their own data arrays: two threads take about half the elements each
+        # (numpy releases the GIL in the kernels; every array is summed in the same order as on one thread)
+        half = {int(g) for g in np.flatnonzero(np.cumsum(counts) - 0.5 * counts <= 0.5 * n)}
+        rest = set(range(upids.size)) - half
+        if n >= _PARALLEL_MIN_ELEMENTS and half and rest:
+            with ThreadPoolExecutor(max_workers=1) as pool:
+                other = pool.submit(scatter_groups, rest)
+                try:
+                    scatter_groups(half)
+                except BaseException:
+                    wait([other])
+                    raise
+                other.result()
+        else:
+            scatter_groups(set(range(upids.size)))
         mat = model.materials.get("MAT1")
         for g, (pid, i0) in enumerate(zip(upids, first)):
             lab = f"{card} PSHELL {int(pid)}"

@@ -538,15 +538,17 @@ def _shell_stiffness(xyz, dm, db, ds, k6rot, ids=None, residual_bending=True, dm
 
 
 def _shell_stiffness_batches(xyz, dm, db, ds, k6rot, ids=None, residual_bending=True, dmb=None, merge=None,
-                            bounds=()):
+                            bounds=(), select=None):
     """:func:`shell_stiffness` in batches of elements (for assembly without the full (n, 6nn, 6nn) arrays).
 
     Yields ``(slice, {name: ndarray (m, 6nn, 6nn)})`` per batch of elements;
     the arrays are only valid until the next batch.  ``merge`` maps an
     output name to the term names summed into it (e.g. ``{"membrane":
     ("membrane", "drill")}`` for terms that scale alike); other terms come
-    on their own.  No batch straddles an element index in ``bounds``.  A
-    geometry error is raised with the complete list of offending elements.
+    on their own.  No batch straddles an element index in ``bounds``;
+    ``select(slice) -> bool`` skips the batches it rejects (the others are
+    computed exactly as without it).  A geometry error is raised with the
+    complete list of offending elements.
     """
     xyz = _check_xyz(xyz, (3, 4), "shell")
     n, nn = xyz.shape[:2]
@@ -570,6 +572,8 @@ def _shell_stiffness_batches(xyz, dm, db, ds, k6rot, ids=None, residual_bending=
             groups[name] = (name,)
     nd = 6 * nn
     for sl in _batch_slices(n, 8 * _BATCH, bounds):
+        if select is not None and not select(sl):
+            continue
         try:
             # contiguous batches: the kernels are about twice as fast as on broadcast views
             local = kernel(xy[sl], np.ascontiguousarray(dm[sl]), np.ascontiguousarray(db[sl]),
