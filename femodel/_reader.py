@@ -141,6 +141,36 @@ def read_bdf(path, *, units: str = "si", allow_unsupported: bool = False) -> FEM
     return _convert(bdf, path, us, unsupported)
 
 
+def _shells_fast(rows, nn, nids, nodes, tn, zoffs, theta, mcid, L) -> bool:
+    """Fill the CQUAD4/CTRIA3 arrays at once; False (nothing filled) if any element needs a closer look.
+
+    Gives exactly what the element-by-element loop of :func:`_convert` gives
+    for well-formed elements (every grid given and defined, TFLAG 0).
+    """
+    elems = [e for _, e in rows]
+    node_lists = [e.nodes for e in elems]
+    if any(len(ns) != nn or None in ns for ns in node_lists):
+        return False
+    if any(getattr(e, "tflag", 0) not in (0, None) for e in elems):
+        return False
+    arr = np.array(node_lists, dtype=np.int64)
+    pos = np.searchsorted(nids, arr)
+    if np.any(pos >= nids.size) or np.any(nids[np.minimum(pos, nids.size - 1)] != arr):
+        return False
+    nodes[:] = arr
+    names = [f"T{j + 1}" for j in range(nn)]
+    tn[:] = [[np.nan if x is None or x == -1.0 else float(x) * L for x in (getattr(e, a, None) for a in names)]
+             for e in elems]
+    zoffs[:] = [_f(getattr(e, "zoffset", 0.0), 0.0) * L for e in elems]
+    for i, e in enumerate(elems):
+        tm = getattr(e, "theta_mcid", 0.0)
+        if isinstance(tm, (int, np.integer)) and not isinstance(tm, bool):
+            mcid[i] = int(tm)
+        else:
+            theta[i] = _f(tm, 0.0)
+    return True
+
+
 def _deck_kind(path: Path) -> str:
     """"full" (CEND before BEGIN BULK), "bulk-with-begin" or "bulk" (no control sections)."""
     with open(path, errors="replace") as f:
@@ -165,20 +195,23 @@ def _convert(bdf, path: Path, us: UnitSystem, ignored: dict) -> FEModel:
     gs_cp = int(grdset.cp or 0) if grdset is not None else 0
     gs_cd = int(grdset.cd or 0) if grdset is not None else 0
     gs_ps = _comps(grdset.ps) if grdset is not None and grdset.ps else ""
+    grids = [bdf.nodes[nid] for nid in nids.tolist()]
     raw = np.zeros((nids.size, 3))
-    cp = np.zeros(nids.size, np.int64)
-    cd = np.zeros(nids.size, np.int64)
+    raw[:] = [g.xyz for g in grids]
+    cp = np.array([gs_cp if g.cp in (None, 0) and gs_cp else int(g.cp or 0) for g in grids], np.int64)
+    cd = np.array([int((g.cd if g.cd not in (None, 0) else (gs_cd if g.cd is None or g.cd == 0 else 0)) or 0)
+                   for g in grids], np.int64)
+    codes = [g.ps if g.ps not in (None, "", 0) else gs_ps for g in grids]
+    masks = {}  # PS code -> mask (most grids share a code)
+    for i, code in enumerate(codes):
+        key = (type(code), code)
+        if key not in masks:
+            try:
+                masks[key] = _comp_mask(code)
+            except ValueError:
+                raise ModelError(f"{where}: GRID {int(nids[i])}: bad PS component code {grids[i].ps!r}") from None
     ps = np.zeros((nids.size, 6), bool)
-    for i, nid in enumerate(nids.tolist()):
-        g = bdf.nodes[nid]
-        raw[i] = g.xyz
-        cp[i] = gs_cp if g.cp in (None, 0) and gs_cp else int(g.cp or 0)
-        cdv = g.cd if g.cd not in (None, 0) else (gs_cd if g.cd is None or g.cd == 0 else 0)
-        cd[i] = int(cdv or 0)
-        try:
-            ps[i] = _comp_mask(g.ps if g.ps not in (None, "", 0) else gs_ps)
-        except ValueError:
-            raise ModelError(f"{where}: GRID {nid}: bad PS component code {g.ps!r}") from None
+    ps[:] = [masks[(type(code), code)] for code in codes]
     raw *= L
     xyz = np.full_like(raw, np.nan)
     xyz[cp == 0] = raw[cp == 0]
@@ -556,7 +589,11 @@ def _convert(bdf, path: Path, us: UnitSystem, ignored: dict) -> FEModel:
         zoffs = np.zeros(len(rows))
         theta = np.zeros(len(rows))
         mcid = np.full(len(rows), -1, np.int64)
-        for i, (eid, e) in enumerate(rows):
+        if _shells_fast(rows, nn, nids, nodes, tn, zoffs, theta, mcid, L):
+            rows_left = []
+        else:  # something to report: element by element, in id order
+            rows_left = rows
+        for i, (eid, e) in enumerate(rows_left):
             need_grids(card, eid, e.nodes)
             if any(x is None for x in e.nodes):
                 raise ModelError(f"{where}: {card} {eid}: missing grid")
