@@ -196,6 +196,9 @@ def _factor(A, cache: dict | None = None):
     so later factorizations at new parameter points are numeric only: at
     200k DOF the analysis is about 3.5 s of a 6 s factorization.
     """
+    import time
+
+    t0 = time.perf_counter()
     A = sp.csc_matrix(A)
     try:
         from sksparse.cholmod import analyze
@@ -212,6 +215,8 @@ def _factor(A, cache: dict | None = None):
                 if cache is not None:
                     cache["cholmod"] = (A.indptr.copy(), A.indices.copy(), symbolic)
             f = symbolic.cholesky(A)  # a new numeric factor on the stored analysis
+            if cache is not None:
+                cache["factor_s"] = time.perf_counter() - t0
             # C order: the results meet CSR @ dense products, which would copy F-ordered operands each time
             return lambda F: np.ascontiguousarray(f(np.asfortranarray(F, dtype=float)))
         except Exception:  # not positive definite in floating point: fall back to LU
@@ -284,7 +289,7 @@ def _shift_invert_modes(Ks, Ms, s, solve, max_hz: float, max_modes: int, k0: int
     with _blas_threads(1):  # single-vector Lanczos: extra BLAS threads only spin
         while True:
             ncv = min(n, max(2 * k + 1, k + 20))
-            lam, vec = spla.eigsh(Ks, k=k, M=Ms, sigma=-s, which="LM", OPinv=op, mode="normal", ncv=ncv, tol=1e-10)
+            lam, vec = spla.eigsh(Ks, k=k, M=Ms, sigma=-s, which="LM", OPinv=op, mode="normal", ncv=ncv, tol=1e-8)
             order = np.argsort(lam)
             lam, vec = lam[order], vec[:, order]
             if lam[-1] > (2 * np.pi * max_hz) ** 2 or k >= min(max_modes, n - 2):
@@ -448,6 +453,7 @@ def build_surrogate(
     if shift_hz is None:
         shift_hz = max(low / 4.0, high / 50.0)
     cache = model.__dict__.setdefault("_factor_cache", {})
+    cache.pop("factor_s", None)
     t0 = time.perf_counter()
     K0 = model.stiffness(p)
     M0 = model.mass(p)
@@ -511,7 +517,8 @@ def build_surrogate(
         output_names=tuple(model.output_names),
         input_names=tuple(model.input_names),
         parameter_names=tuple(model.parameter_names),
-        timings_s={"assemble": t1 - t0, "modes": t2 - t1, "statics": t3 - t2, "enrichment solves": t4 - t3,
+        timings_s={"assemble": t1 - t0, "modes": t2 - t1, "factor (part of modes)": cache.get("factor_s", 0.0),
+                   "statics": t3 - t2, "enrichment solves": t4 - t3,
                    "orthonormalize": t5 - t4, "project": t6 - t5},
     )
     return sur, T
@@ -523,8 +530,12 @@ def _complement_coefficients(W, Phi, MPhi, M, sizes, tols) -> list:
     W = [W_1, W_2, ...] (column groups of ``sizes``). Group g is made
     M-orthogonal to Phi (M-orthonormal, ``MPhi = M Phi``) and to the groups
     before it, and cut where the eigenvalues of its Gram matrix fall below
-    ``tols[g]`` times their largest. Returns A_g (k, k_g) such that the
-    complement basis is ``(W - Phi MPhi^T W) A_g``. All of it runs on the
+    ``tols[g]`` times their largest. Columns keep their size, so an
+    enrichment vector counts by how far its mode shape moves per unit
+    parameter. (Unit-norm columns were tried at 200k DOF: 85 instead of 49
+    enrichment vectors, LM twice as slow, and still three cycles.)
+
+    Returns A_g (k, k_g) such that the complement basis is ``(W - Phi MPhi^T W) A_g``. All of it runs on the
     (k, k) Gram matrix of W and its (m, k) overlap with Phi: one sparse
     product ``M W`` and two GEMMs at full size, instead of repeated
     Gram-Schmidt passes over (n, k) blocks.
