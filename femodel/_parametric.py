@@ -858,51 +858,46 @@ def parametric_model(params, bdf=None, *, units: str | None = None, allow_unsupp
         raise ParameterError(f"{source or 'parameters'}: no deck given and no [model] bdf in the parameter file")
     units = units or params.units or "si"
     key_index = _key_index(params)
-    shear_elements = None
-    if assembly is None:
-        fe = read_bdf(bdf, units=units, allow_unsupported=allow_unsupported)
-        # the shell shear series' element matrices need the model only: formed while it is assembled
-        # (numpy releases the GIL in the kernels; each thread keeps its own summation order)
-        with ThreadPoolExecutor(max_workers=1) as pool:
+    # independent parts run on two threads (numpy releases the GIL in its loops); every array is
+    # formed exactly as on one thread
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        if assembly is None:
+            fe = read_bdf(bdf, units=units, allow_unsupported=allow_unsupported)
+            # the shell shear series' element matrices need the model only: formed while it is assembled
             shear_elements = pool.submit(_shell_shear_elements, fe, params, key_index)
             assembly = assemble(fe)
-    fe = assembly.model
-    nominal_values = _nominal_from_model(params, fe, source)
+        else:
+            shear_elements = pool.submit(_shell_shear_elements, assembly.model, params, key_index)
+        fe = assembly.model
+        nominal_values = _nominal_from_model(params, fe, source)
 
-    used = set()
-    for term in assembly.terms:
-        for key, _ in term.factors:
-            used.add(_factor_key(key))
-    for prm in params.parameters:
-        keys = set(prm.keys)
-        if prm.card == "MAT1" and prm.field == "E":
-            keys |= {("MAT1", i, "G") for i in prm.ids}
-        if not keys & used:
-            raise ParameterError(
-                f"{str(source) + ': ' if source else ''}parameter {prm.name!r} ({prm.card} {list(prm.ids)} {prm.field}) does not enter K or M: "
-                "no element uses it"
-            )
+        used = set()
+        for term in assembly.terms:
+            for key, _ in term.factors:
+                used.add(_factor_key(key))
+        for prm in params.parameters:
+            keys = set(prm.keys)
+            if prm.card == "MAT1" and prm.field == "E":
+                keys |= {("MAT1", i, "G") for i in prm.ids}
+            if not keys & used:
+                raise ParameterError(
+                    f"{str(source) + ': ' if source else ''}parameter {prm.name!r} ({prm.card} {list(prm.ids)} "
+                    f"{prm.field}) does not enter K or M: no element uses it"
+                )
 
-    _check_element_thickness(params, fe, source)
-    if shear_elements is not None:
+        _check_element_thickness(params, fe, source)
         prepared = shear_elements.result()
-    else:
-        prepared = _shell_shear_elements(fe, params, key_index)
-    corrections = _shell_shear_corrections(prepared)
 
-    def mass():
-        mats, a, _, _ = _grouped_terms(assembly, params, "M", source)
-        return mats, a, _shared_pattern(mats)
+        def stiffness_monomials():
+            return _grouped_terms(assembly, params, "K", source, _shell_shear_corrections(prepared))
 
-    # independent parts on two threads (each result formed exactly as on one)
-    with ThreadPoolExecutor(max_workers=1) as pool:
-        kmono = pool.submit(_grouped_terms, assembly, params, "K", source, corrections)
-        mfut = pool.submit(mass)
+        kmono = pool.submit(stiffness_monomials)
+        mmats, ma, _, _ = _grouped_terms(assembly, params, "M", source)
+        mpat = _shared_pattern(mmats)
         series, series_error = _shell_shear_series(assembly, params, prepared)
-        del prepared, corrections
         kmats, ka, kb, kr = _with_series(*kmono.result(), series)
+        del prepared
         kpat = _shared_pattern(kmats)
-        mmats, ma, mpat = mfut.result()
     K = SeriesAffineMatrix(tuple(kmats), ka, kb, kr) if series else AffineMatrix(tuple(kmats), ka)
     M = AffineMatrix(tuple(mmats), ma)
     return ParametricModel(
