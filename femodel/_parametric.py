@@ -67,48 +67,67 @@ def _shared_pattern(matrices) -> _Pattern:
                                                             * _PATTERN_CHUNK), [n_rows]]))
     positions = [np.empty(m.indices.shape[0], dtype=dtype) for m in matrices]
     counts = np.zeros(n_rows, dtype=np.int64)
-    indices_parts = []
-    base = 0
-    # work arrays reused by every chunk (fresh memory is expensive to fault in)
-    size = int(np.max(np.diff(total[cuts]), initial=0))
-    keys_buf = np.empty(size, dtype=np.int64)
-    sk_buf = np.empty(size, dtype=np.int64)
-    new_buf = np.empty(size, dtype=bool)
-    rank_buf = np.empty(size, dtype=dtype)
-    pos_buf = np.empty(size, dtype=dtype)
-    for r0, r1 in zip(cuts[:-1].tolist(), cuts[1:].tolist()):
-        n_chunk = int(total[r1] - total[r0])
-        if r1 <= r0 or n_chunk == 0:
-            continue
-        row_key = np.arange(r1 - r0, dtype=np.int64) * ncol
-        keys = keys_buf[:n_chunk]
-        s0 = 0
-        for m, ip in zip(matrices, indptrs):
-            a, b = int(ip[r0]), int(ip[r1])
-            if b > a:
-                np.add(np.repeat(row_key, np.diff(ip[r0:r1 + 1])), m.indices[a:b], out=keys[s0:s0 + b - a])
-            s0 += b - a
-        order = np.argsort(keys, kind="stable")
-        sk = np.take(keys, order, out=sk_buf[:n_chunk])
-        new = new_buf[:n_chunk]
-        new[0] = True
-        np.not_equal(sk[1:], sk[:-1], out=new[1:])
-        ukeys = sk[new]
-        rank = np.cumsum(new, dtype=dtype, out=rank_buf[:n_chunk])
-        rank += base - 1
-        pos = pos_buf[:n_chunk]
-        pos[order] = rank
-        del order
-        s0 = 0
+
+    def merge(spans):
+        """Union keys of the row chunks ``spans``; positions counted from the first of them."""
+        parts = []
+        base = 0
+        # work arrays reused by every chunk (fresh memory is expensive to fault in)
+        size = int(max((total[r1] - total[r0] for r0, r1 in spans), default=0))
+        keys_buf = np.empty(size, dtype=np.int64)
+        sk_buf = np.empty(size, dtype=np.int64)
+        new_buf = np.empty(size, dtype=bool)
+        rank_buf = np.empty(size, dtype=dtype)
+        pos_buf = np.empty(size, dtype=dtype)
+        for r0, r1 in spans:
+            n_chunk = int(total[r1] - total[r0])
+            if n_chunk == 0:
+                continue
+            row_key = np.arange(r1 - r0, dtype=np.int64) * ncol
+            keys = keys_buf[:n_chunk]
+            s0 = 0
+            for m, ip in zip(matrices, indptrs):
+                a, b = int(ip[r0]), int(ip[r1])
+                if b > a:
+                    np.add(np.repeat(row_key, np.diff(ip[r0:r1 + 1])), m.indices[a:b], out=keys[s0:s0 + b - a])
+                s0 += b - a
+            order = np.argsort(keys, kind="stable")
+            sk = np.take(keys, order, out=sk_buf[:n_chunk])
+            new = new_buf[:n_chunk]
+            new[0] = True
+            np.not_equal(sk[1:], sk[:-1], out=new[1:])
+            ukeys = sk[new]
+            rank = np.cumsum(new, dtype=dtype, out=rank_buf[:n_chunk])
+            rank += base - 1
+            pos = pos_buf[:n_chunk]
+            pos[order] = rank
+            del order
+            s0 = 0
+            for out, ip in zip(positions, indptrs):
+                a, b = int(ip[r0]), int(ip[r1])
+                out[a:b] = pos[s0:s0 + b - a]
+                s0 += b - a
+            rows, cols = np.divmod(ukeys, ncol)
+            parts.append(cols.astype(dtype))
+            counts[r0:r1] = np.bincount(rows, minlength=r1 - r0)
+            base += ukeys.shape[0]
+        return parts, base
+
+    spans = [(r0, r1) for r0, r1 in zip(cuts[:-1].tolist(), cuts[1:].tolist()) if r1 > r0]
+    if len(spans) >= 4:
+        # two threads, each on half the rows (disjoint outputs); the second half's positions shift by the first's union
+        h = len(spans) // 2
+        with ThreadPoolExecutor(max_workers=1) as pool:
+            second = pool.submit(merge, spans[h:])
+            parts, n_first = merge(spans[:h])
+            parts2, _ = second.result()
+        r_mid = spans[h][0]
         for out, ip in zip(positions, indptrs):
-            a, b = int(ip[r0]), int(ip[r1])
-            out[a:b] = pos[s0:s0 + b - a]
-            s0 += b - a
-        rows, cols = np.divmod(ukeys, ncol)
-        indices_parts.append(cols.astype(dtype))
-        counts[r0:r1] = np.bincount(rows, minlength=r1 - r0)
-        base += ukeys.shape[0]
-    indices = np.concatenate(indices_parts) if indices_parts else np.zeros(0, dtype=dtype)
+            out[int(ip[r_mid]):] += n_first
+        parts += parts2
+    else:
+        parts, _ = merge(spans)
+    indices = np.concatenate(parts) if parts else np.zeros(0, dtype=dtype)
     indptr = np.zeros(n_rows + 1, dtype=dtype)
     np.cumsum(counts, out=indptr[1:])
     return _Pattern(indptr, indices, n, tuple(positions))
