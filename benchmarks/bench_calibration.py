@@ -152,13 +152,20 @@ def main(argv=None) -> int:
                            log=lambda m: print("  " + m, flush=True))
     T["LM (21 starts)"] = res.cycles[0]["fit_s"]
     T["re-basis cycles"] = sum(c["basis_s"] + c["fit_s"] for c in res.cycles[1:])
-    T["calibration total"] = T["parametric model"] + (time.perf_counter() - t_cal)
-    CPU["calibration total (main process)"] = CPU["parametric model"] + (time.process_time() - c_cal)
-    cal_only = time.perf_counter() - t_cal
+    # the 200-point LHS screening is timed for the paper's table only: frfcal starts LM from its
+    # Latin-hypercube points directly, so the screening is not part of its calibration
+    T["calibration total"] = T["parametric model"] + (time.perf_counter() - t_cal) - T["200 LHS evaluations"]
+    CPU["calibration total (main process)"] = CPU["parametric model"] + (time.process_time() - c_cal) - \
+        CPU["200 LHS evaluations"]
+    cal_only = time.perf_counter() - t_cal - T["200 LHS evaluations"]
     err = np.abs((1 + res.p) / (1 + p_true) - 1)
     print(f"calibration: SD {res.calibration.sd_nominal:.4g} -> {res.sd:.3g}; max |P/P_true - 1| = {err.max():.2e} "
           f"({cal_only:.1f} s after the model)", flush=True)
     n_ok = sum(np.abs((1 + o.p) / (1 + p_true) - 1).max() < 0.005 for o in res.calibration.outcomes)
+    # cycle 1 runs on the nominal basis: its starts agree with each other, its bias is what the cycles remove
+    p1 = res.calibration.p
+    n_same = sum(np.abs((1 + o.p) / (1 + p1) - 1).max() < 0.005 for o in res.calibration.outcomes)
+    err1 = float(np.abs((1 + p1) / (1 + p_true) - 1).max())
     t = time.perf_counter()
     c = time.process_time()
     val = validate(sur0, res.surrogate, res.p, raw, modes, zeta0, None, 0.6, "accelerance", band)
@@ -186,6 +193,8 @@ def main(argv=None) -> int:
     for k, v in CPU.items():
         print(f"cpu: {k:<40}{v:>10.1f}s")
     print(f"calibration (after model) / one nominal modal solution: {ratio:.1f}")
+    print(f"cycle 1 (nominal basis): {n_same}/{len(res.calibration.outcomes)} starts within 0.5 % of its best point, "
+          f"which is {err1:.2%} from the truth; after {len(res.cycles)} cycles {err.max():.3%}")
     print(f"peak memory: {mem:.2f} GB; starts within 0.5 % of truth: {n_ok}/{len(res.calibration.outcomes)}; "
           f"hold-out SD {val.sd_nominal:.3g} -> {val.sd_calibrated:.3g}; CV RSE {cv.rse:.3g}")
     out = {
@@ -194,6 +203,7 @@ def main(argv=None) -> int:
         "cycles": [{k: v for k, v in c.items() if k != "p"} for c in res.cycles],
         "timings_s": T, "cpu_s": CPU, "paper_s": PAPER, "calibration_over_modal": ratio, "peak_memory_gb": mem,
         "surrogate_size": sur0.size, "max_param_error": float(err.max()), "starts_within_0.5pct": int(n_ok),
+        "cycle1_starts_at_best_0.5pct": int(n_same), "cycle1_max_param_error": err1,
         "sd_calibration": [res.calibration.sd_nominal, res.sd],
         "sd_validation": [val.sd_nominal, val.sd_calibrated], "rse": cv.rse,
         "cv_percent": cv.cv_percent.tolist(), "lhs_best_sd": float(np.min(sds)),

@@ -360,15 +360,15 @@ def refreshed_modes(K, M, T_old, max_hz: float, shift_hz: float, extra=None, cac
     """Modes of (K, M) up to ``max_hz`` from one block inverse iteration on an old basis.
 
     Returns the triple of :func:`full_modes`, the rest of the inverse-iterated
-    basis (M-orthonormal Ritz vectors above ``max_hz``, reused as enrichment)
-    and ``M @ shapes``. With ``extra`` (n, k) given, ``(K + s M)^-1 extra``
+    basis (M-orthonormal Ritz vectors above ``max_hz``, reused as enrichment),
+    ``M @ shapes`` and ``M @`` that rest. With ``extra`` (n, k) given, ``(K + s M)^-1 extra``
     is solved in the same block solve and returned as a fifth item.
     """
     s = (2 * np.pi * shift_hz) ** 2
     n = K.shape[0]
     if n <= 1500:
         f, Phi, solve = full_modes(K, M, max_hz, shift_hz)
-        out = (f, Phi, solve, None, M @ Phi)
+        out = (f, Phi, solve, None, M @ Phi, None)
         return out if extra is None else (*out, solve(extra))
     solve = _factor(_shifted(K, M, s, cache), cache)
     r_old = T_old.shape[1]
@@ -387,7 +387,7 @@ def refreshed_modes(K, M, T_old, max_hz: float, shift_hz: float, extra=None, cac
     MQ = MQ @ (Y @ V)
     lam = np.clip(lam[keep], 0.0, None)
     out = (np.sqrt(lam) / (2 * np.pi), np.ascontiguousarray(Q[:, keep]), solve, np.ascontiguousarray(Q[:, ~keep]),
-           np.ascontiguousarray(MQ[:, keep]))
+           np.ascontiguousarray(MQ[:, keep]), np.ascontiguousarray(MQ[:, ~keep]))
     return out if extra is None else (*out, X_extra)
 
 
@@ -454,11 +454,18 @@ def build_surrogate(
         shift_hz = max(low / 4.0, high / 50.0)
     cache = model.__dict__.setdefault("_factor_cache", {})
     cache.pop("factor_s", None)
+    # the local term tables (projection, derivative loads) are built on a second core
+    # while this one factors and runs Lanczos; first build only (cached on the matrices)
+    from concurrent.futures import ThreadPoolExecutor
+
+    side = ThreadPoolExecutor(max_workers=1)
+    warm = side.submit(lambda: (_local_halves(model.K), _local_halves(model.M)))
+    side.shutdown(wait=False)  # the task runs on; warm.result() joins it
     t0 = time.perf_counter()
     K0 = model.stiffness(p)
     M0 = model.mass(p)
     t1 = time.perf_counter()
-    carried = None
+    carried = Mcarried = None
     B = model.inputs.toarray() if sp.issparse(model.inputs) else np.asarray(model.inputs, float)
     C = model.outputs.toarray() if sp.issparse(model.outputs) else np.asarray(model.outputs, float)
     loads = np.hstack([B, C.T])
@@ -467,7 +474,7 @@ def build_surrogate(
         MPhi = M0 @ Phi
         static = None
     else:  # statics in the same block solve as the inverse iteration
-        freqs, Phi, solve, carried, MPhi, static = refreshed_modes(
+        freqs, Phi, solve, carried, MPhi, Mcarried, static = refreshed_modes(
             K0, M0, previous_basis, basis_factor * high, shift_hz, extra=loads, cache=cache)
     t2 = time.perf_counter()
     if static is None:
@@ -481,21 +488,26 @@ def build_surrogate(
         sel = np.flatnonzero((freqs <= enrich_factor * high) & (freqs > max(1e-3 * max(low, 1.0), 1e-6 * high)))
         if sel.size:
             lam = (2 * np.pi * freqs[sel]) ** 2
+            warm.result()
             rhs = _derivative_loads(model, p, Phi[:, sel], lam)
             if rhs.shape[1]:
                 E = solve(rhs)
     t4 = time.perf_counter()
     W = static if E is None else np.hstack([static, E])
+    MW = np.hstack([M0 @ static, Mcarried]) if E is not None and E is carried else None
     A = _complement_coefficients(W, Phi, MPhi, M0, [static.shape[1], W.shape[1] - static.shape[1]],
-                                 [1e-10, enrich_tol])
+                                 [1e-10, enrich_tol], MW)
+    del MW
     n_static, n_enrich = A[0].shape[1], A[1].shape[1]
     A = np.hstack(A)
     WA = W @ A
     T = np.hstack([Phi, WA - Phi @ (MPhi.T @ WA)])
     del W, WA
     t5 = time.perf_counter()
-    Kr = _projected(model.K, T)
-    Mr = _projected(model.M, T)
+    warm.result()
+    with ThreadPoolExecutor(max_workers=2) as pool, _blas_threads(1):
+        Kr = _projected(model.K, T, pool)
+        Mr = _projected(model.M, T, pool)
     # exact M-orthonormality of T at p by a congruence in reduced space (no n-sized work but T L^-T)
     L = np.linalg.cholesky(0.5 * (Mr.at(p) + Mr.at(p).T))
     if np.abs(L - np.eye(L.shape[0])).max() > 1e-12:
@@ -524,7 +536,7 @@ def build_surrogate(
     return sur, T
 
 
-def _complement_coefficients(W, Phi, MPhi, M, sizes, tols) -> list:
+def _complement_coefficients(W, Phi, MPhi, M, sizes, tols, MW=None) -> list:
     """Coefficients of M-orthonormal complements of column groups of W, from one Gram matrix.
 
     W = [W_1, W_2, ...] (column groups of ``sizes``). Group g is made
@@ -537,12 +549,12 @@ def _complement_coefficients(W, Phi, MPhi, M, sizes, tols) -> list:
 
     Returns A_g (k, k_g) such that the complement basis is ``(W - Phi MPhi^T W) A_g``. All of it runs on the
     (k, k) Gram matrix of W and its (m, k) overlap with Phi: one sparse
-    product ``M W`` and two GEMMs at full size, instead of repeated
+    product ``M W`` (none when ``MW`` is given) and two GEMMs at full size, instead of repeated
     Gram-Schmidt passes over (n, k) blocks.
     """
     k = W.shape[1]
     P = MPhi.T @ W
-    G = W.T @ (M @ W) - P.T @ P  # Gram of W minus its Phi part
+    G = W.T @ (M @ W if MW is None else MW) - P.T @ P  # Gram of W minus its Phi part
     G = 0.5 * (G + G.T)
     out, done = [], np.zeros((k, 0))
     start = 0
@@ -643,23 +655,31 @@ def _local_halves(A: AffineMatrix) -> list:
     return cached
 
 
-def _projected(A: AffineMatrix, T: np.ndarray) -> AffineMatrix:
+def _project_term(T: np.ndarray, item) -> np.ndarray:
+    rows, mk = item
+    if rows is None:
+        r = T.T @ (mk @ T)
+        return 0.5 * (r + r.T)
+    Tr = T[rows]
+    r = Tr.T @ (mk @ Tr)
+    return r + r.T
+
+
+def _projected(A: AffineMatrix, T: np.ndarray, pool=None) -> AffineMatrix:
     """``T^T A_k T`` for every term, touching only the rows where a (local) term is non-zero.
 
     Same result as :meth:`AffineMatrix.projected`, at a fraction of the cost:
     the dense product costs (rows of A_k) x r^2 instead of n x r^2 per term
     (parameter terms are local), and the sparse product uses only the lower
     half H_k of the symmetric term: ``T^T A_k T = X + X^T`` with ``X = T^T H_k T``.
+    With ``pool`` (a thread pool) the terms are shared out over its threads:
+    scipy's sparse products and BLAS release the GIL (run with one BLAS thread).
     """
-    reduced = []
-    for rows, mk in _local_halves(A):
-        if rows is None:
-            r = T.T @ (mk @ T)
-            reduced.append(0.5 * (r + r.T))
-        else:
-            Tr = T[rows]
-            r = Tr.T @ (mk @ Tr)
-            reduced.append(r + r.T)
+    from functools import partial
+
+    items = _local_halves(A)
+    work = partial(_project_term, T)
+    reduced = list(pool.map(work, items)) if pool is not None else [work(it) for it in items]
     if getattr(A, "series_ratio", None) is not None:  # keep series (e.g. shell shear) coefficients exact
         return type(A)(tuple(reduced), A.exponents.copy(), A.series_exponents.copy(), A.series_ratio.copy())
     return AffineMatrix(tuple(reduced), A.exponents.copy())
