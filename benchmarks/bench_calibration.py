@@ -52,6 +52,9 @@ def main(argv=None) -> int:
     ap.add_argument("--cycle-tol", type=float, default=1e-3)
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "calibration.json"))
     args = ap.parse_args(argv)
+    from frfcal._malloc import keep_large_allocations
+
+    malloc_tuned = keep_large_allocations()  # as the frfcal command does
 
     import femodel
     from calibration import (
@@ -200,6 +203,7 @@ def main(argv=None) -> int:
     out = {
         "dof": int(pm.K.shape[0]), "grid_dof": int(ex.n_dof), "n_params": pm.n_params, "starts": args.starts + 1,
         "realizations": args.realizations, "cores": os.cpu_count(), "load_avg": os.getloadavg(),
+        "malloc_kept_large_blocks": malloc_tuned,
         "cycles": [{k: v for k, v in c.items() if k != "p"} for c in res.cycles],
         "timings_s": T, "cpu_s": CPU, "paper_s": PAPER, "calibration_over_modal": ratio, "peak_memory_gb": mem,
         "surrogate_size": sur0.size, "max_param_error": float(err.max()), "starts_within_0.5pct": int(n_ok),

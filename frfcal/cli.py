@@ -60,6 +60,9 @@ def main(argv: list[str] | None = None) -> int:
     if getattr(args, "_run", None) is None:
         parser.print_help()
         return 1
+    from frfcal._malloc import keep_large_allocations
+
+    keep_large_allocations()  # large temporaries reused, not page-faulted afresh (frfcal/_malloc.py)
     try:
         return int(args._run(args) or 0)
     except KeyboardInterrupt:
