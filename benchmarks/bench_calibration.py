@@ -129,6 +129,7 @@ def main(argv=None) -> int:
     del s_true
 
     executor = make_executor(workers=args.workers)
+    executor.start()  # as run_campaign does: workers import while the basis is built
     t_cal = time.perf_counter()
     c_cal = time.process_time()
     t = time.perf_counter()

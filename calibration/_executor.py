@@ -42,6 +42,10 @@ class SerialExecutor:
         items = list(items)
         return [fn(x) for x in _progress(items, len(items), self.progress)]
 
+    def start(self, modules: tuple = ()) -> None:
+        """Nothing to start (same interface as :meth:`ProcessExecutor.start`)."""
+        return None
+
     def close(self) -> None:
         return None
 
@@ -50,6 +54,13 @@ class SerialExecutor:
 
     def __exit__(self, *exc):
         self.close()
+
+
+def _import_modules(modules: tuple) -> None:
+    import importlib
+
+    for name in modules:
+        importlib.import_module(name)
 
 
 class ProcessExecutor:
@@ -78,6 +89,20 @@ class ProcessExecutor:
 
             self._pool = ProcessPoolExecutor(self.max_workers, mp_context=mp.get_context("spawn"))
         return self._pool
+
+    def start(self, modules: tuple = ("calibration._fit",)) -> None:
+        """Spawn the workers now and import ``modules`` in them, without waiting.
+
+        A spawned worker needs 1-2 s to start Python and import numpy, scipy
+        and this package. Started while the main process builds the reduction
+        basis (single-threaded Lanczos), that time overlaps with the build
+        instead of adding to the first multi-start.
+        """
+        if self.max_workers == 1:
+            return
+        pool = self._get_pool()
+        for _ in range(self.max_workers):
+            pool.submit(_import_modules, tuple(modules))
 
     def map(self, fn: Callable, items: Iterable) -> list:
         items = list(items)

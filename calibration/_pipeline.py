@@ -231,15 +231,18 @@ def run_campaign(camp: Campaign, log=print) -> dict:
     outdir = camp.resolve(camp.output.dir)
     outdir.mkdir(parents=True, exist_ok=True)
     lower, upper = pm.lower, pm.upper
-    t = time.perf_counter()
-    sur0, T0 = build_surrogate(model, np.zeros(pm.n_params), band, c.basis_factor, enrich=c.enrich)
-    timings["basis_s"] = time.perf_counter() - t
-    log(f"surrogate: {sur0.size} ({len(sur0.basis_frequencies_hz)} modes, {sur0.n_static} static, "
-        f"{sur0.n_enrich} enrichment) in {timings['basis_s']:.1f} s")
-    results = []
     executor = make_executor(camp.execution.scheduler, camp.execution.workers,
                              progress=None)
+    results = []
     try:
+        start = getattr(executor, "start", None)
+        if start is not None:  # workers start and import while the basis is built
+            start()
+        t = time.perf_counter()
+        sur0, T0 = build_surrogate(model, np.zeros(pm.n_params), band, c.basis_factor, enrich=c.enrich)
+        timings["basis_s"] = time.perf_counter() - t
+        log(f"surrogate: {sur0.size} ({len(sur0.basis_frequencies_hz)} modes, {sur0.n_static} static, "
+            f"{sur0.n_enrich} enrichment) in {timings['basis_s']:.1f} s")
         for label, idx in members:
             arts = [articles[i] for i in idx]
             data = [_equalized_data(a, c.zeta0, f, camp.channels.calibrate) for a in arts]

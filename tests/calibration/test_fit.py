@@ -179,6 +179,26 @@ def test_process_executor_spawn():
     assert SerialExecutor().map(_square, [3]) == [9]
 
 
+def test_process_executor_started_early_imports_in_the_workers():
+    import os
+
+    with ProcessExecutor(2) as ex:
+        ex.start(("calibration._fit",))  # returns at once; workers spawn and import meanwhile
+        pids = set(ex.map(_worker_has_fit, range(6)))
+    assert all(loaded for _, loaded in pids)
+    assert os.getpid() not in {pid for pid, _ in pids}
+    with ProcessExecutor(2) as ex:  # a failed warm-up import does not leak into later work
+        ex.start(("calibration._no_such_module",))
+        assert ex.map(_square, range(4)) == [0, 1, 4, 9]
+
+
+def _worker_has_fit(_):
+    import os
+    import sys
+
+    return os.getpid(), "calibration._fit" in sys.modules
+
+
 def test_dask_local_cluster_matches_serial(beam):
     distributed = pytest.importorskip("distributed")
     from calibration import DaskExecutor
