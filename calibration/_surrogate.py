@@ -279,7 +279,10 @@ def _shift_invert_modes(Ks, Ms, s, solve, max_hz: float, max_modes: int, k0: int
     """Lanczos (ARPACK shift-invert, sigma = -s) with an existing solver for K + s M.
 
     The factorization of the static solves is reused, so one factorization
-    serves modes, statics and enrichment. ``k`` doubles (same factor) until a
+    serves modes, statics and enrichment. ARPACK's tolerance is 1e-5: these
+    vectors span a reduction basis (the surrogate solves its own eigenproblem
+    in it), so the span matters, not eigenpair digits. At 200k DOF it takes 62
+    instead of 78 solves, and the frequencies agree with tolerance 1e-8 to 3e-12. ``k`` doubles (same factor) until a
     mode above ``max_hz`` is found.
     """
     n = Ks.shape[0]
@@ -289,7 +292,7 @@ def _shift_invert_modes(Ks, Ms, s, solve, max_hz: float, max_modes: int, k0: int
     with _blas_threads(1):  # single-vector Lanczos: extra BLAS threads only spin
         while True:
             ncv = min(n, max(2 * k + 1, k + 20))
-            lam, vec = spla.eigsh(Ks, k=k, M=Ms, sigma=-s, which="LM", OPinv=op, mode="normal", ncv=ncv, tol=1e-8)
+            lam, vec = spla.eigsh(Ks, k=k, M=Ms, sigma=-s, which="LM", OPinv=op, mode="normal", ncv=ncv, tol=1e-5)
             order = np.argsort(lam)
             lam, vec = lam[order], vec[:, order]
             if lam[-1] > (2 * np.pi * max_hz) ** 2 or k >= min(max_modes, n - 2):
