@@ -256,21 +256,30 @@ def _shifted(K, M, s: float, cache: dict | None = None) -> sp.csc_matrix:
             hit = None
     if hit is None:
         n = K.shape[0]
-        ones = lambda A: sp.csr_matrix((np.ones(A.nnz), A.indices, A.indptr), shape=A.shape)  # noqa: E731
-        U = ones(K) + ones(M)  # structural: no cancellation
-        U.sort_indices()
 
-        def keys(A):
+        def keys(A):  # ascending for canonical CSR
             rows = np.repeat(np.arange(n, dtype=np.int64), np.diff(A.indptr))
             return rows * n + A.indices
 
-        ku = keys(U)
-        pos_k = np.searchsorted(ku, keys(K))
-        pos_m = np.searchsorted(ku, keys(M))
+        kk, km = keys(K), keys(M)
+        pos_m = np.minimum(np.searchsorted(kk, km), max(kk.size - 1, 0))
+        if kk.size and np.array_equal(kk[pos_m], km):  # the usual case: M's pattern inside K's
+            U, pos_k = sp.csr_matrix((np.zeros(K.nnz), K.indices, K.indptr), shape=K.shape), None
+        else:
+            ones = lambda A: sp.csr_matrix((np.ones(A.nnz), A.indices, A.indptr), shape=A.shape)  # noqa: E731
+            U = ones(K) + ones(M)  # structural: no cancellation
+            U.sort_indices()
+            ku = keys(U)
+            pos_k = np.searchsorted(ku, kk)
+            pos_m = np.searchsorted(ku, km)
+        del kk, km
         if cache is not None:
             cache["union"] = (K.indptr.copy(), K.indices.copy(), M.indptr.copy(), M.indices.copy(), U, pos_k, pos_m)
-    data = np.zeros(U.nnz)
-    data[pos_k] = K.data
+    if pos_k is None:  # U is K's pattern
+        data = K.data.copy()
+    else:
+        data = np.zeros(U.nnz)
+        data[pos_k] = K.data
     data[pos_m] += s * M.data
     return sp.csc_matrix((data, U.indices, U.indptr), shape=U.shape)
 
@@ -352,8 +361,8 @@ def full_modes(K, M, max_hz: float, shift_hz: float, max_modes: int = 600, dense
         solve = lambda F: sla.cho_solve(lu, np.asarray(F.toarray() if sp.issparse(F) else F))  # noqa: E731
         lam = np.clip(lam[keep], 0.0, None)
         return np.sqrt(lam) / (2 * np.pi), X[:, keep], solve
-    Ks = sp.csc_matrix(K)
-    Ms = sp.csc_matrix(M)
+    Ks = sp.csr_matrix(K)  # (CSR matvecs in the Lanczos loop; symmetric, so the same operator)
+    Ms = sp.csr_matrix(M)
     solve = _factor(_shifted(Ks, Ms, s, cache), cache)
     freqs, Phi = _shift_invert_modes(Ks, Ms, s, solve, max_hz, max_modes)
     return freqs, Phi, solve

@@ -103,3 +103,28 @@ def test_metric_principal_branch_and_sd():
     assert np.isclose(np.sum(stacked(eps) ** 2), square_deviation(eps))
     with pytest.raises(CalibrationError, match="NaN"):
         log_deviation(h, np.array([1.0, np.nan, 1.0]))
+
+
+def test_shifted_keeps_one_pattern_for_the_symbolic_factorization():
+    """K + s M on a fixed pattern: entries that cancel stay (as zeros), values exact, cache reused."""
+    import scipy.sparse as sp
+
+    from calibration._surrogate import _shifted
+
+    n = 200
+    A = sp.random(n, n, density=0.05, random_state=1, format="csr")
+    K = sp.csr_matrix(A + A.T + 10 * sp.identity(n))
+    B = sp.random(n, n, density=0.01, random_state=2, format="csr")
+    for M in (sp.csr_matrix(K * 0.5), sp.csr_matrix(B + B.T)):  # pattern inside K's, and a wider one
+        M = sp.csr_matrix(M)
+        cache = {}
+        S = _shifted(K, M, 3.0, cache)
+        assert abs(S - (K + 3.0 * M)).max() == 0.0
+        nnz = S.nnz
+        M_cancel = M.copy()
+        i, j = M_cancel.nonzero()
+        M_cancel.data[:] = -np.asarray(K[i, j]).ravel() / 3.0  # K + 3 M_cancel = 0 on M's pattern
+        S0 = _shifted(K, M_cancel, 3.0, cache)
+        assert S0.nnz == nnz  # scipy's K + 3 M would drop the cancelled entries
+        assert abs(S0 - (K + 3.0 * M_cancel)).max() < 1e-12
+        assert cache["union"][4].nnz == nnz
