@@ -288,11 +288,13 @@ def _shift_invert_modes(Ks, Ms, s, solve, max_hz: float, max_modes: int, k0: int
     """Lanczos (ARPACK shift-invert, sigma = -s) with an existing solver for K + s M.
 
     The factorization of the static solves is reused, so one factorization
-    serves modes, statics and enrichment. ARPACK's tolerance is 1e-5: these
-    vectors span a reduction basis (the surrogate solves its own eigenproblem
-    in it), so the span matters, not eigenpair digits. At 200k DOF it takes 62
-    instead of 78 solves, and the frequencies agree with tolerance 1e-8 to 3e-12. ``k`` doubles (same factor) until a
-    mode above ``max_hz`` is found.
+    serves modes, statics and enrichment. ``k`` doubles (same factor) until
+    a mode above ``max_hz`` is found.
+
+    ARPACK's tolerance is 1e-5: these vectors span a reduction basis (the
+    surrogate solves its own eigenproblem in it), so the span matters, not
+    eigenpair digits. At 200k DOF it takes 62 instead of 78 solves, and the
+    frequencies agree with those at tolerance 1e-8 to 3e-12.
     """
     n = Ks.shape[0]
     op = spla.LinearOperator((n, n), matvec=lambda b: solve(np.asarray(b, dtype=float).reshape(n, -1)).ravel(),
@@ -373,8 +375,9 @@ def refreshed_modes(K, M, T_old, max_hz: float, shift_hz: float, extra=None, cac
 
     Returns the triple of :func:`full_modes`, the rest of the inverse-iterated
     basis (M-orthonormal Ritz vectors above ``max_hz``, reused as enrichment),
-    ``M @ shapes`` and ``M @`` that rest. With ``extra`` (n, k) given, ``(K + s M)^-1 extra``
-    is solved in the same block solve and returned as a fifth item.
+    ``M @ shapes`` and ``M @`` that rest. With ``extra`` (n, k) given,
+    ``(K + s M)^-1 extra`` is solved in the same block solve and returned as a
+    seventh item.
     """
     s = (2 * np.pi * shift_hz) ** 2
     n = K.shape[0]
@@ -521,7 +524,12 @@ def build_surrogate(
         Kr = _projected(model.K, T, pool)
         Mr = _projected(model.M, T, pool)
     # exact M-orthonormality of T at p by a congruence in reduced space (no n-sized work but T L^-T)
-    L = np.linalg.cholesky(0.5 * (Mr.at(p) + Mr.at(p).T))
+    try:
+        L = np.linalg.cholesky(_sym(Mr.at(p)))
+    except np.linalg.LinAlgError:
+        raise CalibrationError(
+            f"reduction basis at p={np.round(p, 4)} is numerically dependent (reduced mass not definite); "
+            "raise enrich_tol or lower basis_factor") from None
     if np.abs(L - np.eye(L.shape[0])).max() > 1e-12:
         Li = sla.solve_triangular(L, np.eye(L.shape[0]), lower=True)
         Kr = _congruent(Kr, Li)
@@ -559,9 +567,10 @@ def _complement_coefficients(W, Phi, MPhi, M, sizes, tols, MW=None) -> list:
     parameter. (Unit-norm columns were tried at 200k DOF: 85 instead of 49
     enrichment vectors, LM twice as slow, and still three cycles.)
 
-    Returns A_g (k, k_g) such that the complement basis is ``(W - Phi MPhi^T W) A_g``. All of it runs on the
-    (k, k) Gram matrix of W and its (m, k) overlap with Phi: one sparse
-    product ``M W`` (none when ``MW`` is given) and two GEMMs at full size, instead of repeated
+    Returns A_g (k, k_g) such that the complement basis is
+    ``(W - Phi MPhi^T W) A_g``. All of it runs on the (k, k) Gram matrix of W
+    and its (m, k) overlap with Phi: one sparse product ``M W`` (none when
+    ``MW`` is given) and two GEMMs at full size, instead of repeated
     Gram-Schmidt passes over (n, k) blocks.
     """
     k = W.shape[1]
