@@ -211,7 +211,10 @@ def _factor(A, cache: dict | None = None):
             if hit is not None and np.array_equal(hit[0], A.indptr) and np.array_equal(hit[1], A.indices):
                 symbolic = hit[2]
             if symbolic is None:
-                symbolic = analyze(A)
+                try:  # CHOLMOD's default tries AMD, then METIS, and picks METIS here: go straight
+                    symbolic = analyze(A, ordering_method="metis")  # there (same ordering, 0.3 s less)
+                except Exception:  # a CHOLMOD built without METIS
+                    symbolic = analyze(A)
                 if cache is not None:
                     cache["cholmod"] = (A.indptr.copy(), A.indices.copy(), symbolic)
             f = symbolic.cholesky(A)  # a new numeric factor on the stored analysis
