@@ -1,7 +1,8 @@
 """One executor interface for independent work (starts, CV realizations, ensemble members).
 
 Anything with ``map(fn, items) -> list`` (results in item order) is an
-executor. Three are provided: in-process serial, a local spawn-safe process
+executor. Three are provided, each also with ``start()`` (warm up before the
+first map) and ``close()``: in-process serial, a local spawn-safe process
 pool (default; workers capped at ``os.cpu_count()``) and a Dask distributed
 cluster named by its scheduler address. ``fn`` must be a picklable
 module-level function and items picklable values.
@@ -161,6 +162,10 @@ class DaskExecutor:
             return []
         futures = self.client.map(fn, items, pure=False)
         return self.client.gather(futures)
+
+    def start(self, modules: tuple = ()) -> None:
+        """Nothing to start: the cluster's workers are already running."""
+        return None
 
     def close(self) -> None:
         if self._own:

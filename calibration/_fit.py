@@ -19,7 +19,7 @@ import numpy as np
 from calibration._errors import CalibrationError
 from calibration._executor import SerialExecutor
 from calibration._metric import LN10, log_deviation, square_deviation
-from calibration._surrogate import Surrogate, surrogate_frf, surrogate_frf_jacobian
+from calibration._surrogate import Surrogate, _blas_threads, surrogate_frf, surrogate_frf_jacobian
 
 
 #: Convergence tolerance (xtol, ftol, gtol) of the damping-continuation stages before the last.
@@ -281,13 +281,7 @@ def _check_bounds(lower, upper, n_p):
 
 def single_thread():
     """Context limiting BLAS to one thread (parallelism comes from the executor; avoids oversubscription)."""
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # optional: without it the libraries keep their own setting
-        import contextlib
-
-        return contextlib.nullcontext()
-    return threadpool_limits(limits=1, user_api="blas")
+    return _blas_threads(1)
 
 
 def run_start(args) -> StartOutcome:

@@ -235,9 +235,7 @@ def run_campaign(camp: Campaign, log=print) -> dict:
                              progress=None)
     results = []
     try:
-        start = getattr(executor, "start", None)
-        if start is not None:  # workers start and import while the basis is built
-            start()
+        executor.start()  # local workers start and import while the basis is built
         t = time.perf_counter()
         sur0, T0 = build_surrogate(model, np.zeros(pm.n_params), band, c.basis_factor, enrich=c.enrich)
         timings["basis_s"] = time.perf_counter() - t

@@ -41,7 +41,8 @@ equalized zeta0); FRFs with per-mode damping (validation) need no Jacobian.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import time
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import scipy.linalg as sla
@@ -196,8 +197,6 @@ def _factor(A, cache: dict | None = None):
     so later factorizations at new parameter points are numeric only: at
     200k DOF the analysis is about 3.5 s of a 6 s factorization.
     """
-    import time
-
     t0 = time.perf_counter()
     A = sp.csc_matrix(A)
     try:
@@ -322,6 +321,7 @@ def _shift_invert_modes(Ks, Ms, s, solve, max_hz: float, max_modes: int, k0: int
 
 
 def _blas_threads(n):
+    """Context limiting BLAS to ``n`` threads (no-op without threadpoolctl)."""
     try:
         from threadpoolctl import threadpool_limits
     except ImportError:
@@ -460,8 +460,6 @@ def build_surrogate(
         The M-orthonormal basis T (not kept in the surrogate, which stays small
         enough to ship to worker processes).
     """
-    import time
-
     p = np.asarray(p, dtype=float)
     if p.shape != (model.n_params,):
         raise CalibrationError(f"expected {model.n_params} parameters, got shape {p.shape}")
@@ -579,7 +577,7 @@ def _complement_coefficients(W, Phi, MPhi, M, sizes, tols, MW=None) -> list:
     k = W.shape[1]
     P = MPhi.T @ W
     G = W.T @ (M @ W if MW is None else MW) - P.T @ P  # Gram of W minus its Phi part
-    G = 0.5 * (G + G.T)
+    G = _sym(G)
     out, done = [], np.zeros((k, 0))
     start = 0
     for size, tol in zip(sizes, tols):
@@ -593,7 +591,7 @@ def _complement_coefficients(W, Phi, MPhi, M, sizes, tols, MW=None) -> list:
         if done.shape[1]:  # remove the earlier groups (M-orthonormal in these coordinates)
             Ag = Ag - done @ (done.T @ (G @ Ag))
         Gg = Ag.T @ G @ Ag
-        w, U = np.linalg.eigh(0.5 * (Gg + Gg.T))
+        w, U = np.linalg.eigh(_sym(Gg))
         if w.size == 0 or w.max() <= 0:
             out.append(np.zeros((k, 0)))
             continue
@@ -606,11 +604,7 @@ def _complement_coefficients(W, Phi, MPhi, M, sizes, tols, MW=None) -> list:
 
 def _congruent(A: AffineMatrix, Li: np.ndarray) -> AffineMatrix:
     """``Li A_k Li^T`` for every (dense, reduced) term of A."""
-    terms = tuple(Li @ np.asarray(m) @ Li.T for m in A.matrices)
-    terms = tuple(0.5 * (t + t.T) for t in terms)
-    if getattr(A, "series_ratio", None) is not None:
-        return type(A)(terms, A.exponents.copy(), A.series_exponents.copy(), A.series_ratio.copy())
-    return AffineMatrix(terms, A.exponents.copy())
+    return replace(A, matrices=tuple(_sym(Li @ np.asarray(m) @ Li.T) for m in A.matrices))
 
 
 def _local_terms(A: AffineMatrix) -> list:
@@ -683,7 +677,7 @@ def _project_term(T: np.ndarray, item) -> np.ndarray:
     rows, mk = item
     if rows is None:
         r = T.T @ (mk @ T)
-        return 0.5 * (r + r.T)
+        return _sym(r)
     Tr = T[rows]
     r = Tr.T @ (mk @ Tr)
     return r + r.T
@@ -704,9 +698,7 @@ def _projected(A: AffineMatrix, T: np.ndarray, pool=None) -> AffineMatrix:
     items = _local_halves(A)
     work = partial(_project_term, T)
     reduced = list(pool.map(work, items)) if pool is not None else [work(it) for it in items]
-    if getattr(A, "series_ratio", None) is not None:  # keep series (e.g. shell shear) coefficients exact
-        return type(A)(tuple(reduced), A.exponents.copy(), A.series_exponents.copy(), A.series_ratio.copy())
-    return AffineMatrix(tuple(reduced), A.exponents.copy())
+    return replace(A, matrices=tuple(reduced))  # same kind: series (shell shear) coefficients stay exact
 
 
 def _sym(A: np.ndarray) -> np.ndarray:
