@@ -18,6 +18,7 @@ import json
 import tempfile
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -25,10 +26,6 @@ from acquisition import ChannelSpec, ModalPlant, plan_from_dict, read_run, run_s
 from acquisition.drivers.ni import NiDaqDriver
 
 RESULTS = Path(__file__).resolve().parent / "results" / "hardware.json"
-
-
-class _Stream:
-    pass
 
 
 class _Task:
@@ -39,9 +36,8 @@ class _Task:
         self.ai_channels = self.ao_channels = self
         self.timing = self.triggers = self
         self.start_trigger = self
-        self.in_stream = _Stream()
-        self.in_stream.overloaded_chans_exist = False
-        self.out_stream = _Stream()
+        self.in_stream = SimpleNamespace(overloaded_chans_exist=False)
+        self.out_stream = SimpleNamespace()
 
     def __getattr__(self, name):  # add_ai_*_chan, cfg_samp_clk_timing, start, stop, write, close, ...
         return lambda *a, **k: None
@@ -58,8 +54,10 @@ class _Reader:
 
 
 class _Writer:
+    """Takes every block at once (the driver's writer factory is called with the stream)."""
+
     def __init__(self, stream, auto_start=False):
-        pass
+        self.stream = stream
 
     def write_many_sample(self, data, timeout):
         return data.size

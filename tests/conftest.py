@@ -42,6 +42,25 @@ def reference_path(*parts: str) -> Path:
     return path
 
 
+def lab_hardware(loopback: str, wiring: str):
+    """The lab's hardware config (``read_hardware_config``) with a ``loopback`` channel, or skip.
+
+    ``--hardware`` tests need ``FRFCAL_HARDWARE_CONFIG`` naming the file
+    (docs/hardware.md) and a loopback channel wired as ``wiring`` says.
+    """
+    import os
+
+    from acquisition import read_hardware_config
+
+    path = os.environ.get("FRFCAL_HARDWARE_CONFIG")
+    if not path:
+        pytest.skip("set FRFCAL_HARDWARE_CONFIG to the lab's hardware TOML file (docs/hardware.md)")
+    hw = read_hardware_config(path)
+    if loopback not in hw.channels:
+        pytest.skip(f"{path}: no [channels.{loopback}] ({wiring})")
+    return hw
+
+
 @pytest.fixture
 def shared_reference() -> Path:
     if not SHARED_REFERENCE.is_dir():

@@ -9,24 +9,18 @@ wiring or sensitivity mistake shows up here before a test article is mounted.
 
 from __future__ import annotations
 
-import os
-
 import numpy as np
 import pytest
 
-from acquisition import ChannelSpec, fit_harmonics, read_hardware_config
+from acquisition import ChannelSpec, fit_harmonics
+from tests.conftest import lab_hardware
 
 pytestmark = [pytest.mark.hardware, pytest.mark.timeout(120)]
 
 
 @pytest.fixture
 def rig():
-    path = os.environ.get("FRFCAL_HARDWARE_CONFIG")
-    if not path:
-        pytest.skip("set FRFCAL_HARDWARE_CONFIG to the lab's hardware TOML file (docs/hardware.md)")
-    hw = read_hardware_config(path)
-    if "ao_loopback" not in hw.channels:
-        pytest.skip(f"{path}: no [channels.ao_loopback] (an AI wired to the AO output)")
+    hw = lab_hardware("ao_loopback", "an AI wired to the AO output")
     specs = [ChannelSpec("ao_loopback", "monitor", "voltage", "V", range_v=10.0)]
     for name, ch in hw.channels.items():
         if name == "ao_loopback":

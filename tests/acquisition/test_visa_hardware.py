@@ -9,23 +9,17 @@ the generator volts).
 
 from __future__ import annotations
 
-import os
-
 import pytest
 
-from acquisition import ChannelSpec, read_hardware_config
+from acquisition import ChannelSpec
+from tests.conftest import lab_hardware
 
 pytestmark = [pytest.mark.hardware, pytest.mark.timeout(300)]
 
 
 @pytest.fixture
 def rig():
-    path = os.environ.get("FRFCAL_HARDWARE_CONFIG")
-    if not path:
-        pytest.skip("set FRFCAL_HARDWARE_CONFIG to the lab's hardware TOML file (docs/hardware.md)")
-    hw = read_hardware_config(path)
-    if "gen_loopback" not in hw.channels:
-        pytest.skip(f"{path}: no [channels.gen_loopback] (a lock-in reading the generator output)")
+    hw = lab_hardware("gen_loopback", "a lock-in reading the generator output")
     driver = hw.make_driver("visa")
     spec = hw.mapped([ChannelSpec("gen_loopback", "monitor", "voltage", "V", range_v=1.0)])
     yield driver, spec
