@@ -22,6 +22,15 @@ def _plt():
     return plt
 
 
+def _save(plt, fig, path: Path, tight: bool = True) -> Path:
+    """Write ``fig`` to ``path`` (PNG, 90 dpi) and close it."""
+    if tight:
+        fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
 def _model_frf(sur, p, rows, f, zeta, quantity):
     lam, X = reduced_modes(sur, p)
     return modal_frf(lam, sur.outputs[rows] @ X, X.T @ sur.inputs, f, zeta, quantity, sur.rigid_hz)
@@ -57,11 +66,7 @@ def member_figures(outdir: Path, label, pm, model, sur0, arts, cyc, val, cv, cam
     axes[0, 0].legend(fontsize=7, loc="upper right")
     axes[-1, 0].set_xlabel("frequency [Hz]")
     fig.suptitle(f"{label}: |{arts[0].quantity}| test vs model")
-    fig.tight_layout()
-    p = outdir / f"frf_{label}.png"
-    fig.savefig(p, dpi=90)
-    plt.close(fig)
-    written.append(p)
+    written.append(_save(plt, fig, outdir / f"frf_{label}.png"))
 
     # parameter table
     names = list(pm.parameters.names)
@@ -80,11 +85,7 @@ def member_figures(outdir: Path, label, pm, model, sur0, arts, cyc, val, cv, cam
     tab.auto_set_font_size(False)
     tab.set_fontsize(8)
     ax.set_title(f"{label}: parameters (SD {cyc.calibration.sd_nominal:.3g} -> {cyc.sd:.3g})")
-    fig.tight_layout()
-    p = outdir / f"parameters_{label}.png"
-    fig.savefig(p, dpi=90)
-    plt.close(fig)
-    written.append(p)
+    written.append(_save(plt, fig, outdir / f"parameters_{label}.png"))
 
     if cv is not None:
         fig, (a1, a2) = plt.subplots(1, 2, figsize=(11, 4))
@@ -100,11 +101,7 @@ def member_figures(outdir: Path, label, pm, model, sur0, arts, cyc, val, cv, cam
         a2.set_xlabel("SD on calibration half")
         a2.set_ylabel("SD on other half")
         a2.set_title(f"RSE = {cv.rse:.4g}")
-        fig.tight_layout()
-        p = outdir / f"crossvalidation_{label}.png"
-        fig.savefig(p, dpi=90)
-        plt.close(fig)
-        written.append(p)
+        written.append(_save(plt, fig, outdir / f"crossvalidation_{label}.png"))
 
     if val is not None and val.mac_nominal.size:
         fig, axs = plt.subplots(1, 2, figsize=(10, 4.5))
@@ -114,8 +111,5 @@ def member_figures(outdir: Path, label, pm, model, sur0, arts, cyc, val, cv, cam
             ax.set_ylabel("FE mode (in band)")
             ax.set_title(title)
         fig.colorbar(im, ax=axs, shrink=0.8)
-        p = outdir / f"mac_{label}.png"
-        fig.savefig(p, dpi=90)
-        plt.close(fig)
-        written.append(p)
+        written.append(_save(plt, fig, outdir / f"mac_{label}.png", tight=False))
     return written
