@@ -80,8 +80,21 @@ class CalibrationSection(_Strict):
     max_cycles: int = Field(3, ge=1, description="re-basis cycles (1 = keep the nominal basis)")
     cycle_tol: float = Field(1e-3, gt=0, description="stop cycling when max |dp| is below this")
     max_evaluations: int = Field(100, ge=5, description="residual evaluations per start and stage")
+    refine: bool = Field(True, description="refine the equalized optimum on the raw calibration lines "
+                         "(damping continuation down to the identified damping; see docs/calibration.md)")
+    refine_floors: list[float] = Field(
+        default_factory=lambda: [1.0, 0.3, 0.1, 0.0],
+        description="damping floors of the refinement stages as multiples of zeta0, decreasing, ending in 0")
+    refine_cycles: int = Field(2, ge=0, description="re-basis cycles of the raw-line stage after the refinement")
     ensemble: Literal["all", "article", "group"] = Field("all", description="calibrate on all articles, each, or each group")
     n_groups: int | None = Field(None, ge=1, description="number of article groups (default: largest gap)")
+
+    @field_validator("refine_floors")
+    @classmethod
+    def _floors(cls, v):
+        if not v or v[-1] != 0 or any(b > a for a, b in zip(v, v[1:])) or any(x < 0 for x in v):
+            raise ValueError("refine_floors must be non-negative, decreasing, and end in 0 (the raw data)")
+        return v
 
     @field_validator("continuation_zeta")
     @classmethod

@@ -331,6 +331,40 @@ def _blas_threads(n):
     return threadpool_limits(limits=n, user_api="blas")
 
 
+def _dense_shift_inverted(K: np.ndarray, M: np.ndarray, s: float):
+    """All finite modes of a small dense pencil whose M may be singular, and a solver for K + s M.
+
+    Massless DOF (a lumped-mass beam's rotations, Nastran's default) make M
+    singular, so ``eigh(K, M)`` (which needs M definite) cannot be used. As
+    Nastran's shift-invert does, the pencil is turned around at the shift:
+    with K + s M = L L^T (definite for any free-free structure whose rigid
+    motions carry mass) the symmetric problem L^-1 M L^-T y = mu y gives
+    lambda = 1/mu - s and phi = L^-T y / sqrt(mu) (so phi^T M phi = 1). The
+    massless DOF have mu = 0 (infinite frequency) and are dropped.
+
+    Returns
+    -------
+    lam : (m,) ascending eigenvalues (rad/s)^2 of the finite modes
+    X : (n, m) mass-normalized shapes
+    solve : callable, solve(F) = (K + s M)^-1 F
+    """
+    try:
+        L = np.linalg.cholesky(K + s * M)
+    except np.linalg.LinAlgError:
+        raise CalibrationError(
+            f"K + s M (s = {s:.4g}) is not positive definite: the model has a mechanism that carries no "
+            "mass, or a negative stiffness") from None
+    A = sla.solve_triangular(L, sla.solve_triangular(L, M, lower=True).T, lower=True)
+    mu, Y = np.linalg.eigh(_sym(A))
+    finite = mu > 1e-12 * max(mu.max(), 0.0)
+    mu, Y = mu[finite][::-1], Y[:, finite][:, ::-1]
+    X = sla.solve_triangular(L, Y, lower=True, trans="T") / np.sqrt(mu)[None, :]
+    lam = 1.0 / mu - s
+    cf = (L, True)
+    solve = lambda F: sla.cho_solve(cf, np.asarray(F.toarray() if sp.issparse(F) else F))  # noqa: E731
+    return lam, X, solve
+
+
 def full_modes(K, M, max_hz: float, shift_hz: float, max_modes: int = 600, dense_below: int = 1500,
                cache: dict | None = None):
     """Undamped modes of (K, M) up to ``max_hz`` and a solver for K + s M.
@@ -360,10 +394,8 @@ def full_modes(K, M, max_hz: float, shift_hz: float, max_modes: int = 600, dense
     if n <= dense_below:
         Kd = K.toarray() if sp.issparse(K) else np.asarray(K)
         Md = M.toarray() if sp.issparse(M) else np.asarray(M)
-        lam, X = sla.eigh(Kd, Md)
+        lam, X, solve = _dense_shift_inverted(Kd, Md, s)
         keep = lam <= (2 * np.pi * max_hz) ** 2
-        lu = sla.cho_factor(Kd + s * Md)
-        solve = lambda F: sla.cho_solve(lu, np.asarray(F.toarray() if sp.issparse(F) else F))  # noqa: E731
         lam = np.clip(lam[keep], 0.0, None)
         return np.sqrt(lam) / (2 * np.pi), X[:, keep], solve
     Ks = sp.csr_matrix(K)  # (CSR matvecs in the Lanczos loop; symmetric, so the same operator)
@@ -867,8 +899,8 @@ def full_order_frf(model: FRFModel, p, freq_hz, zeta=0.01, quantity="accelerance
     M = model.M.at(p)
     K = K.toarray() if sp.issparse(K) else np.asarray(K)
     M = M.toarray() if sp.issparse(M) else np.asarray(M)
-    lam, X = sla.eigh(K, M)
+    f = np.asarray(freq_hz, float)
+    lam, X, _ = _dense_shift_inverted(K, M, (2 * np.pi * max(0.25 * f.min(), 1.0)) ** 2)  # M may be singular
     B = model.inputs.toarray() if sp.issparse(model.inputs) else np.asarray(model.inputs, float)
     C = model.outputs.toarray() if sp.issparse(model.outputs) else np.asarray(model.outputs, float)
-    f = np.asarray(freq_hz, float)
     return modal_frf(lam, C @ X, X.T @ B, f, zeta, quantity, rigid_hz=1e-3 * max(f.min(), 1.0))
