@@ -121,16 +121,27 @@ class ModalDampingObjective:
     floor : float
         Damping floor: the model uses max(zeta_k, floor).
     quantity : str
+    fit_damping : sequence of int arrays, optional
+        Per data set, the reduced modes (indices at ``p_ref``) whose damping
+        is estimated with the parameters: the unknowns are then
+        ``x = [p, log zeta_sel(set 1), log zeta_sel(set 2), ...]`` (nuisance
+        parameters; identified damping is a noisy estimate, and its error
+        would otherwise bias p near every resonance). ``x0``/bounds come from
+        :meth:`damping_start`.
     """
 
     def __init__(self, surrogate: Surrogate, data, zeta, p_ref, floor: float = 0.0,
-                 quantity: str = "accelerance"):
+                 quantity: str = "accelerance", fit_damping=None):
         self.sur = surrogate
         self.data = list(data)
         self.quantity = quantity
         if len(zeta) != len(self.data):
             raise CalibrationError(f"{len(zeta)} damping vectors for {len(self.data)} data sets")
         self.zeta = [np.maximum(np.asarray(z, float), floor) for z in zeta]
+        self.n_p = surrogate.n_params
+        self.fit = [np.zeros(0, int) for _ in self.data] if fit_damping is None else \
+            [np.asarray(i, int) for i in fit_damping]
+        self._offsets = np.cumsum([0] + [i.size for i in self.fit])
         _, self._X_ref = reduced_modes(surrogate, np.asarray(p_ref, float))
         self._out = [surrogate.output_index(d.outputs) for d in self.data]
         lookup = {n: i for i, n in enumerate(surrogate.input_names)}
@@ -147,16 +158,38 @@ class ModalDampingObjective:
         self._memo_p = None
         self._memo = None
 
-    def _tracked(self, p):
-        """Reduced modes at p and, per data set, each mode's damping (tracked from p_ref)."""
+    @property
+    def n_unknowns(self) -> int:
+        return self.n_p + int(self._offsets[-1])
+
+    def damping_start(self, factor: float = 4.0):
+        """(x0, lower, upper) of the damping unknowns: log of the given damping, +- log(factor)."""
+        x0 = np.concatenate([np.log(z[i]) for z, i in zip(self.zeta, self.fit)]) if self._offsets[-1] else \
+            np.zeros(0)
+        return x0, x0 - np.log(factor), x0 + np.log(factor)
+
+    def damping_at(self, x) -> list:
+        """Per data set, the damping of the reduced modes at p_ref for unknowns ``x``."""
+        x = np.asarray(x, float)
+        out = []
+        for a, (z, i) in enumerate(zip(self.zeta, self.fit)):
+            if i.size:
+                z = z.copy()
+                z[i] = np.exp(x[self.n_p + self._offsets[a]:self.n_p + self._offsets[a + 1]])
+            out.append(z)
+        return out
+
+    def _tracked(self, x):
+        """Reduced modes at p and, per data set, each mode's damping and reference index (tracked from p_ref)."""
         from scipy.optimize import linear_sum_assignment
 
+        p = x[:self.n_p]
         lam, X = reduced_modes(self.sur, p)
         overlap = np.abs(self._X_ref.T @ (self.sur.M.at(p) @ X))  # (ref, now)
         best = np.argmax(overlap, axis=0)
         if np.unique(best).size != best.size:  # a crossing or a near-degenerate pair: assign globally
             _, best = linear_sum_assignment(-overlap.T)
-        return lam, X, [z[best] for z in self.zeta]
+        return lam, X, [z[best] for z in self.damping_at(x)], best
 
     def _frf(self, lam, X, zeta, d, oi, ii, w):
         om, rigid = _omegas(lam, self.sur.rigid_hz)
@@ -170,7 +203,7 @@ class ModalDampingObjective:
         return H, r, q, u, v, om, rigid
 
     def deviation(self, p) -> list:
-        lam, X, zetas = self._tracked(np.asarray(p, float))
+        lam, X, zetas, _ = self._tracked(self._x(p))
         out = []
         for d, oi, ii, z in zip(self.data, self._out, self._in, zetas):
             H = self._frf(lam, X, z, d, oi, ii, 2 * np.pi * d.freq_hz)[0]
@@ -178,8 +211,15 @@ class ModalDampingObjective:
             out.append((e if d.mask is None else e[d.mask]).ravel())
         return out
 
+    def _x(self, x):
+        """The unknowns; a bare p (no damping part) takes the damping as given."""
+        x = np.asarray(x, float)
+        if x.size == self.n_p and self.n_unknowns > self.n_p:
+            x = np.concatenate([x, self.damping_start()[0]])
+        return x
+
     def residual(self, p):
-        p = np.asarray(p, float)
+        p = self._x(p)
         if self._memo_p is not None and np.array_equal(p, self._memo_p):
             return self._memo[0]
         e = np.concatenate(self.deviation(p)) * self._sqrt_w
@@ -195,10 +235,11 @@ class ModalDampingObjective:
 
     def evaluate(self, p):
         """(r, J): real residual (2N,) and its exact Jacobian (2N, n_p)."""
-        p = np.asarray(p, float)
-        if self._memo_p is not None and np.array_equal(p, self._memo_p):
+        x = self._x(p)
+        if self._memo_p is not None and np.array_equal(x, self._memo_p):
             return self._memo
-        lam, X, zetas = self._tracked(p)
+        lam, X, zetas, best = self._tracked(x)
+        p = x[:self.n_p]
         sur = self.sur
         dcK = sur.K.coefficient_jacobian(p)
         dcM = sur.M.coefficient_jacobian(p)
@@ -214,7 +255,10 @@ class ModalDampingObjective:
         idx = np.arange(m)
         G[:, idx, idx] = -0.5 * Bm[:, idx, idx]
         eps_all, deps_all = [], []
-        for d, oi, ii, z in zip(self.data, self._out, self._in, zetas):
+        n_x = self.n_unknowns
+        where = np.empty(m, int)
+        where[best] = np.arange(m)  # reference mode -> current index
+        for a, (d, oi, ii, z) in enumerate(zip(self.data, self._out, self._in, zetas)):
             w = 2 * np.pi * d.freq_hz
             H, r, q, u, v, om, rigid = self._frf(lam, X, z, d, oi, ii, w)
             with np.errstate(divide="ignore", invalid="ignore"):
@@ -233,18 +277,27 @@ class ModalDampingObjective:
             Q = Q.reshape(n_f * n_p, m)
             T2 = ((Q.real @ S) + 1j * (Q.imag @ S)).reshape(n_f, n_p, n_out, n_in)
             dH = (T1 - T2).transpose(1, 0, 2, 3)  # (j, f, o, i)
+            if n_x > n_p:  # d H / d log zeta_k = -q u_k v_k r_k^2 (i w 2 zeta_k omega_k)
+                dZ = np.zeros((n_x - n_p, n_f, n_out, n_in), complex)
+                cols = self._offsets[a] + np.arange(self.fit[a].size)
+                for col, kref in zip(cols, self.fit[a]):
+                    k = where[kref]
+                    if not rigid[k]:
+                        g = -(r[:, k] ** 2) * q * (1j * w * 2 * z[k] * om[k])
+                        dZ[col] = g[:, None, None] * (u[:, k][:, None] * v[k][None, :])[None]
+                dH = np.concatenate([dH, dZ], axis=0)
             e = log_deviation(H, d.frf)
             de = dH / (H[None] * LN10)
             if d.mask is not None:
                 e, de = e[d.mask], de[:, d.mask]
             eps_all.append(e.ravel())
-            deps_all.append(de.reshape(n_p, -1))
+            deps_all.append(de.reshape(de.shape[0], -1))
         e = np.concatenate(eps_all) * self._sqrt_w
         de = np.concatenate(deps_all, axis=1) * self._sqrt_w[None, :]
         s = 1.0 / np.sqrt(e.size)
         res = np.concatenate([e.real, e.imag]) * s
         J = np.concatenate([de.real, de.imag], axis=1).T * s
-        self._memo_p, self._memo = p.copy(), (res, J)
+        self._memo_p, self._memo = x.copy(), (res, J)
         return res, J
 
     def jacobian(self, p):
@@ -309,7 +362,10 @@ def article_damping(sur: Surrogate, p, modes: IdentifiedModes, mac_min: float = 
     """
     fallback = float(np.median(modes.damping)) if len(modes.damping) else 0.01
     zeta, pairs, _, _ = mapped_damping(sur, p, modes, fallback, mac_min, band_hz)
-    return zeta, pairs
+    lam, _ = reduced_modes(sur, p)
+    fe_hz = np.sqrt(np.clip(lam, 0, None)) / (2 * np.pi)
+    paired = np.array([int(np.argmin(np.abs(fe_hz - q["fe_hz"]))) for q in pairs], int)
+    return zeta, pairs, paired
 
 
 def refine(
@@ -329,6 +385,7 @@ def refine(
     xtol: float = 1e-10,
     line_weights=None,
     zeta=None,
+    fit_damping: bool = True,
 ) -> Refinement:
     """Refine an equalized calibration on the raw lines (damping continuation down to the raw data).
 
@@ -352,6 +409,12 @@ def refine(
     zeta : sequence of (r,) arrays, optional
         Per-mode damping at ``p_start`` for each data set (default: mapped
         from ``modes`` by MAC).
+    fit_damping : bool
+        In the last (raw) stage, estimate the damping of the MAC-paired modes
+        together with p (nuisance unknowns within a factor 4 of the identified
+        value). The identified damping is a noisy estimate; held fixed, its
+        error leaves a systematic misfit at every resonance that p would
+        partly absorb.
 
     Returns
     -------
@@ -367,18 +430,21 @@ def refine(
         raise CalibrationError(f"refine: floors must decrease and end in 0, got {floors}")
     p = np.clip(np.asarray(p_start, float), lower, upper)
     p0 = p.copy()  # the damping of each mode is assigned here and tracked from here
-    pairs_all = []
+    pairs_all, paired = [], []
     if zeta is None:
         zeta = []
         for m in modes:
-            z, pairs = article_damping(surrogate, p, m, mac_min, band_hz)
+            z, pairs, idx = article_damping(surrogate, p, m, mac_min, band_hz)
             zeta.append(z)
             pairs_all.append(pairs)
+            paired.append(idx)
+    else:
+        paired = [np.zeros(0, int) for _ in raw]
     zeta = [np.asarray(z, float) for z in zeta]
     raw_obj = ModalDampingObjective(
         surrogate,
         [d if w is None else replace(d, weights=w) for d, w in zip(raw, line_weights or [None] * len(raw))],
-        zeta, p, 0.0, quantity)
+        zeta, p, 0.0, quantity, fit_damping=paired if fit_damping else None)
     plain = ModalDampingObjective(surrogate, [replace(d, weights=None) for d in raw], zeta, p, 0.0, quantity)
     sd_raw_start = plain.sd_unweighted(p)
     stages = []
@@ -394,11 +460,22 @@ def refine(
                 obj = raw_obj
             last = fl == floors[-1]
             sd0 = obj.sd(p)
-            res = least_squares(obj.residual, p, jac=obj.jacobian, bounds=(lower, upper), method="trf",
+            x0, lo, hi = p, lower, upper
+            if obj.n_unknowns > obj.n_p:
+                z0, zlo, zhi = obj.damping_start()
+                x0, lo, hi = np.concatenate([p, z0]), np.concatenate([lower, zlo]), np.concatenate([upper, zhi])
+            res = least_squares(obj.residual, x0, jac=obj.jacobian, bounds=(lo, hi), method="trf",
                                 x_scale="jac", xtol=xtol if last else 1e-6, ftol=1e-12 if last else 1e-6,
                                 gtol=1e-12 if last else 1e-6, max_nfev=max_nfev)
-            stages.append(RefineStage(zf, p.copy(), np.asarray(res.x).copy(), sd0, float(2 * res.cost),
+            x = np.asarray(res.x)
+            if obj.n_unknowns > obj.n_p:
+                zeta = obj.damping_at(x)
+            stages.append(RefineStage(zf, p.copy(), x[:obj.n_p].copy(), sd0, float(2 * res.cost),
                                       int(res.nfev), time.perf_counter() - t0, str(res.message)))
-            p = np.asarray(res.x)
+            p = x[:obj.n_p].copy()
+    plain = ModalDampingObjective(surrogate, [replace(d, weights=None) for d in raw], zeta, p0, 0.0, quantity)
+    for pairs, z, idx in zip(pairs_all, zeta, paired):  # report the damping the model ends with
+        for q, k in zip(pairs, idx):
+            q["zeta_fitted"] = float(z[k])
     return Refinement(p=p, sd_raw=plain.sd_unweighted(p), sd_raw_start=sd_raw_start, stages=tuple(stages),
                       damping=tuple(pairs_all), zeta=tuple(zeta), p_zeta=p0)

@@ -96,12 +96,14 @@ def test_modal_damping_jacobian_matches_finite_differences(chain):
     lam, _ = reduced_modes(sur, np.zeros(7))
     z = 10 ** rng.uniform(-3.3, -2.5, lam.size)
     data = FitData(raw.freq_hz, raw.frf, raw.outputs, weights=rng.uniform(0.5, 1.5, raw.freq_hz.size))
-    obj = ModalDampingObjective(sur, [data], [z], np.zeros(7), 0.0)
-    p = P_TRUE * 0.7
-    J = obj.jacobian(p)
+    # damping of three modes estimated with p (nuisance unknowns log zeta)
+    obj = ModalDampingObjective(sur, [data], [z], np.zeros(7), 0.0, fit_damping=[np.array([6, 8, 11])])
+    assert obj.n_unknowns == 10
+    x = np.concatenate([P_TRUE * 0.7, obj.damping_start()[0] + 0.1])
+    J = obj.jacobian(x)
     err = []
     for h in (1e-4, 1e-5):
-        Jfd = np.stack([(obj.residual(p + h * e) - obj.residual(p - h * e)) / (2 * h) for e in np.eye(7)], 1)
+        Jfd = np.stack([(obj.residual(x + h * e) - obj.residual(x - h * e)) / (2 * h) for e in np.eye(10)], 1)
         err.append(np.abs(J - Jfd).max() / np.abs(Jfd).max())
     assert err[1] < 1e-3
     assert err[1] < 0.05 * err[0]  # the difference shrinks as h^2: it is truncation, not a wrong Jacobian
@@ -142,6 +144,7 @@ def test_refine_reaches_the_noise_floor_from_a_biased_start(chain):
     assert ref.sd_raw < 2.0 * floor, (ref.sd_raw, floor)
     assert ref.sd_raw_start > 20 * floor
     err = np.abs((1 + ref.p) / (1 + P_TRUE) - 1)
-    assert err.max() < 0.003, err
+    assert err.max() < 0.001, err  # measured 6e-5 with the damping estimated, 4e-4 without
+    assert ref.sd_raw < 1.2 * floor  # measured 1.04 (1.40 with the identified damping held fixed)
     # the stages descend in damping floor and end on the raw data
     assert [s.floor for s in ref.stages] == [0.01, 0.003, 0.001, 0.0]
