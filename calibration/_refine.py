@@ -338,6 +338,9 @@ class Refinement:
     damping : tuple of dict per data set: the MAC pairs used (fe_hz, test_hz, mac, zeta)
     zeta : tuple of (r,) arrays, the per-mode damping of each data set, assigned at ``p_zeta``
     p_zeta : (n_p,) the point where ``zeta`` was assigned (the start point)
+    articles : tuple of dict
+        With several articles in a member: each article's own raw-line
+        estimate started from ``p`` (article, p, sd_raw_calibration, sd_holdout).
     """
 
     p: np.ndarray
@@ -347,10 +350,12 @@ class Refinement:
     damping: tuple
     zeta: tuple = field(repr=False, default=())
     p_zeta: np.ndarray | None = field(repr=False, default=None)
+    articles: tuple = ()
 
     def to_dict(self) -> dict:
         return {"p": self.p.tolist(), "sd_raw": self.sd_raw, "sd_raw_start": self.sd_raw_start,
-                "stages": [s.to_dict() for s in self.stages], "damping_pairs": list(self.damping)}
+                "stages": [s.to_dict() for s in self.stages], "damping_pairs": list(self.damping),
+                "articles": list(self.articles)}
 
 
 def article_damping(sur: Surrogate, p, modes: IdentifiedModes, mac_min: float = 0.6, band_hz=None):
