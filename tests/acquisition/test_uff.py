@@ -180,4 +180,10 @@ def test_ambiguous_files_are_refused(tmp_path, edit, message):
 def test_cli_imports_mimo(tmp_path, capsys):
     _foreign(tmp_path / "m.uff", _mimo_cells())
     assert main(["import-uff", str(tmp_path / "m.uff"), "--out", str(tmp_path / "m.h5")]) == 0
-    assert "20 x 2 accelerance" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "20 x 2 accelerance" in out and "references: shaker (1+Z), shaker (2-X)" in out
+    assert main(["import-uff", str(tmp_path / "m.uff"), "--out", str(tmp_path / "m.h5"), "--force", "--json"]) == 0
+    assert '"drive_grids": [1, 2]' in capsys.readouterr().out
+    _foreign(tmp_path / "d.uff", _mimo_cells() + [_mimo_cells()[0]])
+    assert main(["import-uff", str(tmp_path / "d.uff"), "--out", str(tmp_path / "d.h5")]) == 2
+    assert "repeats the (response, reference) pair" in capsys.readouterr().err
