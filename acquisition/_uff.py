@@ -286,7 +286,8 @@ def import_uff(path, out, *, article: str | None = None, overwrite: bool = False
         if unit_den not in _SCALE_DEN:
             raise UffError(f"{path}: {rec(n, s)}: unknown denominator unit {s.get('orddenom_axis_units_lab')!r}")
         scale = _SCALE_NUM[unit_num] / _SCALE_DEN[unit_den]
-        scale_of.setdefault(scale, []).append((n, f"{s.get('ordinate_axis_units_lab')}/{s.get('orddenom_axis_units_lab')}"))
+        label = f"{s.get('ordinate_axis_units_lab')}/{s.get('orddenom_axis_units_lab')}"
+        scale_of.setdefault(scale, []).append((n, label))
 
         keys = []
         for side, table, vec_line, tag in (("rsp", outs, "id4", "rspdir"), ("ref", ins, "id5", "refdir")):

@@ -286,7 +286,8 @@ def _parameter_from_table(tab: dict, k: int, source, deck=None) -> Parameter:
     unit = tab.get("unit", "").strip()
     kind = SUPPORTED_FIELDS[(card, fld)]
     if unit and unit_factor(kind, unit) is None:
-        known = sorted(set(UNITS["trans_spring"]) | set(UNITS["rot_spring"])) if kind == "spring" else sorted(UNITS[kind])
+        kinds = ("trans_spring", "rot_spring") if kind == "spring" else (kind,)
+        known = sorted(u for k in kinds for u in UNITS[k])
         _fail(source, f"{label}: unit {unit!r} is not a unit of {card} {fld} (known: {', '.join(known)})")
     nominal = _number(tab, "nominal", label, source)
     if nominal is not None and not nominal > 0.0:
@@ -332,7 +333,9 @@ def _parameter_from_table(tab: dict, k: int, source, deck=None) -> Parameter:
     if lv is not None and uv is not None and not lv < uv:
         _fail(source, f"{label}: lower_value ({lv!r}) must be less than upper_value ({uv!r})")
     for b, v in absolute.items():
-        if v is not None and ((b == "lower" and v > ref * (1 + NOMINAL_RTOL)) or (b == "upper" and v < ref * (1 - NOMINAL_RTOL))):
+        if v is None:
+            continue
+        if v > ref * (1 + NOMINAL_RTOL) if b == "lower" else v < ref * (1 - NOMINAL_RTOL):
             _fail(source, f"{label}: the nominal value {ref:.8g} {in_unit} must lie within the bounds, "
                           f"{b}_value is {v!r}")
     if lv is not None and given["lower"] is None:
@@ -419,7 +422,8 @@ def _json_object(pairs, path):
     out = {}
     for key, value in pairs:
         if key in out:
-            raise ParameterError(f"{path}: not valid JSON for a parameter file: key {key!r} appears twice in one object")
+            raise ParameterError(f"{path}: not valid JSON for a parameter file: key {key!r} appears twice in one "
+                                 "object")
         out[key] = value
     return out
 
@@ -444,7 +448,8 @@ def read_parameters(path) -> ParameterSet:
         try:
             data = json.loads(text, object_pairs_hook=lambda pairs: _json_object(pairs, path))
         except json.JSONDecodeError as exc:
-            raise ParameterError(f"{path}: not valid JSON: {exc.msg} at line {exc.lineno}, column {exc.colno}") from None
+            where = f"line {exc.lineno}, column {exc.colno}"
+            raise ParameterError(f"{path}: not valid JSON: {exc.msg} at {where}") from None
     else:
         try:
             data = tomllib.loads(text)
@@ -630,7 +635,8 @@ def nominal_values(params: ParameterSet, model, units: str | None = None, source
                 )
             if prm.nominal is not None:
                 _, declared = _deck_value(f"parameter {prm.name!r}", prm.unit, key, model, units, source)
-                _check_nominal(f"parameter {prm.name!r}", prm.nominal, prm.unit, key, float(raw), declared, units, source)
+                _check_nominal(f"parameter {prm.name!r}", prm.nominal, prm.unit, key, float(raw), declared, units,
+                               source)
             vals.append(v)
         out.append(np.array(vals))
     return out
