@@ -4,7 +4,13 @@ Mapping: a sensor or drive is an FE grid id plus a unit direction vector. In
 UFF58 that is a node and a direction code (+-1..3 = +-X, +-Y, +-Z). Directions
 along an axis map to the code; other directions get code 0 and the exact vector
 travels in the ID lines (``id4`` response, ``id5`` reference), which this
-reader also understands. Channel names travel in ``id2`` as ``"<out> / <in>"``.
+reader also understands. Channel names travel in ``id2`` as ``"<out> / <in>"``
+(and, cut to 10 characters, in the entity names).
+
+Import identifies responses and references by the records' own fields (node
+and direction), never by free text, so a MIMO file (n_out x n_in records)
+becomes an (n_freq, n_out, n_in) run. ``id2`` names are used only in files
+frfcal wrote (``id1`` starting ``frfcal FRF``).
 
 Export writes **binary UFF58b** by default: the abscissa and ordinate are raw
 IEEE doubles, so a run file -> UFF -> run file round trip is bit-exact. (The
@@ -144,74 +150,209 @@ def _parse_dir(text: str, key: str):
     return None
 
 
-def import_uff(path, out, *, article: str | None = None, overwrite: bool = False) -> Run:
-    """Convert the FRF records (UFF58, function type 4) of a universal file into a run file.
+def _entity(name) -> str:
+    """A UFF entity name, '' when blank or pyuff's 'NONE' placeholder."""
+    name = str(name or "").strip()
+    return "" if name.upper() == "NONE" else name
 
-    All records must share one abscissa; the outputs and inputs are the distinct
-    (node, direction) pairs (or channel names written by :func:`export_uff`).
-    Returns the run read back.
-    """
+
+def _point_label(node: int, code: int, direction) -> str:
+    """``101+Z`` for an axis code, ``103(0,0.6,0.8)`` for a general direction."""
+    if 1 <= abs(code) <= 3:
+        return f"{node}{'+-'[code < 0]}{'XYZ'[abs(code) - 1]}"
+    return f"{node}(" + ",".join(f"{x:.6g}" for x in direction) + ")"
+
+
+def _read_records(path: Path) -> list[tuple[int, dict]]:
+    """(1-based dataset number in the file, dataset) of every UFF58 record."""
     import pyuff
 
-    path = Path(path)
-    if not path.exists():
-        raise UffError(f"{path}: file not found")
     try:
         uff = pyuff.UFF(str(path))
         types = list(uff.get_set_types())
-        sets = [uff.read_sets(k) for k, t in enumerate(types) if int(t) == 58]
+        return [(k + 1, uff.read_sets(k)) for k, t in enumerate(types) if int(t) == 58]
     except Exception as exc:  # pyuff raises bare Exceptions on malformed files
         raise UffError(f"{path}: cannot parse as a universal file: {exc}") from None
-    sets = [s for s in sets if int(s.get("func_type", 0)) == 4]
-    if not sets:
-        raise UffError(f"{path}: no UFF58 frequency response function records (function type 4)")
-    f = np.asarray(sets[0]["x"], dtype=float)
-    outs, ins, quantity = {}, {}, None
-    entries = []
-    for k, s in enumerate(sets):
+
+
+def _listing(items, limit: int = 6) -> str:
+    items = list(items)
+    more = f" and {len(items) - limit} more" if len(items) > limit else ""
+    return ", ".join(str(x) for x in items[:limit]) + more
+
+
+def import_uff(path, out, *, article: str | None = None, overwrite: bool = False) -> Run:
+    """Convert the FRF records (UFF58, function type 4) of a universal file into a run file.
+
+    Every record is one FRF H[response, reference]. Responses are identified by
+    the record's response node and direction (``rsp_node``, ``rsp_dir``; or the
+    exact vector in ``id4`` as written by :func:`export_uff`), references by
+    ``ref_node``, ``ref_dir`` (``id5``). The run has one output per distinct
+    response and one input per distinct reference, in order of first
+    appearance, and the records must fill that matrix exactly once.
+
+    Parameters
+    ----------
+    path : str or Path
+        Universal file (ASCII UFF58 or binary 58b); records of other dataset
+        types (nodes, trace lines, headers) are ignored.
+    out : str or Path
+        Run file to write (``.h5``).
+    article : str, optional
+        Test article; default from frfcal's ID line 1 or the file stem.
+    overwrite : bool
+        Replace an existing run file.
+
+    Returns
+    -------
+    Run
+        The run file read back: ``frf`` is (n_freq, n_out, n_in) in SI.
+
+    Raises
+    ------
+    UffError
+        Naming the file and the records at fault: no FRF records, records of
+        another function type or quantity, unknown or mixed units, a record on
+        another abscissa, a direction that is not a translation (+-1..3, or an
+        exact vector), a (response, reference) pair given twice or missing, one
+        response or reference named differently in two records.
+
+    Notes
+    -----
+    Channel names: frfcal's own files carry the full names in ID line 2
+    (``"<sensor> / <drive>"``) and they are kept. Otherwise a channel is named
+    from the record's entity name and its point, ``"acc12 (101+Z)"``, or from
+    the point alone when the entity name is blank: ``"n101+Z"`` for responses,
+    ``"ref_n1+Z"`` for references. Grid = node; direction code +-1..3 is the
+    unit vector +-X, +-Y, +-Z.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise UffError(f"{path}: file not found")
+    records = _read_records(path)
+    if not records:
+        raise UffError(f"{path}: no UFF58 records")
+
+    def rec(n: int, s: dict) -> str:
+        return (f"record {n} (response {int(s.get('rsp_node', 0))}/{int(s.get('rsp_dir', 0))}, "
+                f"reference {int(s.get('ref_node', 0))}/{int(s.get('ref_dir', 0))})")
+
+    ftypes = {}
+    for n, s in records:
+        ftypes.setdefault(int(s.get("func_type", 0)), []).append(n)
+    if 4 not in ftypes:
+        raise UffError(f"{path}: no UFF58 frequency response function records (function type 4); "
+                       f"function types found: {sorted(ftypes)}")
+    if len(ftypes) > 1:
+        other = {t: ns for t, ns in ftypes.items() if t != 4}
+        raise UffError(f"{path}: mixed UFF58 function types: FRF (4) and "
+                       + "; ".join(f"type {t} in records {_listing(ns)}" for t, ns in sorted(other.items()))
+                       + "; write the FRFs to a file of their own")
+
+    n0, s0 = records[0]
+    f = np.asarray(s0["x"], dtype=float)
+    own = all(str(s.get("id1", "")).startswith("frfcal FRF") for _, s in records)
+    quantity, scale_of = None, {}
+    outs: dict[tuple, dict] = {}
+    ins: dict[tuple, dict] = {}
+    cells: dict[tuple, tuple[int, np.ndarray]] = {}
+    for n, s in records:
         x = np.asarray(s["x"], dtype=float)
         if x.shape != f.shape or np.any(x != f):
-            raise UffError(f"{path}: record {k} has a different frequency axis from record 0")
+            raise UffError(f"{path}: {rec(n, s)} has a different frequency axis ({x.size} points, "
+                           f"{x.min():.6g}-{x.max():.6g}) from {rec(n0, s0)} ({f.size} points, "
+                           f"{f.min():.6g}-{f.max():.6g})")
+        if int(s.get("abscissa_spec_data_type", 18)) not in (0, 18):
+            raise UffError(f"{path}: {rec(n, s)}: abscissa type {s.get('abscissa_spec_data_type')} is not "
+                           "frequency (18)")
         q = _SPEC_INV.get(int(s.get("ordinate_spec_data_type", 12)))
         if q is None:
-            raise UffError(f"{path}: record {k}: ordinate type {s.get('ordinate_spec_data_type')} is not an FRF quantity")
+            raise UffError(f"{path}: {rec(n, s)}: ordinate type {s.get('ordinate_spec_data_type')} is not an "
+                           "FRF quantity (12 acceleration, 11 velocity, 8 displacement)")
+        if int(s.get("orddenom_spec_data_type", 13)) not in (0, 13):
+            raise UffError(f"{path}: {rec(n, s)}: ordinate denominator type {s.get('orddenom_spec_data_type')} "
+                           "is not force (13)")
         if quantity not in (None, q):
-            raise UffError(f"{path}: record {k} is {q}, earlier records are {quantity}")
+            raise UffError(f"{path}: {rec(n, s)} is {q}, {rec(n0, s0)} is {quantity}")
         quantity = q
+        data = np.asarray(s["data"])
+        if not np.iscomplexobj(data):
+            raise UffError(f"{path}: {rec(n, s)}: real ordinate data (type {s.get('ord_data_type')}); an FRF "
+                           "needs complex data (type 5 or 6)")
         unit_num = str(s.get("ordinate_axis_units_lab", "")).strip().lower().split("/n")[0]
         unit_den = str(s.get("orddenom_axis_units_lab", "")).strip().lower()
         if unit_num not in _SCALE_NUM:
-            raise UffError(f"{path}: record {k}: unknown ordinate unit {s.get('ordinate_axis_units_lab')!r}")
+            raise UffError(f"{path}: {rec(n, s)}: unknown ordinate unit {s.get('ordinate_axis_units_lab')!r}")
         if unit_den not in _SCALE_DEN:
-            raise UffError(f"{path}: record {k}: unknown denominator unit {s.get('orddenom_axis_units_lab')!r}")
+            raise UffError(f"{path}: {rec(n, s)}: unknown denominator unit {s.get('orddenom_axis_units_lab')!r}")
         scale = _SCALE_NUM[unit_num] / _SCALE_DEN[unit_den]
-        names = [t.strip() for t in str(s.get("id2", "")).split(" / ")]
-        rd = _parse_dir(s.get("id4", ""), "rspdir")
-        fd = _parse_dir(s.get("id5", ""), "refdir")
-        if (rd is None and not 1 <= abs(int(s["rsp_dir"])) <= 3) or (fd is None and not 1 <= abs(int(s["ref_dir"])) <= 3):
-            raise UffError(f"{path}: record {k}: direction code {s['rsp_dir']}/{s['ref_dir']} is not a translation")
-        rd = rd if rd is not None else _code_dir(int(s["rsp_dir"]))
-        fd = fd if fd is not None else _code_dir(int(s["ref_dir"]))
-        axis = "XYZ"
-        rname = names[0] if len(names) == 2 and names[0] else f"n{int(s['rsp_node'])}{'+-'[int(s['rsp_dir']) < 0]}{axis[abs(int(s['rsp_dir'])) - 1]}"
-        fname = names[1] if len(names) == 2 and names[1] else f"ref_n{int(s['ref_node'])}{'+-'[int(s['ref_dir']) < 0]}{axis[abs(int(s['ref_dir'])) - 1]}"
-        outs.setdefault(rname, (int(s["rsp_node"]), rd))
-        ins.setdefault(fname, (int(s["ref_node"]), fd))
-        entries.append((rname, fname, np.asarray(s["data"], dtype=complex) * scale))
+        label = f"{s.get('ordinate_axis_units_lab')}/{s.get('orddenom_axis_units_lab')}"
+        scale_of.setdefault(scale, []).append((n, label))
+
+        keys = []
+        for side, table, vec_line, tag in (("rsp", outs, "id4", "rspdir"), ("ref", ins, "id5", "refdir")):
+            node, code = int(s[f"{side}_node"]), int(s[f"{side}_dir"])
+            vec = _parse_dir(s.get(vec_line, ""), tag)
+            if vec is None and not 1 <= abs(code) <= 3:
+                raise UffError(f"{path}: {rec(n, s)}: {'response' if side == 'rsp' else 'reference'} direction "
+                               f"code {code} is not a translation (+-1..3 = +-X, +-Y, +-Z)")
+            vec = vec if vec is not None else _code_dir(code)
+            key = (node, vec)
+            ent = _entity(s.get(f"{side}_ent_name", ""))
+            given = ""
+            if own:
+                parts = [t.strip() for t in str(s.get("id2", "")).split(" / ")]
+                given = parts[0 if side == "rsp" else 1] if len(parts) == 2 else ""
+            ch = table.setdefault(key, dict(node=node, code=code, vec=vec, ent=ent, given=given, first=n))
+            if ch["ent"] != ent or ch["given"] != given:
+                what = "response" if side == "rsp" else "reference"
+                raise UffError(f"{path}: {what} {_point_label(node, code, vec)} is named "
+                               f"{ch['given'] or ch['ent']!r} in record {ch['first']} and {given or ent!r} in "
+                               f"{rec(n, s)}")
+            keys.append(key)
+        cell = tuple(keys)
+        if cell in cells:
+            raise UffError(f"{path}: {rec(n, s)} repeats the (response, reference) pair of record "
+                           f"{cells[cell][0]}")
+        cells[cell] = (n, data.astype(complex) * scale)
+    if len(scale_of) > 1:
+        raise UffError(f"{path}: mixed units: " + "; ".join(
+            f"{v[0][1]} in records {_listing(m for m, _ in v)}" for v in scale_of.values()))
+
+    missing = [(o, i) for o in outs for i in ins if (o, i) not in cells]
+    if missing:
+        lab = [f"{_point_label(outs[o]['node'], outs[o]['code'], o[1])} / "
+               f"{_point_label(ins[i]['node'], ins[i]['code'], i[1])}" for o, i in missing]
+        raise UffError(f"{path}: {len(outs)} responses x {len(ins)} references need {len(outs) * len(ins)} FRF "
+                       f"records, {len(cells)} given; missing (response / reference): {_listing(lab)}")
+
+    def name_of(ch: dict, prefix: str) -> str:
+        point = _point_label(ch["node"], ch["code"], ch["vec"])
+        if ch["given"]:
+            return ch["given"]
+        return f"{ch['ent']} ({point})" if ch["ent"] else f"{prefix}{point}"
+
+    out_names = [name_of(c, "n") for c in outs.values()]
+    in_names = [name_of(c, "ref_n") for c in ins.values()]
+    seen: dict[str, int] = {}
+    unique = []
+    for nm in out_names + in_names:  # channel names are unique in a run
+        seen[nm] = seen.get(nm, 0) + 1
+        unique.append(nm if seen[nm] == 1 else f"{nm} #{seen[nm]}")
+    out_names, in_names = unique[:len(outs)], unique[len(outs):]
+
     qname, unit = _QTY[quantity]
-    sensors = [ChannelSpec(name=n, role="response", quantity=qname, unit=unit, grid=g, direction=d)
-               for n, (g, d) in outs.items()]
-    drives = [ChannelSpec(name=n, role="force", quantity="force", unit="N", grid=g, direction=d)
-              for n, (g, d) in ins.items()]
-    frf = np.full((f.size, len(sensors), len(drives)), np.nan + 0j)
-    oi = {n: i for i, n in enumerate(outs)}
-    ii = {n: j for j, n in enumerate(ins)}
-    for rname, fname, data in entries:
-        frf[:, oi[rname], ii[fname]] = data
-    if np.isnan(frf).any():
-        raise UffError(f"{path}: the records do not cover every (response, reference) pair")
+    sensors = [ChannelSpec(name=nm, role="response", quantity=qname, unit=unit, grid=c["node"], direction=c["vec"])
+               for nm, c in zip(out_names, outs.values())]
+    drives = [ChannelSpec(name=nm, role="force", quantity="force", unit="N", grid=c["node"], direction=c["vec"])
+              for nm, c in zip(in_names, ins.values())]
+    oi = {k: i for i, k in enumerate(outs)}
+    ii = {k: j for j, k in enumerate(ins)}
+    frf = np.empty((f.size, len(sensors), len(drives)), dtype=complex)
+    for (ko, ki), (_, data) in cells.items():
+        frf[:, oi[ko], ii[ki]] = data
     if article is None:
-        id1 = str(sets[0].get("id1", ""))
+        id1 = str(s0.get("id1", ""))
         article = id1.split("article=", 1)[1].strip() if "article=" in id1 else path.stem
     w = create_run(out, article=article, sensors=sensors, drives=drives, quantity=quantity,
                    plan={"source": "uff58", "file": str(path)}, hardware={"source": "imported"}, overwrite=overwrite)

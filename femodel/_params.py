@@ -14,10 +14,13 @@ is documented in ``docs/parameters.md``::
     card = "PSHELL"
     id = 1                    # or ids = [1, 2, 3] for a group
     field = "T"
-    lower = -0.3
+    lower = -0.3              # bounds on p; or lower_value/upper_value (absolute)
     upper = 0.3
-    unit = "m"                # optional, informative (values are SI inside)
+    nominal = 2.5             # optional: P0 as the lab's table gives it, checked against the deck
+    unit = "mm"               # optional: unit of nominal/lower_value/upper_value (default: deck units)
     description = "thickness of the top skin"   # optional
+
+The same schema as JSON (``.json``): ``{"model": {...}, "parameter": [{...}, ...]}``.
 
 Physical values are SI inside: the deck's unit system (and PARAM,WTMASS for
 mass-like fields) is applied when values are read from or written to a deck.
@@ -25,6 +28,7 @@ mass-like fields) is applied when values are read from or written to a deck.
 
 from __future__ import annotations
 
+import json
 import math
 import re
 import tomllib
@@ -34,6 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from femodel._model import ModelError
+from femodel._units import _INCH_M, _LBF_N
 from femodel._units import UNIT_SYSTEMS as _CORE_UNITS
 
 
@@ -63,9 +68,55 @@ SUPPORTED_FIELDS: dict[tuple[str, str], str] = {
     ("CELAS2", "K"): "spring",
 }
 
+#: Relative tolerance between a declared value (``nominal``; an absolute bound against its normalized
+#: twin) and the deck: about 4 significant digits. Unit mistakes (factors of 10^3) and wrong deck
+#: versions fail; a table rounded to 4 or more digits passes.
+NOMINAL_RTOL = 1e-4
+
+_PSI = _LBF_N / _INCH_M**2
+_SLINCH = _LBF_N / _INCH_M
+#: physical kind -> {unit label: SI value of one unit}. Labels are case-sensitive; ``N/mm2``,
+#: ``N mm/rad``, ``N.mm/rad``, ``N·mm/rad`` are read as ``N/mm^2``, ``N*mm/rad``.
+UNITS: dict[str, dict[str, float]] = {
+    "stress": {"Pa": 1.0, "kPa": 1e3, "MPa": 1e6, "GPa": 1e9, "N/m^2": 1.0, "N/mm^2": 1e6,
+               "psi": _PSI, "ksi": 1e3 * _PSI, "lbf/in^2": _PSI},
+    "density": {"kg/m^3": 1.0, "g/cm^3": 1e3, "t/m^3": 1e3, "kg/mm^3": 1e9, "t/mm^3": 1e12,
+                "lbf*s^2/in^4": _SLINCH / _INCH_M**3},
+    "length": {"m": 1.0, "cm": 1e-2, "mm": 1e-3, "in": _INCH_M},
+    "mass": {"kg": 1.0, "g": 1e-3, "t": 1e3, "lbf*s^2/in": _SLINCH},
+    "trans_spring": {"N/m": 1.0, "N/mm": 1e3, "kN/m": 1e3, "kN/mm": 1e6, "lbf/in": _LBF_N / _INCH_M},
+    "rot_spring": {"N*m/rad": 1.0, "N*mm/rad": 1e-3, "kN*m/rad": 1e3, "lbf*in/rad": _LBF_N * _INCH_M},
+}
+
 _NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_.\-]*$")
 _MODEL_KEYS = {"bdf", "units"}
-_PARAM_KEYS = {"name", "card", "id", "ids", "field", "lower", "upper", "unit", "description"}
+_PARAM_KEYS = {"name", "card", "id", "ids", "field", "lower", "upper", "lower_value", "upper_value", "nominal",
+               "unit", "description"}
+_DECLARED = ("nominal", "lower_value", "upper_value")
+
+
+def _unit_label(text: str) -> str:
+    """Spelling variants of a unit label in one form (``N mm/rad`` -> ``N*mm/rad``, ``mm2`` -> ``mm^2``)."""
+    t = text.strip().replace("\u00b2", "^2").replace("\u00b3", "^3").replace("\u2074", "^4").replace("**", "^")
+    t = re.sub(r"\s*[\u00b7.]\s*|\s+", "*", t)
+    return re.sub(r"([A-Za-z])(\d)", r"\1^\2", t)
+
+
+def unit_factor(kind: str, unit: str) -> float | None:
+    """SI value of one ``unit`` of a physical ``kind`` (``"spring"``: either spring kind), or None."""
+    label = _unit_label(unit)
+    kinds = ("trans_spring", "rot_spring") if kind == "spring" else (kind,)
+    for k in kinds:
+        if label in UNITS[k]:
+            return UNITS[k][label]
+    return None
+
+
+def _unit_kind(kind: str, unit: str) -> str:
+    """The spring kind a spring unit names (``kind`` itself otherwise)."""
+    if kind != "spring":
+        return kind
+    return "trans_spring" if _unit_label(unit) in UNITS["trans_spring"] else "rot_spring"
 
 
 @dataclass(frozen=True)
@@ -83,9 +134,18 @@ class Parameter:
     lower, upper : float
         Bounds on the normalized parameter p (dimensionless, P = P0 (1 + p)).
     unit : str
-        Informative SI unit of the physical value (``"Pa"``, ``"m"``, ...).
+        Unit of ``nominal``, ``lower_value`` and ``upper_value`` (a key of
+        :data:`UNITS` for the field's kind); ``""`` = the deck's own units,
+        i.e. the number as written on the card.
     description : str
         Free text.
+    nominal : float or None
+        P0 as declared by the file, in ``unit``; checked against the deck to
+        :data:`NOMINAL_RTOL`. When absolute bounds were converted with the
+        deck's value, that value (in ``unit``).
+    lower_value, upper_value : float or None
+        Absolute bounds on P as declared by the file, in ``unit``; ``lower``
+        and ``upper`` hold them converted to p.
     """
 
     name: str
@@ -96,6 +156,9 @@ class Parameter:
     upper: float
     unit: str = ""
     description: str = ""
+    nominal: float | None = None
+    lower_value: float | None = None
+    upper_value: float | None = None
 
     @property
     def keys(self) -> tuple[tuple[str, int, str], ...]:
@@ -174,7 +237,17 @@ def _fail(source, message: str):
     raise ParameterError(where + message)
 
 
-def _parameter_from_table(tab: dict, k: int, source) -> Parameter:
+def _number(tab: dict, key: str, label: str, source) -> float | None:
+    v = tab.get(key)
+    if v is None:
+        return None
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        _fail(source, f"{label}: {key} must be a finite number, got {v!r}")
+    return float(v)
+
+
+def _parameter_from_table(tab: dict, k: int, source, deck=None) -> Parameter:
+    """One validated parameter; ``deck`` = (pyNastran model, unit system) checks declared values."""
     label = f"[[parameter]] #{k + 1}"
     if not isinstance(tab, dict):
         _fail(source, f"{label} must be a table")
@@ -184,9 +257,13 @@ def _parameter_from_table(tab: dict, k: int, source) -> Parameter:
     unknown = sorted(set(tab) - _PARAM_KEYS)
     if unknown:
         _fail(source, f"{label}: unknown key(s) {unknown}; allowed: {sorted(_PARAM_KEYS)}")
-    for req in ("name", "card", "field", "lower", "upper"):
+    tab = {key: v for key, v in tab.items() if v is not None}  # JSON null = key left out
+    for req in ("name", "card", "field"):
         if req not in tab:
             _fail(source, f"{label}: missing required key {req!r}")
+    for b in ("lower", "upper"):
+        if b not in tab and f"{b}_value" not in tab:
+            _fail(source, f"{label}: missing required key {b!r} (or {b + '_value'!r}, in physical units)")
     if not isinstance(name, str) or not _NAME_RE.match(name):
         _fail(source, f"{label}: name must be an identifier-like string, got {name!r}")
     card, fld = tab["card"], tab["field"]
@@ -203,13 +280,68 @@ def _parameter_from_table(tab: dict, k: int, source) -> Parameter:
         _fail(source, f"{label}: id/ids must be positive integers, got {ids!r}")
     if len(set(ids)) != len(ids):
         _fail(source, f"{label}: ids repeat a card id: {ids!r}")
+    for opt in ("unit", "description"):
+        if opt in tab and not isinstance(tab[opt], str):
+            _fail(source, f"{label}: {opt} must be a string")
+    unit = tab.get("unit", "").strip()
+    kind = SUPPORTED_FIELDS[(card, fld)]
+    if unit and unit_factor(kind, unit) is None:
+        kinds = ("trans_spring", "rot_spring") if kind == "spring" else (kind,)
+        known = sorted(u for k in kinds for u in UNITS[k])
+        _fail(source, f"{label}: unit {unit!r} is not a unit of {card} {fld} (known: {', '.join(known)})")
+    nominal = _number(tab, "nominal", label, source)
+    if nominal is not None and not nominal > 0.0:
+        _fail(source, f"{label}: nominal must be positive (P = P0 (1 + p)), got {nominal!r}")
+    given = {b: _number(tab, b, label, source) for b in ("lower", "upper")}
+    absolute = {b: _number(tab, f"{b}_value", label, source) for b in ("lower", "upper")}
+    in_unit = unit or "(deck units)"
+
+    keys = tuple((card, int(i), fld) for i in ids)
+    if deck is not None and (nominal is not None or any(v is not None for v in absolute.values())):
+        model, units = deck
+        values = [_deck_value(label, unit, key, model, units, source) for key in keys]
+        if nominal is not None:
+            for key, (raw, v) in zip(keys, values):
+                _check_nominal(label, nominal, unit, key, raw, v, units, source)
+        elif any(v is not None for v in absolute.values()):
+            v0 = values[0][1]
+            for key, (raw, v) in zip(keys[1:], values[1:]):
+                if abs(v - v0) > NOMINAL_RTOL * abs(v0):
+                    _fail(source, f"{label}: lower_value/upper_value on a group need equal deck values, but "
+                                  f"{card} {ids[0]} {fld} = {values[0][0]!r} and {card} {key[1]} {fld} = {raw!r}; "
+                                  "give normalized lower/upper instead")
+            nominal = v0  # the deck's P0, in `unit`
+    ref = nominal
+    if ref is None and any(v is not None for v in absolute.values()):
+        _fail(source, f"{label}: lower_value/upper_value need 'nominal' or a deck ([model] bdf) to be converted "
+                      "to normalized bounds")
     bounds = []
     for b in ("lower", "upper"):
-        v = tab[b]
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-            _fail(source, f"{label}: {b} must be a finite number, got {v!r}")
-        bounds.append(float(v))
+        p, v = given[b], absolute[b]
+        if v is not None:
+            if not v > 0.0:
+                _fail(source, f"{label}: {b}_value must be positive (P = P0 (1 + p) > 0), got {v!r}")
+            if p is not None and abs(v - ref * (1.0 + p)) > NOMINAL_RTOL * abs(v):
+                _fail(source, f"{label}: {b} = {p!r} and {b}_value = {v!r} {in_unit} disagree: with the nominal "
+                              f"{ref:.8g} {in_unit} {b} = {p!r} is {ref * (1.0 + p):.8g} (relative tolerance "
+                              f"{NOMINAL_RTOL:g})")
+            if p is None:
+                p = v / ref - 1.0
+        bounds.append(p)
     lo, hi = bounds
+    lv, uv = absolute["lower"], absolute["upper"]
+    if lv is not None and uv is not None and not lv < uv:
+        _fail(source, f"{label}: lower_value ({lv!r}) must be less than upper_value ({uv!r})")
+    for b, v in absolute.items():
+        if v is None:
+            continue
+        if v > ref * (1 + NOMINAL_RTOL) if b == "lower" else v < ref * (1 - NOMINAL_RTOL):
+            _fail(source, f"{label}: the nominal value {ref:.8g} {in_unit} must lie within the bounds, "
+                          f"{b}_value is {v!r}")
+    if lv is not None and given["lower"] is None:
+        lo = min(lo, 0.0)  # a lower_value at P0 within the tolerance is p = 0
+    if uv is not None and given["upper"] is None:
+        hi = max(hi, 0.0)
     if not lo < hi:
         _fail(source, f"{label}: lower ({lo}) must be less than upper ({hi})")
     if lo <= -1.0:
@@ -220,9 +352,6 @@ def _parameter_from_table(tab: dict, k: int, source) -> Parameter:
         )
     if not lo <= 0.0 <= hi:
         _fail(source, f"{label}: the nominal point p = 0 must lie within [lower, upper] = [{lo}, {hi}]")
-    for opt in ("unit", "description"):
-        if opt in tab and not isinstance(tab[opt], str):
-            _fail(source, f"{label}: {opt} must be a string")
     return Parameter(
         name=name,
         card=card,
@@ -230,21 +359,29 @@ def _parameter_from_table(tab: dict, k: int, source) -> Parameter:
         field=fld,
         lower=lo,
         upper=hi,
-        unit=tab.get("unit", ""),
+        unit=unit,
         description=tab.get("description", ""),
+        nominal=nominal,
+        lower_value=lv,
+        upper_value=uv,
     )
 
 
 def parameters_from_dict(data: dict, source=None, base_dir=None) -> ParameterSet:
-    """Validate a parsed parameter file (a dict as from ``tomllib``).
+    """Validate a parsed parameter file (a dict as from ``tomllib`` or ``json``).
+
+    When a parameter declares ``nominal`` or absolute bounds and ``[model] bdf``
+    names a deck, the deck is read (pyNastran) to check the nominal values and
+    to convert absolute bounds that come without a ``nominal``.
 
     Raises
     ------
     ParameterError
-        On unknown keys, missing keys, bad bounds, duplicate names or keys.
+        On unknown keys, missing keys, bad bounds, duplicate names or keys, an
+        unknown unit, a declared nominal value that disagrees with the deck.
     """
     if not isinstance(data, dict):
-        _fail(source, "parameter file must be a TOML table")
+        _fail(source, "parameter file must be a table (TOML) or an object (JSON)")
     unknown = sorted(set(data) - {"model", "parameter"})
     if unknown:
         _fail(source, f"unknown top-level key(s) {unknown}; allowed: ['model', 'parameter']")
@@ -269,25 +406,55 @@ def parameters_from_dict(data: dict, source=None, base_dir=None) -> ParameterSet
     tables = data.get("parameter", [])
     if not isinstance(tables, list) or not tables:
         _fail(source, "no [[parameter]] tables")
-    params = tuple(_parameter_from_table(t, k, source) for k, t in enumerate(tables))
+    deck = None
+    if bdf is not None and any(isinstance(t, dict) and any(t.get(d) is not None for d in _DECLARED) for t in tables):
+        from femodel._writeback import _read_deck
+
+        try:
+            deck = (_read_deck(bdf), units or "si")
+        except FileNotFoundError as exc:
+            _fail(source, f"[model] bdf: {exc} (needed to check the declared nominal values and bounds)")
+    params = tuple(_parameter_from_table(t, k, source, deck) for k, t in enumerate(tables))
     return ParameterSet(params, bdf=bdf, units=units, source=Path(source) if source else None)
 
 
-def read_parameters(path) -> ParameterSet:
-    """Read and validate a parameter file (TOML, see ``docs/parameters.md``).
+def _json_object(pairs, path):
+    out = {}
+    for key, value in pairs:
+        if key in out:
+            raise ParameterError(f"{path}: not valid JSON for a parameter file: key {key!r} appears twice in one "
+                                 "object")
+        out[key] = value
+    return out
 
-    The deck named in ``[model] bdf`` is resolved relative to the file; it is
-    not read here (see :func:`nominal_values` for checks against a deck).
+
+def read_parameters(path) -> ParameterSet:
+    """Read and validate a parameter file: TOML (``.toml``) or JSON (``.json``), see ``docs/parameters.md``.
+
+    The deck named in ``[model] bdf`` is resolved relative to the file. It is
+    read only when a parameter declares ``nominal``, ``lower_value`` or
+    ``upper_value`` (to check or convert them); see :func:`nominal_values` for
+    the other checks against a deck.
     """
     path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in (".toml", ".json"):
+        raise ParameterError(f"{path}: a parameter file must be .toml or .json, not {path.suffix or 'no extension'!r}")
     try:
         text = path.read_text()
     except OSError as exc:
         raise ParameterError(f"{path}: cannot read parameter file ({exc.strerror or exc})") from None
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ParameterError(f"{path}: not valid TOML: {exc}") from None
+    if suffix == ".json":
+        try:
+            data = json.loads(text, object_pairs_hook=lambda pairs: _json_object(pairs, path))
+        except json.JSONDecodeError as exc:
+            where = f"line {exc.lineno}, column {exc.colno}"
+            raise ParameterError(f"{path}: not valid JSON: {exc.msg} at {where}") from None
+    else:
+        try:
+            data = tomllib.loads(text)
+        except tomllib.TOMLDecodeError as exc:
+            raise ParameterError(f"{path}: not valid TOML: {exc}") from None
     return parameters_from_dict(data, source=path, base_dir=path.parent)
 
 
@@ -399,6 +566,32 @@ def si_factor(model, key, units: str, source=None) -> float:
     }[kind]
 
 
+def _deck_value(label: str, unit: str, key, model, units: str, source) -> tuple[float, float]:
+    """(number on the card, value in ``unit`` or, without a unit, that same number) of one key."""
+    obj = deck_card(model, key, source)
+    raw = get_deck_value(obj, key[2])
+    if raw is None:
+        _fail(source, f"{label}: {key[0]} {key[1]} has no field {key[2]}")
+    raw = float(raw)
+    if not unit:
+        return raw, raw
+    kind = SUPPORTED_FIELDS[(key[0], key[2])]
+    actual = _spring_kind(model, key, source) if kind == "spring" else kind
+    if _unit_kind(kind, unit) != actual:
+        _fail(source, f"{label}: unit {unit!r} is a {_unit_kind(kind, unit).replace('_', ' ')} unit, but "
+                      f"{key[0]} {key[1]} {key[2]} is a {actual.replace('_', ' ')}")
+    return raw, raw * si_factor(model, key, units, source) / unit_factor(kind, unit)
+
+
+def _check_nominal(label: str, nominal: float, unit: str, key, raw: float, value: float, units: str, source) -> None:
+    rel = abs(value - nominal) / abs(value) if value else math.inf
+    if not rel <= NOMINAL_RTOL:
+        in_unit = f" = {value:.8g} {unit}" if unit else ""
+        _fail(source, f"{label}: nominal = {nominal!r} {unit or '(deck units)'} disagrees with the deck: "
+                      f"{key[0]} {key[1]} field {key[2]} = {raw!r} ({units}){in_unit}; relative difference "
+                      f"{rel:.3g} > {NOMINAL_RTOL:g}")
+
+
 def nominal_values(params: ParameterSet, model, units: str | None = None, source=None) -> list[np.ndarray]:
     """SI nominal values of every parameter's cards, checked against a pyNastran deck.
 
@@ -418,8 +611,10 @@ def nominal_values(params: ParameterSet, model, units: str | None = None, source
     Raises
     ------
     ParameterError
-        When a card or field is missing, or a nominal value is not positive
-        (P = P0 (1 + p) then cannot represent a physical value).
+        When a card or field is missing, a nominal value is not positive
+        (P = P0 (1 + p) then cannot represent a physical value), or a
+        parameter's declared ``nominal`` disagrees with the deck (beyond
+        :data:`NOMINAL_RTOL`; names parameter, card and field).
     """
     units = units or params.units or "si"
     source = source or params.source
@@ -438,6 +633,10 @@ def nominal_values(params: ParameterSet, model, units: str | None = None, source
                     f"parameter {prm.name!r}: {key[0]} {key[1]} field {key[2]} is {raw!r}; a scaled "
                     "parameter needs a positive nominal value",
                 )
+            if prm.nominal is not None:
+                _, declared = _deck_value(f"parameter {prm.name!r}", prm.unit, key, model, units, source)
+                _check_nominal(f"parameter {prm.name!r}", prm.nominal, prm.unit, key, float(raw), declared, units,
+                               source)
             vals.append(v)
         out.append(np.array(vals))
     return out

@@ -73,3 +73,117 @@ def test_errors_and_cli(tmp_path, capsys):
     assert np.array_equal(read_run(tmp_path / "c.h5").frf, read_run(tmp_path / "r.h5").frf)
     assert main(["import-uff", str(tmp_path / "c.uff"), "--out", str(tmp_path / "c.h5")]) == 2  # exists
     assert "exists" in capsys.readouterr().err
+
+
+# --- MIMO files written by another system (pyuff directly, not export_uff) ---------------------------------------
+F_AX = 5.0 + 0.25 * np.arange(16)
+
+
+def _foreign(path, cells, **common):
+    """Write one ASCII UFF58 record per cell: (rsp_node, rsp_dir, ref_node, ref_dir, data, overrides)."""
+    import pyuff
+
+    sets = []
+    for rn, rd, fn, fd, data, over in cells:
+        kw = dict(binary=0, func_type=4, rsp_node=rn, rsp_dir=rd, ref_node=fn, ref_dir=fd, ord_data_type=6,
+                  abscissa_spacing=1, abscissa_min=float(F_AX[0]), abscissa_inc=0.25, x=F_AX, data=data,
+                  id1="lab system", id2="Acceleration / Force", rsp_ent_name=f"acc{rn}", ref_ent_name="shaker",
+                  ordinate_spec_data_type=12, orddenom_spec_data_type=13, abscissa_spec_data_type=18,
+                  ordinate_axis_units_lab="m/s^2", orddenom_axis_units_lab="N")
+        kw.update(common)
+        kw.update(over)
+        ds = pyuff.prepare_58(**kw)
+        ds["type"] = 58
+        sets.append(ds)
+    pyuff.UFF(str(path)).write_sets(sets, mode="overwrite")
+
+
+def _mimo_cells():
+    """20 responses (nodes 101..120, alternating +Z / -Y) x 2 references (1 +Z, 2 -X), reference-major order."""
+    out = []
+    for ref, (fn, fd) in enumerate(((1, 3), (2, -1))):
+        for i in range(20):
+            data = (1000 * (ref + 1) + i + 1) * (1.0 + 0.01 * np.arange(F_AX.size)) * np.exp(1j * (0.1 * i + ref))
+            out.append((101 + i, 3 if i % 2 == 0 else -2, fn, fd, data, {}))
+    return out
+
+
+def test_foreign_mimo_20x2_keeps_every_reference(tmp_path):
+    cells = _mimo_cells()
+    _foreign(tmp_path / "mimo.uff", cells)
+    run = import_uff(tmp_path / "mimo.uff", tmp_path / "mimo.h5")
+    assert run.frf.shape == (16, 20, 2)
+    assert [c.grid for c in run.sensors] == list(range(101, 121)) and [c.grid for c in run.drives] == [1, 2]
+    assert run.sensors[0].direction == (0.0, 0.0, 1.0) and run.sensors[1].direction == (0.0, -1.0, 0.0)
+    assert run.drives[0].direction == (0.0, 0.0, 1.0) and run.drives[1].direction == (-1.0, 0.0, 0.0)
+    assert run.sensors[0].name == "acc101 (101+Z)" and run.sensors[1].name == "acc102 (102-Y)"
+    assert [c.name for c in run.drives] == ["shaker (1+Z)", "shaker (2-X)"]
+    for rn, _, fn, _, data, _ in cells:  # every record lands in its own (response, reference) cell
+        np.testing.assert_allclose(run.frf[:, rn - 101, fn - 1], data, rtol=1e-10)  # ASCII: 13 digits
+    assert np.allclose(run.frequency_hz, F_AX)
+
+    # blank entity names: the point alone, response and reference kept apart
+    _foreign(tmp_path / "bare.uff", cells, rsp_ent_name="NONE", ref_ent_name="NONE")
+    run = import_uff(tmp_path / "bare.uff", tmp_path / "bare.h5")
+    assert run.sensors[3].name == "n104-Y" and [c.name for c in run.drives] == ["ref_n1+Z", "ref_n2-X"]
+
+
+def test_mimo_round_trip_is_exact_and_keeps_channels(tmp_path):
+    rng = np.random.default_rng(11)
+    sens = tuple(ChannelSpec(f"accelerometer_{i:02d}", "response", "acceleration", "m/s^2", grid=300 + i,
+                             direction=((0.0, 0.0, -1.0), (0.0, 1.0, 0.0), (0.6, 0.0, -0.8))[i % 3])
+                 for i in range(20))
+    drv = (ChannelSpec("shaker_vertical", "force", "force", "N", grid=300, direction=(0.0, 0.0, -1.0)),
+           ChannelSpec("shaker_lateral", "force", "force", "N", grid=311, direction=(0.0, 1.0, 0.0)))
+    f = np.sort(20 + 180 * rng.random(30))
+    frf = rng.normal(size=(30, 20, 2)) + 1j * rng.normal(size=(30, 20, 2))
+    with create_run(tmp_path / "r.h5", article="SF-07", sensors=sens, drives=drv) as w:
+        for k in range(30):
+            w.append_line(f[k], frf[k], LineQuality(force_n=np.ones(2), std_error=np.zeros((20, 2)), thd=np.zeros(22)))
+    assert export_uff(tmp_path / "r.h5", tmp_path / "r.uff") == 40
+    back = import_uff(tmp_path / "r.uff", tmp_path / "b.h5")
+    assert np.array_equal(back.frequency_hz, f) and np.array_equal(back.frf, frf)
+    for a, b in zip(back.sensors + back.drives, sens + drv):
+        assert (a.name, a.grid, a.direction) == (b.name, b.grid, b.direction)
+    export_uff(tmp_path / "r.h5", tmp_path / "a.uff", binary=False)
+    back = import_uff(tmp_path / "a.uff", tmp_path / "a.h5")
+    assert [c.name for c in back.sensors + back.drives] == [c.name for c in sens + drv]
+    assert np.allclose(back.frf, frf, rtol=1e-10)
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda c: c + [c[5]], r"record 41 \(response 106/-2, reference 1/3\) repeats the \(response, reference\) pair "
+                          r"of record 6"),
+    (lambda c: c[:7] + c[8:], r"20 responses x 2 references need 40 FRF records, 39 given; missing \(response / "
+                              r"reference\): 108-Y / 1\+Z"),
+    (lambda c: c[:-1] + [c[-1][:5] + ({"func_type": 9},)], r"mixed UFF58 function types: FRF \(4\) and type 9 in "
+                                                           r"records 40"),
+    (lambda c: c[:-1] + [c[-1][:5] + ({"ordinate_spec_data_type": 11},)], r"record 40 .* is mobility, record 1 .* is "
+                                                                          r"accelerance"),
+    (lambda c: c[:3] + [c[3][:5] + ({"ordinate_axis_units_lab": "g"},)] + c[4:], r"mixed units: m/s\^2/N in records "
+                                                                                 r"1, 2, 3, 5, .*; g/N in records 4"),
+    (lambda c: c[:-1] + [c[-1][:5] + ({"abscissa_min": 5.5, "x": F_AX + 0.5},)], "record 40 .* different frequency"),
+    (lambda c: c[:-1] + [c[-1][:3] + (5,) + c[-1][4:]], r"record 40 .*reference direction code 5 is not a "
+                                                          r"translation"),
+    (lambda c: c[:-1] + [c[-1][:5] + ({"rsp_ent_name": "accX"},)], r"response 120-Y is named 'acc120' in record "
+                                                                    r"20 and 'accX' in record 40"),
+])
+def test_ambiguous_files_are_refused(tmp_path, edit, message):
+    path = tmp_path / "bad.uff"
+    _foreign(path, edit(_mimo_cells()))
+    with pytest.raises(UffError, match=message) as info:
+        import_uff(path, tmp_path / "bad.h5")
+    assert str(path) in str(info.value)
+    assert not (tmp_path / "bad.h5").exists()
+
+
+def test_cli_imports_mimo(tmp_path, capsys):
+    _foreign(tmp_path / "m.uff", _mimo_cells())
+    assert main(["import-uff", str(tmp_path / "m.uff"), "--out", str(tmp_path / "m.h5")]) == 0
+    out = capsys.readouterr().out
+    assert "20 x 2 accelerance" in out and "references: shaker (1+Z), shaker (2-X)" in out
+    assert main(["import-uff", str(tmp_path / "m.uff"), "--out", str(tmp_path / "m.h5"), "--force", "--json"]) == 0
+    assert '"drive_grids": [1, 2]' in capsys.readouterr().out
+    _foreign(tmp_path / "d.uff", _mimo_cells() + [_mimo_cells()[0]])
+    assert main(["import-uff", str(tmp_path / "d.uff"), "--out", str(tmp_path / "d.h5")]) == 2
+    assert "repeats the (response, reference) pair" in capsys.readouterr().err
