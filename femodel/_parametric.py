@@ -13,7 +13,7 @@ vectors: no reassembly, no sparse-matrix algebra.
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -206,16 +206,24 @@ class SeriesAffineMatrix(AffineMatrix):
 class ParametricModel:
     """K(p) and M(p) of a deck as exact functions of normalized parameters.
 
+    The parameters are the deck fields of ``parameters`` (P = P0 (1 + p))
+    followed by the added term families of ``terms`` (see
+    :mod:`femodel._terms` and :meth:`with_terms`).
+
     Attributes
     ----------
     parameters : ParameterSet
+        Parameters that scale fields of the deck's cards.
     nominal : (n_params,) float
-        P0 of each parameter in SI (for a group, the value of its first id).
+        P0 of each deck parameter in SI (for a group, the value of its first
+        id); for an added term its value at p = 0 (0 for an added spring or
+        mass, 1 for an element-subset factor).
     nominal_values : tuple of (n_ids,) float arrays
-        P0 of every card id of each parameter, SI.
+        P0 of every card id of each deck parameter, SI.
     K, M : AffineMatrix
         Stiffness (N/m, N m/rad) and mass (kg, kg m^2) on the independent
-        DOF, (n_a, n_a), as sums of fixed terms times monomials in (1 + p).
+        DOF, (n_a, n_a), as sums of fixed terms times monomials in (1 + p)
+        (an :class:`~femodel.ExtendedAffineMatrix` once terms are added).
     aset : DofMap
         The independent DOF (rows of K and M).
     assembly : Assembly
@@ -229,6 +237,10 @@ class ParametricModel:
         at most ``MAX_SERIES_TERMS_PER_GROUP`` distinct element ratios per
         group); otherwise the largest relative error of a binned series
         coefficient anywhere within the parameter bounds.
+    terms : tuple
+        Added term families (:class:`~femodel.AddedSpring`,
+        :class:`~femodel.AddedMass`, :class:`~femodel.ElementFactor`), in
+        parameter order after the deck parameters.
     """
 
     parameters: ParameterSet
@@ -243,20 +255,26 @@ class ParametricModel:
     series_error_bound: float = 0.0
     _kpat: _Pattern = field(default=None, repr=False)
     _mpat: _Pattern = field(default=None, repr=False)
+    terms: tuple = ()
 
     @property
     def n_params(self) -> int:
-        return len(self.parameters)
+        return len(self.parameters) + len(self.terms)
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """Parameter names: the deck parameters, then the added terms."""
+        return tuple(self.parameters.names) + tuple(t.name for t in self.terms)
 
     @property
     def lower(self) -> np.ndarray:
         """Lower bounds on p, (n_params,)."""
-        return self.parameters.lower
+        return np.concatenate([self.parameters.lower, [float(t.lower) for t in self.terms]])
 
     @property
     def upper(self) -> np.ndarray:
         """Upper bounds on p, (n_params,)."""
-        return self.parameters.upper
+        return np.concatenate([self.parameters.upper, [float(t.upper) for t in self.terms]])
 
     def stiffness(self, p) -> sp.csr_matrix:
         """K(p), (n_a, n_a) CSR on the shared pattern."""
@@ -283,22 +301,35 @@ class ParametricModel:
 
     def _j(self, j) -> int:
         if isinstance(j, str):
-            return self.parameters.index(j)
+            names = self.names
+            if j not in names:
+                raise ParameterError(f"unknown parameter {j!r}; known: {list(names)}")
+            return names.index(j)
         if not 0 <= int(j) < self.n_params:
             raise ParameterError(f"parameter index {j} out of range 0..{self.n_params - 1}")
         return int(j)
 
     def physical(self, p) -> dict[str, float]:
-        """Physical values P = P0 (1 + p) in SI, by parameter name (first id of a group)."""
+        """Physical values by parameter name, SI.
+
+        P = P0 (1 + p) for a deck parameter (first id of a group); the
+        magnitude ``scale * p`` for an added spring (N/m, N m/rad) or mass
+        (kg); the factor 1 + p for an element subset.
+        """
         p = self._p(p)
-        return {name: float(v) for name, v in zip(self.parameters.names, self.nominal * (1.0 + p))}
+        n0 = len(self.parameters)
+        out = {name: float(v) for name, v in zip(self.parameters.names, self.nominal[:n0] * (1.0 + p[:n0]))}
+        for t, pj in zip(self.terms, p[n0:]):
+            out[t.name] = t.value(pj)
+        return out
 
     def normalized(self, values) -> np.ndarray:
         """The p that gives physical ``values`` ({name: SI value}; missing names stay at 0)."""
         p = np.zeros(self.n_params)
+        n0 = len(self.parameters)
         for name, v in values.items():
-            j = self.parameters.index(name)
-            p[j] = float(v) / self.nominal[j] - 1.0
+            j = self._j(name)
+            p[j] = float(v) / self.nominal[j] - 1.0 if j < n0 else self.terms[j - n0].normalized(v)
         return p
 
     def _p(self, p) -> np.ndarray:
@@ -308,15 +339,174 @@ class ParametricModel:
         return p
 
     def write_bdf(self, out_path, p, *, added_cards=()) -> Path:
-        """Write the deck with the physical values at p (one flattened file, exact values)."""
+        """Write the deck with the physical values at p (one flattened file, exact values).
+
+        Added terms are written as new cards with fresh ids (CELAS2, CONM2,
+        copied PSHELL/PBAR/... and MAT1 cards, elements re-pointed) in
+        fixed format; see :func:`femodel.write_bdf`.
+        """
         from femodel._writeback import write_bdf
 
         p = self._p(p)
+        n0 = len(self.parameters)
         values = {}
-        for prm, p0, pj in zip(self.parameters.parameters, self.nominal_values, p):
+        for prm, p0, pj in zip(self.parameters.parameters, self.nominal_values, p[:n0]):
             for key, v0 in zip(prm.keys, p0):
                 values[key] = float(v0) * (1.0 + pj)
-        return write_bdf(self.bdf, out_path, values, units=self.units, added_cards=added_cards)
+        added = [(t, t.value(pj)) for t, pj in zip(self.terms, p[n0:])]
+        return write_bdf(self.bdf, out_path, values, units=self.units, added_cards=added_cards, added_terms=added)
+
+    def with_terms(self, terms) -> "ParametricModel":
+        """A new model with added term families (this one is unchanged).
+
+        Parameters
+        ----------
+        terms : sequence of AddedSpring, AddedMass or ElementFactor
+            Appended as parameters after the existing ones, in this order.
+            Names must be new; element subsets of all factor terms disjoint.
+
+        Returns
+        -------
+        ParametricModel
+            K and M gain the terms' matrices (on the same a-set: the deck's
+            constraints apply to them) with exact derivatives; the existing
+            terms and their shared sparse pattern are reused, not rebuilt.
+
+        Raises
+        ------
+        ParameterError
+            An unknown family, a repeated name, a grid or element not in the
+            deck, overlapping element subsets, or a term that acts only on
+            constrained DOF.
+        """
+        from femodel._terms import TERM_FAMILIES, ElementFactor
+
+        terms = tuple(terms)
+        where = f"{self.bdf}: " if self.bdf else ""
+        names = list(self.names)
+        for t in terms:
+            if not isinstance(t, TERM_FAMILIES):
+                raise ParameterError(f"{where}with_terms: {t!r} is not one of "
+                                     f"{', '.join(c.__name__ for c in TERM_FAMILIES)}")
+            if t.name in names:
+                raise ParameterError(f"{where}with_terms: parameter name {t.name!r} is already used")
+            names.append(t.name)
+        owner: dict[int, str] = {}
+        for t in self.terms + terms:
+            if isinstance(t, ElementFactor):
+                for e in t.elements:
+                    if e in owner:
+                        raise ParameterError(f"{where}with_terms: element {e} is in both {owner[e]!r} and "
+                                             f"{t.name!r} (element subsets must be disjoint)")
+                    owner[e] = t.name
+        n_old, n_new = self.n_params, self.n_params + len(terms)
+        parts = {"K": _widened(self.K, n_new), "M": _widened(self.M, n_new)}
+        added = {"K": [], "M": []}
+        asm = self.assembly
+        fe = asm.model
+        amap = _selection_map(asm.T)
+        for i, t in enumerate(terms):
+            j = n_old + i
+            if isinstance(t, ElementFactor):
+                mats, a, b, r = _subset_terms(asm, self.parameters, t)
+                for m, ar, br, rr in zip(mats, a, b, r):
+                    if m.nnz:
+                        added[t.kind].append((m, _pad(ar, n_new), _pad(br, n_new), rr, j))
+                if not added[t.kind] or added[t.kind][-1][4] != j:
+                    raise ParameterError(f"{where}with_terms: element subset {t.name!r} has no {t.kind} terms")
+                continue
+            for kind, m_g in t.g_matrices(fe).items():
+                m = _to_aset(asm, amap, _canonical(m_g), drop_zeros=True)
+                m.eliminate_zeros()
+                if m.nnz == 0:
+                    raise ParameterError(f"{where}with_terms: term {t.name!r} acts only on constrained DOF")
+                zero = np.zeros(n_new)
+                added[kind].append((_canonical(m), zero, zero, 0.0, j))
+        out = {}
+        for kind, (mats, a, b, r, lin) in parts.items():
+            new = added[kind]
+            mats = list(mats) + [x[0] for x in new]
+            a = np.vstack([a] + [x[1][None] for x in new])
+            b = np.vstack([b] + [x[2][None] for x in new])
+            r = np.concatenate([r, [x[3] for x in new]])
+            lin = np.concatenate([lin, np.array([x[4] for x in new], dtype=np.int64)])
+            pat = self._kpat if kind == "K" else self._mpat
+            out[kind] = (_extended_affine(mats, a, b, r, lin), _extended_pattern(pat, [x[0] for x in new]))
+        return replace(self, K=out["K"][0], M=out["M"][0], _kpat=out["K"][1], _mpat=out["M"][1],
+                       nominal=np.concatenate([self.nominal, [float(t.nominal) for t in terms]]),
+                       terms=self.terms + terms)
+
+
+def _pad(row, n: int) -> np.ndarray:
+    out = np.zeros(n)
+    out[:len(row)] = row
+    return out
+
+
+def _widened(A, n: int):
+    """(matrices, a, b, ratio, linear) of an affine matrix with exponent columns padded to ``n`` parameters."""
+    t = len(A.matrices)
+    a = np.zeros((t, n))
+    a[:, :A.n_params] = A.exponents
+    b = a.copy()
+    series = getattr(A, "series_exponents", None)
+    if series is not None:
+        b[:, :A.n_params] = series
+    ratio = np.asarray(getattr(A, "series_ratio", None) if series is not None else np.zeros(t), dtype=float)
+    lin = getattr(A, "linear", None)
+    lin = -np.ones(t, dtype=np.int64) if lin is None else np.asarray(lin, dtype=np.int64)
+    return list(A.matrices), a, b, ratio, lin
+
+
+def _extended_affine(mats, a, b, r, lin):
+    from femodel._terms import ExtendedAffineMatrix
+
+    return ExtendedAffineMatrix(tuple(mats), a, b, r, lin)
+
+
+def _extended_pattern(pat: "_Pattern", new_mats) -> "_Pattern":
+    """The shared pattern with new (canonical) terms merged in; old terms' positions carried over."""
+    if not new_mats:
+        return pat
+    base = sp.csr_matrix((np.ones(pat.indices.shape[0]), pat.indices, pat.indptr), shape=pat.shape)
+    merged = _shared_pattern([base] + list(new_mats))
+    first = merged.positions[0]
+    old = tuple(first[np.asarray(q)] for q in pat.positions)
+    return _Pattern(merged.indptr, merged.indices, merged.shape, old + tuple(merged.positions[1:]))
+
+
+def _element_terms(model) -> tuple:
+    """The K and M g-set terms of a model's elements (what :func:`femodel.assemble` collects)."""
+    from femodel import _assembly as A
+
+    col = A._Collector(6 * model.n_grids)
+    cd_axes = A._cd_transform(model)
+    wt = float(model.wtmass)
+    A._add_bars(model, col, cd_axes, wt)
+    A._add_rods(model, col, cd_axes, wt)
+    A._add_springs(model, col)
+    A._add_bushes(model, col, cd_axes)
+    A._add_conm2(model, col, cd_axes, wt)
+    A._add_shells(model, col, cd_axes, wt)
+    A._add_solids(model, col, cd_axes, wt)
+    return col.terms()
+
+
+def _subset_terms(assembly, params: ParameterSet, factor):
+    """(a-set matrices, a rows, b rows, ratios) of the K or M terms of an element subset.
+
+    The subset's elements are assembled alone on the full model's grids and
+    reduced with the full model's constraint transformation; coefficients
+    (including the shell shear series) are those of the same parameters.
+    """
+    sub = factor.submodel(assembly.model)
+    sub_asm = replace(assembly, model=sub, terms=_element_terms(sub))
+    source = params.source
+    if factor.kind == "M":
+        return _grouped_terms(sub_asm, params, "M", source)
+    prepared = _shell_shear_elements(sub, params, _key_index(params))
+    series, _ = _shell_shear_series(sub_asm, params, prepared)
+    return _with_series(*_grouped_terms(sub_asm, params, "K", source, _shell_shear_corrections(prepared)), series)
 
 
 # ----------------------------------------------------------------------------
