@@ -303,7 +303,7 @@ class ParametricModel:
         if isinstance(j, str):
             names = self.names
             if j not in names:
-                raise ParameterError(f"unknown parameter {j!r}; known: {list(names)}")
+                raise ParameterError(f"no parameter named {j!r} (have {', '.join(names)})")
             return names.index(j)
         if not 0 <= int(j) < self.n_params:
             raise ParameterError(f"parameter index {j} out of range 0..{self.n_params - 1}")
