@@ -338,9 +338,9 @@ class ElementFactor:
             sel = np.isin(tab.ids, wanted)
             if not np.any(sel):
                 continue
-            if card in ("CONM2", "CELAS1", "CELAS2", "CBUSH"):
-                raise ParameterError(f"ElementFactor {self.name!r}: {card} {tab.ids[sel][:5].tolist()} are not "
-                                     "structural elements with a material (use the card's own field parameter)")
+            if card in ("CONM2", "CELAS1", "CELAS2", "CBUSH", "CONROD"):
+                raise ParameterError(f"ElementFactor {self.name!r}: {card} {tab.ids[sel][:5].tolist()} have no "
+                                     "property card with a MAT1 to copy (use the card's own field parameter)")
             found |= np.isin(wanted, tab.ids[sel])
             elements[card] = Table(card, tab.ids[sel], {k: np.asarray(v)[sel] for k, v in tab.fields.items()})
         if not np.all(found):

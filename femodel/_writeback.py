@@ -297,6 +297,8 @@ class DeckEditor:
                 raise ParameterError(f"{where}: element {eid} is not in the deck")
             if int(eid) in self._repointed:
                 raise ParameterError(f"{where}: element {eid} is already in another element-subset term")
+            if getattr(elem, "pid", None) is None:
+                raise ParameterError(f"{where}: element {eid} ({elem.type}) has no property to copy")
             pid = int(elem.pid)
             prop = bdf.properties.get(pid)
             if prop is None or prop.type not in _COPYABLE_PROPERTIES:

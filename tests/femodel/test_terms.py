@@ -305,6 +305,8 @@ def test_errors_name_the_term(frame):
         pm.with_terms([ElementFactor("f", (7, 999))])
     with pytest.raises(ParameterError, match="CONM2"):
         pm.with_terms([ElementFactor("f", (200,))])
+    with pytest.raises(ParameterError, match="CELAS2"):
+        pm.with_terms([ElementFactor("f", (101,))])
     with pytest.raises(ParameterError, match="mix translations and rotations"):
         AddedSpring("k", ((1, 1, 2, 4),), 1.0)
     with pytest.raises(ParameterError, match="lower < upper"):
