@@ -4,6 +4,7 @@ from calibration._campaign import Campaign, campaign_from_dict, load_campaign
 from calibration._crossval import CrossValidation, cross_validate, split_halves
 from calibration._ensemble import group_articles, pairwise_sd
 from calibration._errors import CalibrationError
+from calibration._extend import extended_surrogate
 from calibration._executor import DaskExecutor, Executor, ProcessExecutor, SerialExecutor, make_executor
 from calibration._fit import (
     Calibration,
@@ -77,6 +78,7 @@ __all__ = [
     "FRFModel",
     "Surrogate",
     "build_surrogate",
+    "extended_surrogate",
     "full_modes",
     "full_order_frf",
     "half_bandwidth_frequencies",

@@ -16,7 +16,8 @@ from femodel._elements_shell import ElementGeometryError, laminate_abd, orthotro
 from femodel._elements_solid import solid_mass, solid_stiffness
 from femodel._params import Parameter, ParameterError, ParameterSet, read_parameters
 from femodel._parametric import ParametricModel, SeriesAffineMatrix, parametric_model
-from femodel._writeback import write_bdf
+from femodel._terms import AddedMass, AddedSpring, ElementFactor, ExtendedAffineMatrix
+from femodel._writeback import fixed_field_card, write_bdf
 from femodel._example import SubframeExample, example_subframe
 
 __all__ = [
@@ -26,4 +27,5 @@ __all__ = [
     "rigid_body_vectors", "sensor_matrix", "UNIT_SYSTEMS", "UnitSystem", "unit_system",
     "AffineMatrix", "ElementGeometryError", "shell_stiffness", "shell_mass", "solid_stiffness", "solid_mass", "laminate_abd", "orthotropic_q",
     "Parameter", "ParameterError", "ParameterSet", "read_parameters", "ParametricModel", "SeriesAffineMatrix", "parametric_model",
-    "write_bdf", "SubframeExample", "example_subframe"]
+    "write_bdf", "fixed_field_card", "SubframeExample", "example_subframe",
+    "AddedMass", "AddedSpring", "ElementFactor", "ExtendedAffineMatrix"]

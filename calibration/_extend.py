@@ -1,0 +1,202 @@
+"""A reduced surrogate that absorbs added term families without a new basis.
+
+When diagnosis adds term families to a parametric model
+(:meth:`femodel.ParametricModel.with_terms`), the surrogate of the old model
+is kept and extended:
+
+* the basis T (modes, static corrections, enrichment; M-orthonormal at the
+  basis point) is kept;
+* for every new term A_new, static corrections (K + s M)^-1 A_new T are
+  added: the response of the structure to the loads the new spring, mass or
+  element-subset change exerts on every basis shape (the first-order change
+  of those shapes, as the derivative enrichment of :func:`build_surrogate`).
+  A new term is local, so these loads have low rank (a spring between two
+  DOF: one vector); they are compressed by an SVD before the solve and the
+  result is M-orthonormalized against T and compressed again;
+* every term of the extended model is projected on [T, W]: the old reduced
+  terms are reused as the T-T block, only the W blocks are formed.
+
+No modes are recomputed and nothing is reassembled; the cost is one
+factorization of K + s M (or the caller's solver) and products of the
+(local) sparse terms with the few new vectors.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import replace
+
+import numpy as np
+import scipy.linalg as sla
+import scipy.sparse as sp
+
+from calibration._errors import CalibrationError
+from calibration._surrogate import FRFModel, Surrogate, _congruent, _factor, _shifted, _sym
+
+
+def _range_basis(A: np.ndarray, rtol: float) -> np.ndarray:
+    """Orthonormal basis of the column space of ``A`` (singular values above ``rtol`` x the largest)."""
+    if A.size == 0:
+        return A[:, :0]
+    U, s, _ = np.linalg.svd(A, full_matrices=False)
+    if s.size == 0 or s[0] == 0.0:
+        return A[:, :0]
+    return U[:, s > rtol * s[0]]
+
+
+def _term_loads(A, T: np.ndarray, rtol: float) -> np.ndarray:
+    """A low-rank basis of the loads ``A T`` of one (local, sparse) term: (n, k)."""
+    A = sp.csr_matrix(A)
+    rows = np.flatnonzero(np.diff(A.indptr))
+    out = np.zeros((A.shape[0], 0))
+    if rows.size == 0:
+        return out
+    local = np.asarray(A[rows] @ T)  # (rows, r)
+    Q = _range_basis(local, rtol)
+    out = np.zeros((A.shape[0], Q.shape[1]))
+    out[rows] = Q
+    return out
+
+
+def extended_surrogate(
+    sur: Surrogate,
+    basis: np.ndarray,
+    model: FRFModel,
+    *,
+    shift_hz: float | None = None,
+    solve=None,
+    load_rtol: float = 1e-8,
+    vector_rtol: float = 1e-10,
+) -> tuple[Surrogate, np.ndarray]:
+    """Extend a surrogate with the term families added to its model.
+
+    Parameters
+    ----------
+    sur : Surrogate
+        Surrogate of the model before the terms were added.
+    basis : (n, r) ndarray
+        Its basis T (as returned by :func:`build_surrogate`).
+    model : FRFModel
+        The extended model: K, M of :meth:`femodel.ParametricModel.with_terms`
+        (the old terms first, in the old order, then the new ones), the same
+        inputs and outputs. Its new parameters are appended after the old ones.
+    shift_hz : float, optional
+        Shift s = (2 pi shift_hz)^2 of the static solves (K + s M); needed
+        when ``solve`` is not given. Use the one of the basis build (default
+        there: max(band low / 4, band high / 50)).
+    solve : callable, optional
+        ``solve(F) = (K + s M)^-1 F`` at the basis point, (n, k) -> (n, k);
+        e.g. the solver of an earlier build. Formed here when None.
+    load_rtol : float
+        Relative singular-value cut of each new term's loads.
+    vector_rtol : float
+        Relative cut (on the M-norm squared) of the new vectors after
+        M-orthonormalization against T.
+
+    Returns
+    -------
+    surrogate : Surrogate
+        Exact in all parameters for the extended basis; ``p_basis`` is the
+        old basis point with the new parameters at 0 (the deck as it is);
+        ``n_static`` counts the new vectors too.
+    basis : (n, r + k) ndarray
+        The M-orthonormal extended basis [T, W].
+
+    Raises
+    ------
+    CalibrationError
+        A model whose first terms and parameters do not match the surrogate's,
+        a basis of the wrong shape, or no solver.
+    """
+    t0 = time.perf_counter()
+    T = np.asarray(basis, dtype=float)
+    n = model.K.shape[0]
+    r = sur.size
+    if T.shape != (n, r):
+        raise CalibrationError(f"basis is {T.shape}, expected ({n}, {r}) for this model and surrogate")
+    n_old, n_new = sur.n_params, model.n_params
+    if n_new < n_old:
+        raise CalibrationError(f"the extended model has {n_new} parameters, fewer than the surrogate's {n_old}")
+    if tuple(model.parameter_names[:n_old]) != tuple(sur.parameter_names):
+        raise CalibrationError(f"the extended model's first parameters {list(model.parameter_names[:n_old])} "
+                               f"are not the surrogate's {list(sur.parameter_names)}")
+    new_terms = {}
+    for kind, A, Ar in (("K", model.K, sur.K), ("M", model.M, sur.M)):
+        k_old = len(Ar.matrices)
+        if len(A.matrices) < k_old or A.exponents.shape[1] != n_new:
+            raise CalibrationError(f"extended {kind} has {len(A.matrices)} terms / {A.exponents.shape[1]} "
+                                   f"parameters; the surrogate has {k_old} terms")
+        if not np.array_equal(A.exponents[:k_old, :n_old], Ar.exponents) or np.any(A.exponents[:k_old, n_old:]):
+            raise CalibrationError(f"extended {kind}: the first {k_old} terms are not the surrogate's "
+                                   "(with_terms keeps the old terms first, in order)")
+        new_terms[kind] = list(A.matrices[k_old:])
+    p_b = np.concatenate([sur.p_basis, np.zeros(n_new - n_old)])
+    K0 = model.stiffness(p_b)
+    M0 = model.mass(p_b)
+    if solve is None:
+        if shift_hz is None or not shift_hz > 0:
+            raise CalibrationError("extended_surrogate needs shift_hz > 0 (the basis build's shift) or solve")
+        s = (2 * np.pi * float(shift_hz)) ** 2
+        solve = _factor(_shifted(K0, M0, s))
+    t1 = time.perf_counter()
+    loads = [_term_loads(A, T, load_rtol) for kind in ("K", "M") for A in new_terms[kind]]
+    F = np.hstack(loads) if loads else np.zeros((n, 0))
+    F = _range_basis(F, load_rtol) if F.shape[1] else F
+    X = solve(F) if F.shape[1] else F
+    t2 = time.perf_counter()
+    # M-orthonormalize against T (twice: T is M-orthonormal at p_b), then among themselves
+    for _ in range(2):
+        X = X - T @ (T.T @ (M0 @ X))
+    if X.shape[1]:
+        G = _sym(X.T @ (M0 @ X))
+        w, V = np.linalg.eigh(G)
+        keep = w > vector_rtol * max(w.max(initial=0.0), np.finfo(float).tiny)
+        W = X @ (V[:, keep] / np.sqrt(w[keep]))
+    else:
+        W = X
+    k = W.shape[1]
+    t3 = time.perf_counter()
+
+    def extend(A, Ar):
+        """[T, W]^T A_k [T, W] for every term, the T-T block from the old surrogate."""
+        k_old = len(Ar.matrices)
+        out = []
+        for i, m in enumerate(A.matrices):
+            mW = np.asarray(m @ W)
+            ww = W.T @ mW
+            tw = T.T @ mW
+            tt = np.asarray(Ar.matrices[i]) if i < k_old else np.asarray(T.T @ (m @ T))
+            out.append(_sym(np.block([[tt, tw], [tw.T, ww]])))
+        return replace(A, matrices=tuple(out))
+
+    Kr = extend(model.K, sur.K)
+    Mr = extend(model.M, sur.M)
+    Te = np.hstack([T, W])
+    try:
+        L = np.linalg.cholesky(_sym(Mr.at(p_b)))
+    except np.linalg.LinAlgError:
+        raise CalibrationError("extended basis is numerically dependent (reduced mass not definite); "
+                               "raise vector_rtol") from None
+    if np.abs(L - np.eye(L.shape[0])).max() > 1e-12:
+        Li = sla.solve_triangular(L, np.eye(L.shape[0]), lower=True)
+        Kr = _congruent(Kr, Li)
+        Mr = _congruent(Mr, Li)
+        Te = Te @ Li.T
+    t4 = time.perf_counter()
+    B = model.inputs.toarray() if sp.issparse(model.inputs) else np.asarray(model.inputs, float)
+    C = model.outputs.toarray() if sp.issparse(model.outputs) else np.asarray(model.outputs, float)
+    timings = dict(sur.timings_s)
+    timings.update({"extend: factor": t1 - t0, "extend: statics": t2 - t1, "extend: orthonormalize": t3 - t2,
+                    "extend: project": t4 - t3})
+    out = replace(
+        sur,
+        K=Kr,
+        M=Mr,
+        inputs=np.asarray(Te.T @ B),
+        outputs=np.asarray(C @ Te),
+        p_basis=p_b,
+        n_static=sur.n_static + k,
+        parameter_names=tuple(model.parameter_names),
+        timings_s=timings,
+    )
+    return out, Te

@@ -1,0 +1,187 @@
+"""Parameter bookkeeping of the parametric model: nominal values, exponent rows, grouped terms.
+
+Assembly terms are summed by their exponent row in the parameters (one term
+per distinct monomial) and reduced to the independent DOF once; element
+subsets are assembled alone for :class:`~femodel.ElementFactor` terms.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import scipy.sparse as sp
+
+from femodel._params import ParameterError, ParameterSet
+from femodel._pattern import _canonical, _selection_map, _to_aset
+from femodel._shellshear import _shell_shear_corrections, _shell_shear_elements, _shell_shear_series
+
+
+def _element_terms(model) -> tuple:
+    """The K and M g-set terms of a model's elements (what :func:`femodel.assemble` collects)."""
+    from femodel import _assembly as A
+
+    col = A._Collector(6 * model.n_grids)
+    cd_axes = A._cd_transform(model)
+    wt = float(model.wtmass)
+    A._add_bars(model, col, cd_axes, wt)
+    A._add_rods(model, col, cd_axes, wt)
+    A._add_springs(model, col)
+    A._add_bushes(model, col, cd_axes)
+    A._add_conm2(model, col, cd_axes, wt)
+    A._add_shells(model, col, cd_axes, wt)
+    A._add_solids(model, col, cd_axes, wt)
+    return col.terms()
+
+
+def _subset_terms(assembly, params: ParameterSet, factor):
+    """(a-set matrices, a rows, b rows, ratios) of the K or M terms of an element subset.
+
+    The subset's elements are assembled alone on the full model's grids and
+    reduced with the full model's constraint transformation; coefficients
+    (including the shell shear series) are those of the same parameters.
+    """
+    sub = factor.submodel(assembly.model)
+    sub_asm = replace(assembly, model=sub, terms=_element_terms(sub))
+    source = params.source
+    if factor.kind == "M":
+        return _grouped_terms(sub_asm, params, "M", source)
+    prepared = _shell_shear_elements(sub, params, _key_index(params))
+    series, _ = _shell_shear_series(sub_asm, params, prepared)
+    return _with_series(*_grouped_terms(sub_asm, params, "K", source, _shell_shear_corrections(prepared)), series)
+
+
+def _factor_key(key) -> tuple[str, int, str]:
+    """Normalize an assembly factor key to the parameter-file spelling."""
+    card, cid, fld = key
+    if card == "PELAS" and fld == "K1":
+        fld = "K"
+    return (card, int(cid), fld)
+
+
+def _nominal_from_model(params: ParameterSet, fe, source) -> list[np.ndarray]:
+    """SI nominal values from the FE model's tables (WTMASS applied to masses)."""
+    where = f"{source}: " if source else ""
+    wt = float(fe.wtmass)
+
+    def table(group, name, prm, key):
+        tab = group.get(name)
+        if tab is None or len(tab) == 0 or key[1] not in set(tab.ids.tolist()):
+            raise ParameterError(f"{where}parameter {prm.name!r}: card {key[0]} {key[1]} (field {key[2]}) is not in the deck")
+        return tab, int(np.flatnonzero(tab.ids == key[1])[0])
+
+    out = []
+    for prm in params.parameters:
+        vals = []
+        for key in prm.keys:
+            card, cid, fld = key
+            if card == "MAT1":
+                tab, r = table(fe.materials, "MAT1", prm, key)
+                v = tab["E"][r] if fld == "E" else tab["RHO"][r] * wt
+            elif card == "PSHELL":
+                tab, r = table(fe.properties, "PSHELL", prm, key)
+                v = tab["t"][r]
+            elif card == "CONM2":
+                tab, r = table(fe.elements, "CONM2", prm, key)
+                v = tab["mass"][r] * wt
+            elif card == "PBUSH":
+                tab, r = table(fe.properties, "PBUSH", prm, key)
+                v = tab["k"][r, int(fld[1]) - 1]
+            elif card == "CELAS2":
+                tab, r = table(fe.elements, "CELAS2", prm, key)
+                v = tab["k"][r]
+            elif card == "PELAS":
+                table(fe.properties, "PELAS", prm, key)
+                el = fe.elements.get("CELAS1")
+                ks = np.array([]) if el is None else el["k"][el["pid"] == cid]
+                if ks.size == 0:
+                    raise ParameterError(f"{where}parameter {prm.name!r}: PELAS {cid} is used by no CELAS1")
+                if not np.allclose(ks, ks[0], rtol=1e-12, atol=0.0):
+                    raise ParameterError(
+                        f"{where}parameter {prm.name!r}: PELAS {cid} springs mix translational and rotational "
+                        "components; its SI value is ambiguous"
+                    )
+                v = ks[0]
+            else:  # pragma: no cover - guarded by SUPPORTED_FIELDS
+                raise ParameterError(f"{where}parameter {prm.name!r}: unsupported card {card}")
+            v = float(v)
+            if not (np.isfinite(v) and v > 0.0):
+                raise ParameterError(
+                    f"{where}parameter {prm.name!r}: {card} {cid} field {fld} is {v!r} (SI); a scaled "
+                    "parameter needs a positive nominal value"
+                )
+            vals.append(v)
+        out.append(np.array(vals))
+    return out
+
+
+def _key_index(params: ParameterSet) -> dict:
+    key_index = params.key_to_index()
+    # a MAT1 E parameter also moves G (G follows E, or is scaled with it on write-back)
+    for (card, cid, fld), j in list(key_index.items()):
+        if card == "MAT1" and fld == "E":
+            key_index.setdefault(("MAT1", cid, "G"), j)
+    return key_index
+
+
+def _grouped_terms(assembly, params: ParameterSet, kind: str, source, extra=(), series=()):
+    """Sum g-set terms of one kind by exponent row; reduce each sum by T once.
+
+    ``extra`` holds (exponent row, g-set matrix) additions to the monomial
+    groups; ``series`` holds (a row, b row, ratio, g-set matrix) series terms.
+    """
+    key_index = _key_index(params)
+    groups: dict[tuple, object] = {}
+    for term in assembly.terms:
+        if term.kind != kind:
+            continue
+        e = np.zeros(len(params), dtype=np.int64)
+        for key, expo in term.factors:
+            j = key_index.get(_factor_key(key))
+            if j is not None:
+                e[j] += int(expo)
+        row = tuple(e.tolist())
+        groups[row] = term.matrix if row not in groups else groups[row] + term.matrix
+    for erow, m in extra:
+        row = tuple(int(x) for x in erow)
+        groups[row] = m if row not in groups else groups[row] + m
+    if not groups:
+        groups[tuple([0] * len(params))] = sp.csr_matrix((assembly.T.shape[0],) * 2)
+    rows = sorted(groups)
+    amap = _selection_map(assembly.T)
+    # assembly.reduce sums with the dependent-DOF products, which drops exact zeros; keep that pattern
+    drop_zeros = assembly.selection is None or (assembly.dependent is not None and assembly.dependent.size > 0)
+    mats = [_to_aset(assembly, amap, _canonical(groups[r]), drop_zeros) for r in rows]
+    a = np.array(rows, dtype=float).reshape(len(rows), len(params))
+    b = a.copy()
+    ratio = np.zeros(len(rows))
+    return _with_series(mats, a, b, ratio, series)
+
+
+def _with_series(mats, a, b, ratio, series):
+    """Append (a row, b row, ratio, a-set matrix) series terms to grouped terms."""
+    if series:  # already on the a-set
+        mats = list(mats) + [m for _, _, _, m in series]
+        a = np.vstack([a, np.array([s_[0] for s_ in series])])
+        b = np.vstack([b, np.array([s_[1] for s_ in series])])
+        ratio = np.concatenate([ratio, [s_[2] for s_ in series]])
+    return mats, a, b, ratio
+
+
+def _check_element_thickness(params: ParameterSet, fe, source) -> None:
+    """A PSHELL T parameter cannot move elements that give their own T1..T4."""
+    where = f"{source}: " if source else ""
+    for prm in params.parameters:
+        if prm.card != "PSHELL":
+            continue
+        for card in ("CQUAD4", "CTRIA3"):
+            tab = fe.elements.get(card)
+            if tab is None or len(tab) == 0 or "t" not in tab.fields:
+                continue
+            own = np.isin(tab["pid"], prm.ids) & np.any(~np.isnan(tab["t"]), axis=1)
+            if np.any(own):
+                raise ParameterError(
+                    f"{where}parameter {prm.name!r}: {card} {tab.ids[own][:5].tolist()} give their own corner "
+                    f"thicknesses T1..T4, which PSHELL {list(prm.ids)} T does not scale"
+                )
+
