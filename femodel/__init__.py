@@ -18,6 +18,7 @@ from femodel._params import Parameter, ParameterError, ParameterSet, read_parame
 from femodel._parametric import ParametricModel, SeriesAffineMatrix, parametric_model
 from femodel._writeback import write_bdf
 from femodel._example import SubframeExample, example_subframe
+from femodel._example_frame import FrameExample, example_frame
 
 __all__ = [
     "Assembly", "MatrixTerm", "assemble", "DofMap", "ImportedMatrices", "read_dmig", "read_matrices",
@@ -26,4 +27,4 @@ __all__ = [
     "rigid_body_vectors", "sensor_matrix", "UNIT_SYSTEMS", "UnitSystem", "unit_system",
     "AffineMatrix", "ElementGeometryError", "shell_stiffness", "shell_mass", "solid_stiffness", "solid_mass", "laminate_abd", "orthotropic_q",
     "Parameter", "ParameterError", "ParameterSet", "read_parameters", "ParametricModel", "SeriesAffineMatrix", "parametric_model",
-    "write_bdf", "SubframeExample", "example_subframe"]
+    "write_bdf", "SubframeExample", "example_subframe", "FrameExample", "example_frame"]
