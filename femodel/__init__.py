@@ -19,6 +19,7 @@ from femodel._parametric import ParametricModel, SeriesAffineMatrix, parametric_
 from femodel._terms import AddedMass, AddedSpring, ElementFactor, ExtendedAffineMatrix
 from femodel._writeback import fixed_field_card, write_bdf
 from femodel._example import SubframeExample, example_subframe
+from femodel._example_frame import FrameExample, example_frame
 
 __all__ = [
     "Assembly", "MatrixTerm", "assemble", "DofMap", "ImportedMatrices", "read_dmig", "read_matrices",
@@ -27,5 +28,5 @@ __all__ = [
     "rigid_body_vectors", "sensor_matrix", "UNIT_SYSTEMS", "UnitSystem", "unit_system",
     "AffineMatrix", "ElementGeometryError", "shell_stiffness", "shell_mass", "solid_stiffness", "solid_mass", "laminate_abd", "orthotropic_q",
     "Parameter", "ParameterError", "ParameterSet", "read_parameters", "ParametricModel", "SeriesAffineMatrix", "parametric_model",
-    "write_bdf", "fixed_field_card", "SubframeExample", "example_subframe",
+    "write_bdf", "fixed_field_card", "SubframeExample", "example_subframe", "FrameExample", "example_frame",
     "AddedMass", "AddedSpring", "ElementFactor", "ExtendedAffineMatrix"]
