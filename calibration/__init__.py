@@ -5,6 +5,7 @@ from calibration._crossval import CrossValidation, cross_validate, split_halves
 from calibration._ensemble import group_articles, pairwise_sd
 from calibration._errors import CalibrationError
 from calibration._executor import DaskExecutor, Executor, ProcessExecutor, SerialExecutor, make_executor
+from calibration._identifiability import Identifiability, identifiability
 from calibration._fit import (
     Calibration,
     CycleResult,
@@ -48,7 +49,9 @@ __all__ = [
     "load_campaign",
     "run_campaign",
     "CrossValidation",
+    "Identifiability",
     "IdentifiedModes",
+    "identifiability",
     "Validation",
     "cross_validate",
     "group_articles",
