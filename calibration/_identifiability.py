@@ -244,11 +244,15 @@ def identifiability(
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = C / np.outer(std_resolved, std_resolved)
     corr[~np.isfinite(corr)] = np.nan
-    np.fill_diagonal(corr, 1.0)
     # directions in p (relative parameter changes), unit length, sign: largest component positive
     D = V / scale[:, None]
     D = D / np.linalg.norm(D, axis=0)
     D = D * np.sign(D[np.argmax(np.abs(D), axis=0), np.arange(n)])
+    # parameters sharing a null combination: the limit of the covariance as its singular value -> 0
+    for k in np.flatnonzero(null):
+        idx = np.flatnonzero(np.abs(V[:, k]) >= SHOWN_COMPONENT)
+        corr[np.ix_(idx, idx)] = np.sign(np.outer(D[idx, k], D[idx, k]))
+    np.fill_diagonal(corr, 1.0)
     weak = rel < weak_ratio
 
     reasons = []

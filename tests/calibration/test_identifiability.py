@@ -72,6 +72,8 @@ def test_exactly_dependent_and_dead_parameters_get_infinite_std():
     assert np.isinf(idf.std[[0, 1, 3]]).all() and np.isfinite(idf.std[2])
     assert "no influence" in idf.reasons[3]
     assert "null combination" in idf.reasons[0]
+    assert idf.correlation[0, 1] == -1.0  # equal columns: a up and b down by the same is invisible
+    assert "+0.71 a -0.71 b" in idf.reasons[1]
     d = idf.to_dict()
     assert d["parameters"][3]["std_p"] is None and d["parameters"][3]["identifiable"] is False
     assert d["n_identifiable"] == 1
