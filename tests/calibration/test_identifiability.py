@@ -9,6 +9,7 @@ from calibration import (
     Objective,
     build_surrogate,
     calibrate,
+    cross_validate,
     full_order_frf,
     half_bandwidth_frequencies,
     identifiability,
@@ -87,11 +88,13 @@ def test_bad_shapes_raise():
         identifiability(J, r, np.zeros(4), LO, HI, NAMES[:3])
 
 
-def test_beam_parameter_beyond_its_bound_is_reported_pinned_the_others_identified():
+@pytest.fixture(scope="module")
+def pinned_beam():
+    """Beam calibrated against a truth with k_bush at +40 % (bounds +-30 %), 0.5 % noise."""
     model, _ = beam_model()
     band = (20.0, 400.0)
     sur, _ = build_surrogate(model, np.zeros(7), band)
-    p_true = np.array([0.0047, 0.1802, -0.1423, 0.1795, -0.0753, -0.0307, 0.40])  # k_bush +40 %, bounds +-30 %
+    p_true = np.array([0.0047, 0.1802, -0.1423, 0.1795, -0.0753, -0.0307, 0.40])
     f = half_bandwidth_frequencies(*band, 0.01, 3)
     rng = np.random.default_rng(1)
     H = full_order_frf(model, p_true, f, 0.01)
@@ -99,6 +102,11 @@ def test_beam_parameter_beyond_its_bound_is_reported_pinned_the_others_identifie
     data = [FitData(f, H, model.output_names)]
     lo, hi = -0.3 * np.ones(7), 0.3 * np.ones(7)
     cal = calibrate(sur, data, lo, hi, 0.01, n_starts=0)
+    return model, sur, data, cal, p_true, lo, hi
+
+
+def test_beam_parameter_beyond_its_bound_is_reported_pinned_the_others_identified(pinned_beam):
+    model, sur, data, cal, p_true, lo, hi = pinned_beam
     obj = Objective(sur, data, 0.01)
     idf = identifiability(obj.jacobian(cal.p), obj.residual(cal.p), cal.p, lo, hi, model.parameter_names)
     assert idf.at_bound.tolist() == [0, 0, 0, 0, 0, 0, 1]
@@ -108,3 +116,15 @@ def test_beam_parameter_beyond_its_bound_is_reported_pinned_the_others_identifie
     err = np.abs(cal.p[:6] - p_true[:6])
     assert np.all(idf.std[:6] < 0.005) and np.all(err < 6 * idf.std[:6] + 1e-4)
     assert "6 of 7 parameters identifiable" in idf.table()
+
+
+def test_crossvalidation_does_not_report_a_pinned_parameter_as_certain(pinned_beam):
+    model, sur, data, cal, p_true, lo, hi = pinned_beam
+    cv = cross_validate(sur, data, cal.p, lo, hi, 0.01, n_realizations=4, seed=0)
+    assert cv.n_at_bound.tolist() == [0, 0, 0, 0, 0, 0, 4]
+    # the pinned spread is exactly zero: that is what used to be printed as "CV 0.000 %"
+    assert cv.cv_percent[6] < 1e-6
+    assert cv.cv(6) is None and "at a bound in 4 of 4 realizations" in cv.cv_reason[6]
+    d = cv.to_dict()
+    assert d["cv_percent"][6] is None and d["cv_not_meaningful"][6].startswith("at a bound")
+    assert all(0 < d["cv_percent"][j] < 1 for j in range(6)) and d["cv_not_meaningful"][:6] == [None] * 6
