@@ -26,6 +26,7 @@ from calibration._validation import (
     holdout_sd,
     mac,
     mapped_damping,
+    noise_floor_sd,
     pair_modes,
     validate,
 )
@@ -58,6 +59,7 @@ __all__ = [
     "holdout_sd",
     "mac",
     "mapped_damping",
+    "noise_floor_sd",
     "pair_modes",
     "pairwise_sd",
     "split_halves",
