@@ -2,7 +2,7 @@
 
 from calibration._campaign import Campaign, campaign_from_dict, load_campaign
 from calibration._crossval import CrossValidation, cross_validate, split_halves
-from calibration._ensemble import group_articles, pairwise_sd
+from calibration._ensemble import Grouping, group_articles, grouping, pairwise_sd
 from calibration._errors import CalibrationError
 from calibration._executor import DaskExecutor, Executor, ProcessExecutor, SerialExecutor, make_executor
 from calibration._identifiability import Identifiability, identifiability
@@ -55,7 +55,9 @@ __all__ = [
     "identifiability",
     "Validation",
     "cross_validate",
+    "Grouping",
     "group_articles",
+    "grouping",
     "holdout_sd",
     "mac",
     "mapped_damping",
