@@ -42,10 +42,18 @@ Thresholds (keyword arguments, module constants as defaults):
     below this relative singular value a combination has no influence at all;
     parameters taking part get an infinite standard deviation.
 
-The covariance assumes independent residuals; the residuals of an equalized
-fit are correlated along frequency, so the standard deviations are a lower
-bound (optimistic) and the correlations and weak combinations are the more
-robust signals.
+Correlated residuals. The covariance above assumes independent residuals.
+A fit's residuals are correlated along frequency (systematic misfit of a
+resonance spans its half-power band; the equalized test model is smooth),
+which makes ``s^2 (J^T J)^+`` optimistic. With ``stride`` (the distance in the
+residual vector between the same channel/drive at adjacent frequencies) the
+lag-1 autocorrelation rho of the residual along frequency is estimated and
+the covariance multiplied by the AR(1) variance inflation
+``(1 + rho) / (1 - rho)`` (rho clipped to [0, 0.99]); ``inflation`` reports
+the factor. Even so the std is local: at a point that is not the optimum
+(an unconverged or wrong-basin fit) it says nothing about the distance to
+the truth; the correlations and weak combinations are the more robust
+signals.
 """
 
 from __future__ import annotations
@@ -90,6 +98,7 @@ class Identifiability:
     singular_values : (n,) of the unit-column Jacobian, descending
     directions : (n, n) columns: unit combination of p for each singular value
     residual_variance : float, s^2 = |r|^2 / (m - n)
+    inflation : float, AR(1) variance inflation applied to the covariance (1 without ``stride``)
     identifiable : (n,) bool
     reasons : tuple of str, "" where identifiable
     thresholds : dict of the thresholds used
@@ -105,6 +114,7 @@ class Identifiability:
     singular_values: np.ndarray
     directions: np.ndarray
     residual_variance: float
+    inflation: float
     identifiable: np.ndarray
     reasons: tuple
     thresholds: dict
@@ -155,6 +165,7 @@ class Identifiability:
             "weak_combinations": [{"relative_singular_value": r, "combination": t} for r, t in self.weak()],
             "correlation": np.where(np.isfinite(self.correlation), self.correlation, np.nan).tolist(),
             "residual_variance": self.residual_variance,
+            "inflation": self.inflation,
             "thresholds": dict(self.thresholds),
         }
 
@@ -172,6 +183,8 @@ class Identifiability:
         if weak:
             lines.append("weak combinations (relative singular value of the unit-column Jacobian):")
             lines += [f"  {r:.2e}  {t}" for r, t in weak]
+        if self.inflation != 1.0:
+            lines.append(f"std include x{np.sqrt(self.inflation):.2f} for residuals correlated along frequency")
         lines.append(f"{self.n_identifiable} of {len(self.names)} parameters identifiable from these channels and band")
         return "\n".join(lines)
 
@@ -189,6 +202,7 @@ def identifiability(
     max_correlation: float = MAX_CORRELATION,
     correlated_std_range: float = CORRELATED_STD_RANGE,
     null_ratio: float = NULL_RATIO,
+    stride: int | None = None,
 ) -> Identifiability:
     """Identifiability of the parameters at a calibrated point (see the module docstring).
 
@@ -200,6 +214,10 @@ def identifiability(
         Residual at ``p`` (e.g. ``Objective.residual(p)``).
     p, lower, upper : (n,) normalized parameters and bounds
     names : sequence of n str
+    stride : int, optional
+        Distance in ``residual`` between adjacent frequencies of one
+        channel/drive (``n_out * n_in`` for unmasked data stacked frequency-major,
+        as :class:`Objective` does); enables the correlated-residual inflation.
 
     Returns
     -------
@@ -225,6 +243,14 @@ def identifiability(
 
     dof = max(r.size - n, 1)
     s2 = float(r @ r) / dof
+    inflation = 1.0
+    if stride is not None:
+        k = int(stride)
+        if k < 1 or k >= r.size:
+            raise CalibrationError(f"identifiability: stride {stride} outside 1..{r.size - 1}")
+        rho = float(np.clip(np.dot(r[:-k], r[k:]) / max(float(r @ r), 1e-300), 0.0, 0.99))
+        inflation = (1 + rho) / (1 - rho)
+        s2 *= inflation
     norms = np.linalg.norm(J, axis=0)
     scale = np.where(norms > 0, norms, 1.0)
     Js = J / scale
@@ -280,7 +306,7 @@ def identifiability(
     ident = np.array([not w for w in reasons], bool)
     return Identifiability(
         names=names, p=p, lower=lo, upper=hi, at_bound=at, std=std, correlation=corr,
-        singular_values=sv, directions=D, residual_variance=s2, identifiable=ident, reasons=tuple(reasons),
+        singular_values=sv, directions=D, residual_variance=s2, inflation=inflation, identifiable=ident, reasons=tuple(reasons),
         thresholds={"bound_tol": bound_tol, "max_std_range": max_std_range, "weak_ratio": weak_ratio,
                     "max_correlation": max_correlation, "correlated_std_range": correlated_std_range, "null_ratio": null_ratio},
     )

@@ -217,7 +217,7 @@ def _members(camp: Campaign, articles, f, log):
     eq = [_equalized_data(a, camp.calibration.zeta0, f, camp.channels.calibrate).frf for a in articles]
     D = pairwise_sd(eq)
     floors = [_noise_floor(a, camp.channels.calibrate) for a in articles]
-    grp = grouping(D, camp.calibration.n_groups, None if None in floors else floors)
+    grp = grouping(D, camp.calibration.n_groups, None if any(x is None for x in floors) else floors)
     labels = grp.labels
     groups = [[i for i in range(len(articles)) if labels[i] == g] for g in range(labels.max() + 1)]
     log("groups: " + "; ".join(", ".join(articles[i].name for i in g) for g in groups))
@@ -274,8 +274,9 @@ def run_campaign(camp: Campaign, log=print) -> dict:
             log(f"[{label}] calibration SD (equalized test model, zeta0={100 * c.zeta0:g} %) "
                 f"{cyc.calibration.sd_nominal:.4g} -> {cyc.sd:.4g} ({t_cal:.1f} s)")
             obj = Objective(cyc.surrogate, data, c.zeta0, arts[0].quantity)
+            # residual stacked frequency-major per data set: adjacent lines are n_out * n_in apart
             idf = identifiability(obj.jacobian(cyc.p), obj.residual(cyc.p), cyc.p, lower, upper,
-                                  pm.parameters.names)
+                                  pm.parameters.names, stride=data[0].frf.shape[1] * data[0].frf.shape[2])
             log(f"[{label}] identifiability at the calibrated point:\n{idf.table()}")
             val = None
             t = time.perf_counter()
@@ -289,7 +290,7 @@ def run_campaign(camp: Campaign, log=print) -> dict:
                         a.std_error[:, [a.channels.index(n) for n in camp.channels.holdout]] for a in arts]
                 val = validate(sur0, cyc.surrogate, cyc.p, raw, [_identified_modes(a) for a in arts], c.zeta0,
                                camp.validation.target_sd, camp.validation.mac_min, arts[0].quantity, band,
-                               std_error=None if None in errs else errs)
+                               std_error=None if any(e is None for e in errs) else errs)
                 log(f"[{label}] {val.summary()}")
             t_val = time.perf_counter() - t
             cv = None

@@ -80,6 +80,26 @@ def test_exactly_dependent_and_dead_parameters_get_infinite_std():
     assert d["n_identifiable"] == 1
 
 
+def test_residuals_correlated_along_frequency_inflate_the_std():
+    rng = np.random.default_rng(2)
+    m, k, rho = 4000, 4, 0.9  # 4 channels, AR(1) along frequency with coefficient 0.9
+    J = rng.standard_normal((m, 4))
+    e = rng.standard_normal((m // k, k))
+    for i in range(1, e.shape[0]):
+        e[i] = rho * e[i - 1] + np.sqrt(1 - rho**2) * e[i]
+    r = 1e-3 * e.ravel()
+    plain = identifiability(J, r, np.zeros(4), LO, HI, NAMES)
+    inflated = identifiability(J, r, np.zeros(4), LO, HI, NAMES, stride=k)
+    assert plain.inflation == 1.0
+    assert inflated.inflation == pytest.approx((1 + rho) / (1 - rho), rel=0.15)
+    assert np.allclose(inflated.std / plain.std, np.sqrt(inflated.inflation))
+    assert "for residuals correlated along frequency" in inflated.table()
+    white = identifiability(J, 1e-3 * rng.standard_normal(m), np.zeros(4), LO, HI, NAMES, stride=k)
+    assert white.inflation < 1.1
+    with pytest.raises(CalibrationError, match="stride"):
+        identifiability(J, r, np.zeros(4), LO, HI, NAMES, stride=0)
+
+
 def test_bad_shapes_raise():
     J, r = _linear()
     with pytest.raises(CalibrationError, match="Jacobian"):
