@@ -85,8 +85,8 @@ def member_figures(outdir: Path, label, pm, model, sur0, arts, cyc, val, cv, cam
             cvj = cv.cv(j)
             row += [f"{pm.nominal[j] * (1 + cv.mean_p[j]):.4g}", "n/a" if cvj is None else f"{cvj:.3f}"]
         if identifiability is not None:
-            why = identifiability.reasons[j]
-            row += ["yes" if identifiability.identifiable[j] else "NO: " + (why[:40] + "..." if len(why) > 43 else why)]
+            why = identifiability.reasons[j].split(";")[0].split(":")[0]  # first reason, short
+            row += ["yes" if identifiability.identifiable[j] else f"NO: {why.replace(' exceeds', ' >')}"]
         cells.append(row)
     cols = ["parameter", "nominal (SI)", "calibrated", "change %"] + (["CV mean", "CV %"] if cv is not None else [])
     cols += ["identifiable"] if identifiability is not None else []
@@ -95,6 +95,7 @@ def member_figures(outdir: Path, label, pm, model, sur0, arts, cyc, val, cv, cam
     tab = ax.table(cellText=cells, colLabels=cols, loc="center")
     tab.auto_set_font_size(False)
     tab.set_fontsize(8)
+    tab.auto_set_column_width(list(range(len(cols))))
     if identifiability is not None:
         for j in np.flatnonzero(~identifiability.identifiable):
             for k in range(len(cols)):
