@@ -2,10 +2,11 @@
 
 from calibration._campaign import Campaign, campaign_from_dict, load_campaign
 from calibration._crossval import CrossValidation, cross_validate, split_halves
-from calibration._ensemble import group_articles, pairwise_sd
+from calibration._ensemble import Grouping, group_articles, grouping, pairwise_sd
 from calibration._errors import CalibrationError
 from calibration._extend import extended_surrogate
 from calibration._executor import DaskExecutor, Executor, ProcessExecutor, SerialExecutor, make_executor
+from calibration._identifiability import Identifiability, identifiability
 from calibration._fit import (
     Calibration,
     CycleResult,
@@ -26,6 +27,7 @@ from calibration._validation import (
     holdout_sd,
     mac,
     mapped_damping,
+    noise_floor_sd,
     pair_modes,
     validate,
 )
@@ -49,13 +51,18 @@ __all__ = [
     "load_campaign",
     "run_campaign",
     "CrossValidation",
+    "Identifiability",
     "IdentifiedModes",
+    "identifiability",
     "Validation",
     "cross_validate",
+    "Grouping",
     "group_articles",
+    "grouping",
     "holdout_sd",
     "mac",
     "mapped_damping",
+    "noise_floor_sd",
     "pair_modes",
     "pairwise_sd",
     "split_halves",

@@ -7,6 +7,11 @@ one half from the calibrated point with a few Gauss-Newton type
 square deviation on the other half. RSE is the mean of those hold-out
 square deviations; the parameter estimates give a mean and a coefficient of
 variation per parameter (of the physical value P = P0 (1 + p)).
+
+A parameter that ends at a bound in a realization has no spread to measure
+there (the bound is not an estimate): every such realization is counted,
+and when any realization pins it its CV is reported as not meaningful
+(``None`` with the reason), never as a small number such as 0.000 %.
 """
 
 from __future__ import annotations
@@ -27,6 +32,8 @@ class CrossValidation:
     p : (n_real, n_p) normalized estimates ; sd_fit, sd_test : (n_real,)
     rse : mean of sd_test ; mean_p : (n_p,) ; cv_percent : (n_p,) CV of P/P0 in %
     parameter_names : tuple ; time_s : float
+    n_at_bound : (n_p,) int, realizations in which the parameter ended at a bound
+    cv_reason : tuple of str, why a CV is not meaningful ("" where it is)
     """
 
     p: np.ndarray
@@ -37,6 +44,12 @@ class CrossValidation:
     cv_percent: np.ndarray
     parameter_names: tuple
     time_s: float
+    n_at_bound: np.ndarray
+    cv_reason: tuple
+
+    def cv(self, j: int) -> float | None:
+        """CV in % of parameter j, or None when it is not meaningful (see ``cv_reason[j]``)."""
+        return None if self.cv_reason[j] else float(self.cv_percent[j])
 
     def to_dict(self) -> dict:
         return {
@@ -46,7 +59,9 @@ class CrossValidation:
             "sd_test": self.sd_test.tolist(),
             "p": self.p.tolist(),
             "mean_p": self.mean_p.tolist(),
-            "cv_percent": self.cv_percent.tolist(),
+            "cv_percent": [self.cv(j) for j in range(self.cv_percent.size)],
+            "cv_not_meaningful": [r or None for r in self.cv_reason],
+            "n_at_bound": self.n_at_bound.tolist(),
             "parameter_names": list(self.parameter_names),
             "time_s": self.time_s,
         }
@@ -98,6 +113,7 @@ def cross_validate(
     quantity: str = "accelerance",
     max_nfev: int = 30,
     damping=None,
+    bound_tol: float = 1e-3,
 ) -> CrossValidation:
     """Monte Carlo half/half cross-validation from the calibrated point.
 
@@ -112,6 +128,8 @@ def cross_validate(
         at ``p_ref``): the recalibrations then fit the raw-line model with
         that damping (:class:`calibration._refine.ModalDampingObjective`), as
         the refinement stage does, instead of the uniform ``zeta0``.
+    bound_tol : float
+        A realization's estimate within ``bound_tol * (upper - lower)`` of a bound counts as at the bound.
     """
     t0 = time.perf_counter()
     lower, upper = _check_bounds(lower, upper, surrogate.n_params)
@@ -128,7 +146,18 @@ def cross_validate(
     sd_test = np.array([r[2] for r in res])
     phys = 1.0 + P
     mean = phys.mean(axis=0)
-    cv = 100.0 * phys.std(axis=0, ddof=1) / mean if len(res) > 1 else np.zeros_like(mean)
+    cv = 100.0 * phys.std(axis=0, ddof=1) / mean if len(res) > 1 else np.full_like(mean, np.nan)
+    span = upper - lower
+    n_at = np.sum((P <= lower + bound_tol * span) | (P >= upper - bound_tol * span), axis=0)
+    reasons = []
+    for j in range(P.shape[1]):
+        if n_at[j]:
+            reasons.append(f"at a bound in {n_at[j]} of {P.shape[0]} realizations: the spread of a pinned "
+                           "parameter is not a measure of its uncertainty")
+        elif P.shape[0] < 2:
+            reasons.append("one realization has no spread")
+        else:
+            reasons.append("")
     return CrossValidation(
         p=P,
         sd_fit=sd_fit,
@@ -138,4 +167,6 @@ def cross_validate(
         cv_percent=cv,
         parameter_names=surrogate.parameter_names,
         time_s=time.perf_counter() - t0,
+        n_at_bound=n_at,
+        cv_reason=tuple(reasons),
     )

@@ -36,8 +36,14 @@ def _model_frf(sur, p, rows, f, zeta, quantity):
     return modal_frf(lam, sur.outputs[rows] @ X, X.T @ sur.inputs, f, zeta, quantity, sur.rigid_hz)
 
 
-def member_figures(outdir: Path, label, pm, model, sur0, arts, cyc, val, cv, camp) -> list[Path]:
-    """FRF overlays, parameter table, CV scatter, MAC before/after. Returns the written PNG paths."""
+def member_figures(outdir: Path, label, pm, model, sur0, arts, cyc, val, cv, camp, identifiability=None) -> list[Path]:
+    """FRF overlays, parameter table, CV scatter, MAC before/after. Returns the written PNG paths.
+
+    With ``identifiability`` the parameter table marks each parameter
+    identifiable or not (a non-identifiable row is greyed, the reason
+    shortened into the last column); a CV that is not meaningful (pinned
+    parameter) shows "n/a".
+    """
     plt = _plt()
     outdir = Path(outdir)
     written = []
@@ -76,14 +82,24 @@ def member_figures(outdir: Path, label, pm, model, sur0, arts, cyc, val, cv, cam
     for j, n in enumerate(names):
         row = [n, f"{nom[n]:.4g}", f"{cal[n]:.4g}", f"{100 * cyc.p[j]:+.2f}"]
         if cv is not None:
-            row += [f"{pm.nominal[j] * (1 + cv.mean_p[j]):.4g}", f"{cv.cv_percent[j]:.3f}"]
+            cvj = cv.cv(j)
+            row += [f"{pm.nominal[j] * (1 + cv.mean_p[j]):.4g}", "n/a" if cvj is None else f"{cvj:.3f}"]
+        if identifiability is not None:
+            why = identifiability.reasons[j].split(";")[0].split(":")[0]  # first reason, short
+            row += ["yes" if identifiability.identifiable[j] else f"NO: {why.replace(' exceeds', ' >')}"]
         cells.append(row)
     cols = ["parameter", "nominal (SI)", "calibrated", "change %"] + (["CV mean", "CV %"] if cv is not None else [])
-    fig, ax = plt.subplots(figsize=(9, 0.3 * len(names) + 1))
+    cols += ["identifiable"] if identifiability is not None else []
+    fig, ax = plt.subplots(figsize=(9 if identifiability is None else 13, 0.3 * len(names) + 1))
     ax.axis("off")
     tab = ax.table(cellText=cells, colLabels=cols, loc="center")
     tab.auto_set_font_size(False)
     tab.set_fontsize(8)
+    tab.auto_set_column_width(list(range(len(cols))))
+    if identifiability is not None:
+        for j in np.flatnonzero(~identifiability.identifiable):
+            for k in range(len(cols)):
+                tab[j + 1, k].set_facecolor("0.85")
     ax.set_title(f"{label}: parameters (SD {cyc.calibration.sd_nominal:.3g} -> {cyc.sd:.3g})")
     written.append(_save(plt, fig, outdir / f"parameters_{label}.png"))
 
@@ -103,9 +119,11 @@ def member_figures(outdir: Path, label, pm, model, sur0, arts, cyc, val, cv, cam
         a2.set_title(f"RSE = {cv.rse:.4g}")
         written.append(_save(plt, fig, outdir / f"crossvalidation_{label}.png"))
 
-    if val is not None and val.mac_nominal.size:
+    if val is not None and val.mac_nominal and val.mac_nominal[0].size:
+        # MAC of the first article's identified modes (each article is mapped with its own)
         fig, axs = plt.subplots(1, 2, figsize=(10, 4.5))
-        for ax, M, title in ((axs[0], val.mac_nominal, "MAC nominal"), (axs[1], val.mac_calibrated, "MAC calibrated")):
+        for ax, M, title in ((axs[0], val.mac_nominal[0], f"MAC nominal ({arts[0].name})"),
+                             (axs[1], val.mac_calibrated[0], f"MAC calibrated ({arts[0].name})")):
             im = ax.imshow(M, vmin=0, vmax=1, cmap="viridis", origin="lower")
             ax.set_xlabel("identified mode")
             ax.set_ylabel("FE mode (in band)")

@@ -15,12 +15,13 @@ import numpy as np
 
 from calibration._campaign import Campaign
 from calibration._crossval import cross_validate
-from calibration._ensemble import group_articles, pairwise_sd
+from calibration._ensemble import grouping, pairwise_sd
 from calibration._errors import CalibrationError
-from calibration._fit import FitData, calibrate_cycles
+from calibration._fit import FitData, Objective, calibrate_cycles
+from calibration._identifiability import identifiability
 from calibration._sampling import half_bandwidth_frequencies
 from calibration._surrogate import FRFModel, build_surrogate
-from calibration._validation import IdentifiedModes, validate
+from calibration._validation import IdentifiedModes, noise_floor_sd, validate
 
 
 @dataclass(frozen=True)
@@ -36,6 +37,7 @@ class Article:
     identification: object  # identification.Identification
     ident_channels: tuple  # output rows of the identified model
     quantity: str
+    std_error: np.ndarray | None = None  # like frf: standard error of each value; None if the run has none
 
 
 def _sensor_rows(run, names, path):
@@ -83,6 +85,8 @@ def load_articles(camp: Campaign, log=print, identify_data: bool = True) -> list
             )
         H = np.asarray(run.frf)[:, rows][:, :, cols]
         sel = inband & valid
+        se = np.asarray(run.std_error, float)[sel][:, rows][:, :, cols]
+        se = se if np.any(se > 0) and np.all(np.isfinite(se)) else None  # all zero: not measured
         bad = ~np.all(np.isfinite(H[sel]), axis=(1, 2))
         if bad.any():
             raise CalibrationError(
@@ -98,6 +102,7 @@ def load_articles(camp: Campaign, log=print, identify_data: bool = True) -> list
             identification=None,
             ident_channels=tuple(names),
             quantity=run.quantity,
+            std_error=se,
         ))
     quantities = {a.quantity for a in out}
     if len(quantities) > 1:
@@ -194,18 +199,30 @@ def _equalized_data(article: Article, zeta, f, outputs):
     return FitData(f, H[:, rows], tuple(outputs), inputs=article.drives, article=article.name)
 
 
+def _noise_floor(article: Article, channels) -> float | None:
+    """Noise floor of the SD of the article's raw lines on ``channels`` (None without standard errors)."""
+    if article.std_error is None:
+        return None
+    rows = [article.channels.index(n) for n in channels]
+    d = FitData(article.freq_hz, article.frf[:, rows], tuple(channels), article.drives, article=article.name)
+    return noise_floor_sd(d, article.std_error[:, rows])
+
+
 def _members(camp: Campaign, articles, f, log):
     mode = camp.calibration.ensemble
     if mode == "all" or len(articles) == 1:
-        return [("all", list(range(len(articles))))], None
+        return [("all", list(range(len(articles))))], None, None
     if mode == "article":
-        return [(a.name, [i]) for i, a in enumerate(articles)], None
+        return [(a.name, [i]) for i, a in enumerate(articles)], None, None
     eq = [_equalized_data(a, camp.calibration.zeta0, f, camp.channels.calibrate).frf for a in articles]
     D = pairwise_sd(eq)
-    labels = group_articles(D, camp.calibration.n_groups)
+    floors = [_noise_floor(a, camp.channels.calibrate) for a in articles]
+    grp = grouping(D, camp.calibration.n_groups, None if any(x is None for x in floors) else floors)
+    labels = grp.labels
     groups = [[i for i in range(len(articles)) if labels[i] == g] for g in range(labels.max() + 1)]
     log("groups: " + "; ".join(", ".join(articles[i].name for i in g) for g in groups))
-    return [(f"group{g + 1}", idx) for g, idx in enumerate(groups)], D
+    log("grouping: " + grp.describe([a.name for a in articles]))
+    return [(f"group{g + 1}", idx) for g, idx in enumerate(groups)], D, grp
 
 
 def _raw_data(article: Article, channels) -> FitData:
@@ -246,6 +263,26 @@ def _refined(camp: Campaign, model, arts, cyc, band, lower, upper, log, label):
         if dp < c.cycle_tol:
             break
     return replace(ref, stages=tuple(stages)), ref.p, sur
+
+
+def _identifiability(camp: Campaign, cyc, data, ref, p, sur, arts, lower, upper, pm):
+    """Identifiability at the reported point, from the objective that produced it.
+
+    After the refinement that is the raw-line objective (identified damping as
+    estimated, each article's lines); else the equalized one. The residual is
+    stacked frequency-major per data set, so adjacent lines are n_out x n_in
+    values apart (the stride of the correlated-residual inflation).
+    """
+    if ref is None:
+        obj = Objective(cyc.surrogate, data, camp.calibration.zeta0, arts[0].quantity)
+        stride = data[0].frf.shape[1] * data[0].frf.shape[2]
+    else:
+        from calibration._refine import ModalDampingObjective
+
+        raw = [_raw_data(a, camp.channels.calibrate) for a in arts]
+        obj = ModalDampingObjective(sur, raw, ref.zeta, ref.p_zeta, 0.0, arts[0].quantity)
+        stride = raw[0].frf.shape[1] * raw[0].frf.shape[2]
+    return identifiability(obj.jacobian(p), obj.residual(p), p, lower, upper, pm.parameters.names, stride=stride)
 
 
 def _per_article(camp: Campaign, sur0, sur, arts, p, band, lower, upper, log, label) -> tuple:
@@ -301,7 +338,7 @@ def run_campaign(camp: Campaign, log=print) -> dict:
     band = (camp.band.low_hz, camp.band.high_hz)
     f = half_bandwidth_frequencies(*band, c.zeta0, c.samples_per_half_bandwidth)
     f_stage = {z: half_bandwidth_frequencies(*band, z, c.samples_per_half_bandwidth) for z in c.continuation_zeta}
-    members, D = _members(camp, articles, f, log)
+    members, D, grp = _members(camp, articles, f, log)
     outdir = camp.resolve(camp.output.dir)
     outdir.mkdir(parents=True, exist_ok=True)
     lower, upper = pm.lower, pm.upper
@@ -327,20 +364,24 @@ def run_campaign(camp: Campaign, log=print) -> dict:
                                    arts[0].quantity, c.max_cycles, c.cycle_tol, c.basis_factor, surrogate=sur0,
                                    log=log, continuation=cont, enrich=c.enrich, max_nfev=c.max_evaluations,
                                    basis=T0)
-            log(f"[{label}] calibration SD (equalized test model, zeta0 = {c.zeta0:g}) "
+            log(f"[{label}] calibration SD (equalized test model, zeta0 = {100 * c.zeta0:g} %) "
                 f"{cyc.calibration.sd_nominal:.4g} -> {cyc.sd:.4g} ({time.perf_counter() - t:.1f} s)")
             ref, p_final, sur_final = None, cyc.p, cyc.surrogate
             if c.refine:
                 ref, p_final, sur_final = _refined(camp, model, arts, cyc, band, lower, upper, log, label)
             t_cal = time.perf_counter() - t
+            idf = _identifiability(camp, cyc, data, ref, p_final, sur_final, arts, lower, upper, pm)
+            log(f"[{label}] identifiability at the calibrated point:\n{idf.table()}")
             val = None
             t = time.perf_counter()
             if camp.channels.holdout:
                 raw = [_raw_data(a, camp.channels.holdout) for a in arts]
-                val = validate(sur0, sur_final, p_final, raw, _identified_modes(arts[0]), c.zeta0,
-                               camp.validation.target_sd, camp.validation.mac_min, arts[0].quantity, band)
-                log(f"[{label}] hold-out SD {val.sd_nominal:.4g} -> {val.sd_calibrated:.4g} "
-                    f"({'passed' if val.passed else 'FAILED'})")
+                errs = [None if a.std_error is None else
+                        a.std_error[:, [a.channels.index(n) for n in camp.channels.holdout]] for a in arts]
+                val = validate(sur0, sur_final, p_final, raw, [_identified_modes(a) for a in arts], c.zeta0,
+                               camp.validation.target_sd, camp.validation.mac_min, arts[0].quantity, band,
+                               std_error=None if any(e is None for e in errs) else errs)
+                log(f"[{label}] {val.summary()}")
             if ref is not None and len(arts) > 1:
                 ref = replace(ref, articles=_per_article(camp, sur0, sur_final, arts, p_final, band, lower, upper,
                                                          log, label))
@@ -358,31 +399,35 @@ def run_campaign(camp: Campaign, log=print) -> dict:
                                         camp.crossvalidation.seed, executor, arts[0].quantity,
                                         camp.crossvalidation.max_evaluations, damping=(ref.zeta, ref.p_zeta))
                 log(f"[{label}] cross-validation RSE {cv.rse:.4g} ({cv.p.shape[0]} realizations)")
+                for j in np.flatnonzero(cv.n_at_bound):
+                    log(f"[{label}] CV of {pm.parameters.names[j]}: not meaningful, {cv.cv_reason[j]}")
             t_cv = time.perf_counter() - t
             if ref is not None:  # what follows (outputs, figures) reports the refined model
                 cyc = replace(cyc, p=p_final, surrogate=sur_final, refinement=ref)
             results.append((label, arts, data, cyc, val, cv, {"calibration_s": t_cal, "validation_s": t_val,
-                                                             "crossvalidation_s": t_cv}))
+                                                             "crossvalidation_s": t_cv}, idf))
     finally:
         close = getattr(executor, "close", None)
         if close:
             close()
     timings["total_s"] = time.perf_counter() - t_all
-    out = _write_outputs(camp, pm, model, sur0, articles, results, D, timings, outdir, log)
+    out = _write_outputs(camp, pm, model, sur0, articles, results, D, timings, outdir, log, grp)
     return out
 
 
-def _write_outputs(camp, pm, model, sur0, articles, results, D, timings, outdir, log):
+def _write_outputs(camp, pm, model, sur0, articles, results, D, timings, outdir, log, grp=None):
     members = []
-    for label, arts, data, cyc, val, cv, tm in results:
+    for label, arts, data, cyc, val, cv, tm, idf in results:
         params = []
         phys = pm.physical(cyc.p)
         nominal = pm.physical(np.zeros(pm.n_params))
         for j, name in enumerate(pm.parameters.names):
-            row = {"name": name, "nominal_si": nominal[name], "calibrated_si": phys[name], "p": float(cyc.p[j])}
+            row = {"name": name, "nominal_si": nominal[name], "calibrated_si": phys[name], "p": float(cyc.p[j]),
+                   "identifiable": bool(idf.identifiable[j]), "identifiability": idf.reasons[j] or None}
             if cv is not None:
                 row["cv_mean_si"] = float(pm.nominal[j] * (1 + cv.mean_p[j]))
-                row["cv_percent"] = float(cv.cv_percent[j])
+                row["cv_percent"] = cv.cv(j)
+                row["cv_not_meaningful"] = cv.cv_reason[j] or None
             params.append(row)
         entry = {
             "member": label,
@@ -394,6 +439,7 @@ def _write_outputs(camp, pm, model, sur0, articles, results, D, timings, outdir,
             "sd_raw_calibration": None if cyc.refinement is None else cyc.refinement.sd_raw,
             "sd_raw_calibration_start": None if cyc.refinement is None else cyc.refinement.sd_raw_start,
             "sd_raw_definition": "raw calibration lines, model with identified damping mapped by MAC",
+            "identifiability": idf.to_dict(),
             "calibration": cyc.to_dict(),
             "validation": None if val is None else val.to_dict(),
             "crossvalidation": None if cv is None else cv.to_dict(),
@@ -407,12 +453,13 @@ def _write_outputs(camp, pm, model, sur0, articles, results, D, timings, outdir,
             from calibration._figures import member_figures
 
             entry["figures"] = [str(p) for p in member_figures(
-                outdir, label, pm, model, sur0, arts, cyc, val, cv, camp)]
+                outdir, label, pm, model, sur0, arts, cyc, val, cv, camp, identifiability=idf)]
         members.append(entry)
     result = {
         "campaign": {k: v for k, v in json.loads(camp.model_dump_json()).items()},
         "articles": [a.name for a in articles],
         "pairwise_sd": None if D is None else D.tolist(),
+        "grouping": None if grp is None else grp.to_dict(),
         "surrogate": {"size": sur0.size, "modes": len(sur0.basis_frequencies_hz), "static": sur0.n_static,
                       "enrichment": sur0.n_enrich, "timings_s": sur0.timings_s},
         "members": members,

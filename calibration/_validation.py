@@ -8,7 +8,20 @@ that per-mode damping and compared with the *raw* test lines (only lines
 flagged valid) by the square deviation SD = gamma^H gamma / N.
 
 The same mapping is applied at the nominal point, so SD(p0) and SD(p*)
-differ only by the parameters.
+differ only by the parameters. With several articles each data item takes
+the damping identified on its own article (one IdentifiedModes per item).
+
+The outcome is worded for what it shows: "improved" or "worse" (SD(p*)
+against SD(p0)); "below target"/"above target" only when a target SD was
+set. A lower SD is not a pass: a model that lacks physics also improves.
+
+Noise floor. When the per-line standard errors ``sigma`` of the raw FRF
+estimates are known (run files store them, same unit as the FRF, the rms of
+the complex error), the SD that measurement noise alone leaves is estimated
+as ``floor = mean (sigma / |H|)^2 / (ln 10)^2`` over the compared values,
+from ``E|log10(1 + n/H)|^2 ~ E|n|^2 / (|H| ln 10)^2`` for ``|n| << |H|``.
+A calibrated SD near the floor (ratio ~1) leaves nothing for the model to
+explain; a ratio of 10 means model error dominates the noise.
 """
 
 from __future__ import annotations
@@ -19,7 +32,7 @@ import numpy as np
 
 from calibration._errors import CalibrationError
 from calibration._fit import FitData
-from calibration._metric import log_deviation, square_deviation
+from calibration._metric import LN10, log_deviation, square_deviation
 from calibration._surrogate import Surrogate, modal_frf, reduced_modes
 
 
@@ -135,15 +148,44 @@ def holdout_sd(sur: Surrogate, p, data: FitData, zeta, quantity: str = "accelera
     return square_deviation(_deviation(sur, p, data, zeta, quantity))
 
 
+def noise_floor_sd(data: FitData, std_error) -> float:
+    """SD that the measurement noise alone leaves on ``data`` (see the module docstring).
+
+    Parameters
+    ----------
+    data : FitData, the raw lines compared (mask = values compared)
+    std_error : (n_f, n_out, n_in) float, standard error of each FRF value (same unit)
+
+    Returns
+    -------
+    float, mean (sigma/|H|)^2 / (ln 10)^2 over the compared values.
+    """
+    sig = np.asarray(std_error, float)
+    if sig.shape != data.frf.shape:
+        raise CalibrationError(
+            f"standard errors of {data.article or 'the hold-out data'}: shape {sig.shape} != FRF shape {data.frf.shape}"
+        )
+    with np.errstate(divide="ignore", invalid="ignore"):
+        q = (sig / np.abs(data.frf)) ** 2 / LN10**2
+    q = q if data.mask is None else q[data.mask]
+    if not np.all(np.isfinite(q)):
+        raise CalibrationError(
+            f"standard errors of {data.article or 'the hold-out data'}: NaN/inf or a zero FRF value among the compared lines"
+        )
+    return float(np.mean(q))
+
+
 @dataclass(frozen=True)
 class Validation:
     """Hold-out validation outcome (paper Eq. 2.24).
 
-    sd_nominal, sd_calibrated : SD on the hold-out data at p0 and p*
+    sd_nominal, sd_calibrated : SD on the hold-out raw lines at p0 and p*, identified damping
     target : SD target (None if not set)
     improved : SD(p*) < SD(p0) ; below_target : SD(p*) < target (None without target)
-    pairs_nominal, pairs_calibrated : MAC pairs used for the damping mapping
-    mac_nominal, mac_calibrated : (m_fe, m_test) MAC matrices
+    sd_floor : noise-floor estimate of the SD from the lines' standard errors (None without them)
+    pairs_nominal, pairs_calibrated : per data item, the MAC pairs used for the damping mapping
+    mac_nominal, mac_calibrated : per data item, (m_fe, m_test) MAC matrices
+    items : per data item dict (article, sd_nominal, sd_calibrated, sd_floor, n_values)
     n_values : number of complex values compared
     """
 
@@ -154,25 +196,47 @@ class Validation:
     below_target: bool | None
     pairs_nominal: tuple
     pairs_calibrated: tuple
-    mac_nominal: np.ndarray
-    mac_calibrated: np.ndarray
+    mac_nominal: tuple
+    mac_calibrated: tuple
     n_values: int
+    sd_floor: float | None = None
+    items: tuple = ()
 
     @property
-    def passed(self) -> bool:
-        return bool(self.improved and (self.below_target is not False))
+    def floor_ratio(self) -> float | None:
+        """SD(p*) / noise floor (None without a floor)."""
+        return self.sd_calibrated / self.sd_floor if self.sd_floor else None
+
+    @property
+    def verdict(self) -> str:
+        """"improved" or "worse", with "below target"/"above target" only when a target was set."""
+        v = "improved" if self.improved else "worse"
+        if self.below_target is not None:
+            v += f", {'below' if self.below_target else 'above'} target {self.target:.4g}"
+        return v
+
+    def summary(self) -> str:
+        """One line: ``hold-out SD (raw lines, identified damping) a -> b, floor ~c (r x) (verdict)``."""
+        txt = f"hold-out SD (raw lines, identified damping) {self.sd_nominal:.4g} -> {self.sd_calibrated:.4g}"
+        if self.sd_floor:
+            txt += f", floor ~{self.sd_floor:.2g} ({self.floor_ratio:.1f}x)"
+        return f"{txt} ({self.verdict})"
 
     def to_dict(self) -> dict:
         return {
+            "definition": "SD of the raw hold-out lines, FE damping mapped from the identified modes per article",
             "sd_nominal": self.sd_nominal,
             "sd_calibrated": self.sd_calibrated,
             "reduction_percent": 100.0 * (1 - self.sd_calibrated / self.sd_nominal) if self.sd_nominal else None,
+            "sd_floor": self.sd_floor,
+            "floor_ratio": self.floor_ratio,
             "target": self.target,
             "improved": self.improved,
             "below_target": self.below_target,
-            "passed": self.passed,
-            "pairs_nominal": list(self.pairs_nominal),
-            "pairs_calibrated": list(self.pairs_calibrated),
+            "verdict": self.verdict,
+            "items": [dict(it) for it in self.items],
+            "pairs_nominal": [list(x) for x in self.pairs_nominal],
+            "pairs_calibrated": [list(x) for x in self.pairs_calibrated],
             "n_values": self.n_values,
         }
 
@@ -182,12 +246,13 @@ def validate(
     sur_calibrated: Surrogate,
     p_calibrated,
     data,
-    modes: IdentifiedModes | None,
+    modes,
     zeta0: float = 0.01,
     target_sd: float | None = None,
     mac_min: float = 0.6,
     quantity: str = "accelerance",
     band_hz=None,
+    std_error=None,
 ) -> Validation:
     """Hold-out validation: SD before (nominal) and after calibration against raw data.
 
@@ -196,32 +261,64 @@ def validate(
     sur_nominal : surrogate whose basis is at the nominal point (evaluated at p = 0)
     sur_calibrated : surrogate with a basis at (or near) p_calibrated
     data : FitData or sequence of FitData
-        Raw hold-out lines (mask = valid lines), hold-out channels.
-    modes : IdentifiedModes or None
-        Identified modes for the damping mapping (None: uniform zeta0).
+        Raw hold-out lines (mask = valid lines), hold-out channels; one item per article.
+    modes : IdentifiedModes, sequence of IdentifiedModes/None (one per data item), or None
+        Identified modes for the damping mapping of each item (None: uniform zeta0).
+        A single IdentifiedModes is used for every item.
+    std_error : sequence of (n_f, n_out, n_in) arrays or None, one per data item, optional
+        Standard errors of the raw FRF values; with them for every item the
+        noise floor of the SD is estimated (:func:`noise_floor_sd`).
     """
     datas = [data] if isinstance(data, FitData) else list(data)
+    if modes is None or isinstance(modes, IdentifiedModes):
+        modes_per = [modes] * len(datas)
+    else:
+        modes_per = list(modes)
+        if len(modes_per) != len(datas):
+            raise CalibrationError(f"validation: {len(modes_per)} sets of identified modes for {len(datas)} data items")
+    errs = None if std_error is None else list(std_error)
+    if errs is not None and len(errs) != len(datas):
+        raise CalibrationError(f"validation: {len(errs)} standard-error arrays for {len(datas)} data items")
     p0 = np.zeros(sur_nominal.n_params)
-    out = []
+    sds, pairs, macs, eps = [], [], [], []
     for sur, p in ((sur_nominal, p0), (sur_calibrated, np.asarray(p_calibrated, float))):
-        if modes is not None:
-            zeta, pairs, M, _ = mapped_damping(sur, p, modes, zeta0, mac_min, band_hz)
-        else:
-            lam, _ = reduced_modes(sur, p)
-            zeta, pairs, M = np.full(lam.size, zeta0), [], np.zeros((0, 0))
-        eps = [_deviation(sur, p, d, zeta, quantity) for d in datas]
-        e = np.concatenate(eps)
-        out.append((square_deviation(e), pairs, M, e.size))
-    (sd0, pairs0, M0, n), (sd1, pairs1, M1, _) = out
+        e_all, pr_all, M_all = [], [], []
+        for d, m in zip(datas, modes_per):
+            if m is not None:
+                zeta, pr, M, _ = mapped_damping(sur, p, m, zeta0, mac_min, band_hz)
+            else:
+                lam, _ = reduced_modes(sur, p)
+                zeta, pr, M = np.full(lam.size, zeta0), [], np.zeros((0, 0))
+            e_all.append(_deviation(sur, p, d, zeta, quantity))
+            pr_all.append(tuple(pr))
+            M_all.append(M)
+        eps.append(e_all)
+        sds.append(square_deviation(np.concatenate(e_all)))
+        pairs.append(tuple(pr_all))
+        macs.append(tuple(M_all))
+    floors = [None] * len(datas) if errs is None else [
+        None if se is None else noise_floor_sd(d, se) for d, se in zip(datas, errs)]
+    n = [e.size for e in eps[0]]
+    floor = None
+    if all(fl is not None for fl in floors):
+        floor = float(np.dot(floors, n) / sum(n))
+    items = tuple(
+        {"article": d.article, "sd_nominal": square_deviation(e0), "sd_calibrated": square_deviation(e1),
+         "sd_floor": fl, "n_values": int(e0.size)}
+        for d, e0, e1, fl in zip(datas, eps[0], eps[1], floors)
+    )
+    sd0, sd1 = sds
     return Validation(
         sd_nominal=sd0,
         sd_calibrated=sd1,
         target=target_sd,
         improved=bool(sd1 < sd0),
         below_target=None if target_sd is None else bool(sd1 < target_sd),
-        pairs_nominal=tuple(pairs0),
-        pairs_calibrated=tuple(pairs1),
-        mac_nominal=M0,
-        mac_calibrated=M1,
-        n_values=n,
+        pairs_nominal=pairs[0],
+        pairs_calibrated=pairs[1],
+        mac_nominal=macs[0],
+        mac_calibrated=macs[1],
+        n_values=int(sum(n)),
+        sd_floor=floor,
+        items=items,
     )

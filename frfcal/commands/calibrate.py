@@ -59,18 +59,33 @@ def run(args) -> int:
         return 0
     for m in res["members"]:
         print(f"\n== {m['member']} ({', '.join(m['articles'])})")
-        print(f"calibration SD  {m['sd_calibration_nominal']:.4g} -> {m['sd_calibration']:.4g}")
+        print(f"calibration SD (equalized test model, zeta0={100 * camp.calibration.zeta0:g} %)  "
+              f"{m['sd_calibration_nominal']:.4g} -> {m['sd_calibration']:.4g}")
         v = m["validation"]
         if v:
-            crit = "passed" if v["passed"] else "FAILED"
-            print(f"hold-out SD     {v['sd_nominal']:.4g} -> {v['sd_calibrated']:.4g}  (Eq. 2.24 {crit})")
+            floor = f", floor ~{v['sd_floor']:.2g} ({v['floor_ratio']:.1f}x)" if v.get("sd_floor") else ""
+            print(f"hold-out SD (raw lines, identified damping)  {v['sd_nominal']:.4g} -> {v['sd_calibrated']:.4g}"
+                  f"{floor}  ({v['verdict']})")
         cv = m["crossvalidation"]
         if cv:
             print(f"cross-validation RSE {cv['rse']:.4g} over {cv['realizations']} realizations")
-        print(f"{'parameter':<22}{'nominal':>12}{'calibrated':>12}{'change%':>9}{'CV%':>8}")
+        print(f"{'parameter':<22}{'nominal':>12}{'calibrated':>12}{'change%':>9}{'CV%':>8}  identifiable")
+        notes = []
         for r in m["parameters"]:
-            cvp = f"{r['cv_percent']:8.3f}" if "cv_percent" in r else ""
-            print(f"{r['name']:<22}{r['nominal_si']:12.4g}{r['calibrated_si']:12.4g}{100 * r['p']:+9.2f}{cvp}")
+            cvp = ""
+            if "cv_percent" in r:
+                cvp = f"{'n/a':>8}" if r["cv_percent"] is None else f"{r['cv_percent']:8.3f}"
+                if r.get("cv_not_meaningful"):
+                    notes.append(f"  CV of {r['name']}: {r['cv_not_meaningful']}")
+            ident = "yes" if r["identifiable"] else f"NO: {r['identifiability']}"
+            print(f"{r['name']:<22}{r['nominal_si']:12.4g}{r['calibrated_si']:12.4g}{100 * r['p']:+9.2f}{cvp:>8}  {ident}")
+        for n in notes:
+            print(n)
+        weak = m["identifiability"]["weak_combinations"]
+        for w in weak:
+            print(f"weak combination (relative singular value {w['relative_singular_value']:.2e}): {w['combination']}")
+        print(f"{m['identifiability']['n_identifiable']} of {len(m['parameters'])} parameters identifiable "
+              "from these channels and band")
         if "bdf" in m:
             print(f"calibrated deck: {m['bdf']}")
     print(f"\nresult: {res['result_file']}  ({res['timings']['total_s']:.1f} s)")

@@ -37,7 +37,8 @@ def truth_frf(pm, grids, dirs, p, f, zeta_modes):
     return modal_frf(lam, sur.outputs @ X, X.T @ sur.inputs, f, zeta, "accelerance", sur.rigid_hz)
 
 
-def write_run(path, pm, grids, dirs, f, H, article, flagged=(), units_scale=1.0):
+def write_run(path, pm, grids, dirs, f, H, article, flagged=(), units_scale=1.0, std_error=None):
+    """Run file of FRFs ``H`` (n_f, n_sensors, 1); ``std_error`` like H (default zeros: not measured)."""
     sensors = [
         ChannelSpec(name=f"acc{i + 1}", role="response", quantity="acceleration", unit="m/s^2",
                     grid=int(gid), direction=tuple(float(x) for x in d))
@@ -50,7 +51,8 @@ def write_run(path, pm, grids, dirs, f, H, article, flagged=(), units_scale=1.0)
         for k, fk in enumerate(f):
             flags = FLAG_OVERLOAD if k in flagged else 0
             line = H[k] if not flags else np.full_like(H[k], np.nan)
-            q = LineQuality(force_n=np.ones(1), std_error=np.zeros((n_out, 1)), thd=np.zeros(n_out + 1), flags=flags)
+            se = np.zeros((n_out, 1)) if std_error is None else std_error[k]
+            q = LineQuality(force_n=np.ones(1), std_error=se, thd=np.zeros(n_out + 1), flags=flags)
             w.append_line(float(fk), line, q)
     return Path(path)
 
@@ -71,12 +73,15 @@ def make_campaign(tmp, units="mm-t-s", target_dof=3000, p_true=None, articles=1,
     p_articles = [np.asarray(p_true)] * articles if np.ndim(p_true) == 1 else [np.asarray(x) for x in p_true]
     for a in range(len(p_articles)):
         H = truth_frf(pm, grids, dirs, p_articles[a], f, lambda fh: 0.002 + 0.003 * (fh / 500.0))
+        se = None
         if noise:
+            se = noise * np.abs(H)  # rms of the complex error, as acquisition stores it
             H = H * (1 + noise * (rng.standard_normal(H.shape) + 1j * rng.standard_normal(H.shape)) / np.sqrt(2))
         g_run = grids.copy()
         if bad_grid:
             g_run[3] = 987654321  # acc4: a grid that is not in the model
-        runs.append(write_run(tmp / f"run{a + 1}.h5", pm, g_run, dirs, f, H, f"SF{a + 1}", flagged=(10, 11, 150)))
+        runs.append(write_run(tmp / f"run{a + 1}.h5", pm, g_run, dirs, f, H, f"SF{a + 1}", flagged=(10, 11, 150),
+                              std_error=se))
     cal = [f"acc{i}" for i in (1, 2, 4, 6, 7, 9, 11)]
     hold = [f"acc{i}" for i in (3, 5, 8, 10, 12)]
     text = f"""

@@ -130,3 +130,31 @@ def test_campaign_validation_rules():
         campaign_from_dict({**base, "band": {"low_hz": 400, "high_hz": 100}})
     with pytest.raises(CalibrationError, match="run"):
         campaign_from_dict({**base, "run": []})
+
+
+@pytest.mark.slow
+def test_campaign_reports_identifiability_floor_and_per_article_damping(tmp_path):
+    """Two noisy articles (1 % noise, standard errors stored): the log names both SDs, gives the hold-out
+    SD beside its noise floor, says 'improved' (no target) and prints the identifiability table."""
+    path, _, pm = make_campaign(tmp_path, p_true=P_TRUE, target_dof=1500, articles=2, noise=0.01, starts=0,
+                                realizations=2, extra="figures = false")
+    lines = []
+    res = run_campaign(load_campaign(path), log=lines.append)
+    text = "\n".join(lines)
+    assert "calibration SD (equalized test model, zeta0=1 %)" in text
+    assert "hold-out SD (raw lines, identified damping)" in text and "passed" not in text.lower()
+    m = res["members"][0]
+    v = m["validation"]
+    floor = 0.01**2 / np.log(10) ** 2
+    assert v["sd_floor"] == pytest.approx(floor, rel=0.02)
+    assert v["verdict"] == "improved" and "passed" not in v
+    assert f"floor ~{v['sd_floor']:.2g} ({v['floor_ratio']:.1f}x)" in text
+    # each article's hold-out lines were compared with its own identified damping
+    assert [it["article"] for it in v["items"]] == ["SF1", "SF2"] and len(v["pairs_calibrated"]) == 2
+    idf = m["identifiability"]
+    assert [r["name"] for r in idf["parameters"]] == list(pm.parameters.names)
+    assert len(idf["singular_values"]) == pm.n_params and idf["n_identifiable"] >= 1
+    assert "parameters identifiable from these channels and band" in text
+    for row, r in zip(m["parameters"], idf["parameters"]):
+        assert row["identifiable"] == r["identifiable"]
+        assert row["cv_percent"] is None or row["cv_percent"] > 0

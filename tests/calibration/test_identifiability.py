@@ -1,0 +1,150 @@
+"""Identifiability: manufactured least-squares problems with known covariance, and a pinned beam parameter."""
+
+import numpy as np
+import pytest
+
+from calibration import (
+    CalibrationError,
+    FitData,
+    Objective,
+    build_surrogate,
+    calibrate,
+    cross_validate,
+    full_order_frf,
+    half_bandwidth_frequencies,
+    identifiability,
+)
+from tests.calibration._models import beam_model
+
+NAMES = ("a", "b", "c", "d")
+LO, HI = -0.3 * np.ones(4), 0.3 * np.ones(4)
+
+
+def _linear(sigma=1e-3, m=400, seed=0):
+    rng = np.random.default_rng(seed)
+    J = rng.standard_normal((m, 4)) * np.array([1.0, 0.5, 2.0, 0.1])
+    r = sigma * rng.standard_normal(m)
+    return J, r
+
+
+def test_std_and_correlation_match_linear_least_squares():
+    J, r = _linear()
+    idf = identifiability(J, r, np.zeros(4), LO, HI, NAMES)
+    s2 = r @ r / (J.shape[0] - 4)
+    C = s2 * np.linalg.inv(J.T @ J)
+    assert idf.residual_variance == pytest.approx(s2)
+    assert np.allclose(idf.std, np.sqrt(np.diag(C)), rtol=1e-10)
+    assert np.allclose(idf.correlation, C / np.outer(np.sqrt(np.diag(C)), np.sqrt(np.diag(C))), atol=1e-12)
+    assert idf.identifiable.all() and idf.n_identifiable == 4
+    # unit-column singular values: a random orthogonal-ish design, none weak
+    assert idf.singular_values[-1] / idf.singular_values[0] > 0.5 and not idf.weak()
+
+
+def test_std_grows_with_noise_until_not_identifiable():
+    J, r = _linear(sigma=0.2)
+    idf = identifiability(J, r, np.zeros(4), LO, HI, NAMES)
+    # std of d ~ 0.2 / (0.1 sqrt(400)) = 0.1 > 5 % of its range 0.6; a, b, c: 0.01, 0.02, 0.005
+    assert idf.std == pytest.approx([0.01, 0.02, 0.005, 0.1], rel=0.15)
+    assert not idf.identifiable[3] and "exceeds 5 % of its range" in idf.reasons[3]
+    assert idf.identifiable[:3].all()
+
+
+def test_collinear_pair_is_named_as_a_combination():
+    J, r = _linear()
+    # b moves the residual like -2 a (plus a trace of its own): a change of a by x with b by x/2 is invisible
+    J[:, 1] = -2.0 * J[:, 0] + 1e-4 * np.random.default_rng(5).standard_normal(J.shape[0])
+    idf = identifiability(J, r, np.zeros(4), LO, HI, NAMES)
+    assert not idf.identifiable[0] and not idf.identifiable[1]
+    assert idf.identifiable[2] and idf.identifiable[3]
+    c, other = idf.max_correlation(0)
+    assert other == "b" and c > 0.99  # J_b = -2 J_a: the estimates move together
+    (rel, words), = idf.weak()
+    assert rel < 1e-3
+    assert words.startswith("+0.89 a +0.45 b")
+    assert "weak combination +0.89 a +0.45 b" in idf.reasons[0]
+    assert "weak combinations" in idf.table()
+
+
+def test_exactly_dependent_and_dead_parameters_get_infinite_std():
+    J, r = _linear()
+    J[:, 1] = J[:, 0]
+    J[:, 3] = 0.0
+    idf = identifiability(J, r, np.zeros(4), LO, HI, NAMES)
+    assert np.isinf(idf.std[[0, 1, 3]]).all() and np.isfinite(idf.std[2])
+    assert "no influence" in idf.reasons[3]
+    assert "null combination" in idf.reasons[0]
+    assert idf.correlation[0, 1] == -1.0  # equal columns: a up and b down by the same is invisible
+    assert "+0.71 a -0.71 b" in idf.reasons[1]
+    d = idf.to_dict()
+    assert d["parameters"][3]["std_p"] is None and d["parameters"][3]["identifiable"] is False
+    assert d["n_identifiable"] == 1
+
+
+def test_residuals_correlated_along_frequency_inflate_the_std():
+    rng = np.random.default_rng(2)
+    m, k, rho = 4000, 4, 0.9  # 4 channels, AR(1) along frequency with coefficient 0.9
+    J = rng.standard_normal((m, 4))
+    e = rng.standard_normal((m // k, k))
+    for i in range(1, e.shape[0]):
+        e[i] = rho * e[i - 1] + np.sqrt(1 - rho**2) * e[i]
+    r = 1e-3 * e.ravel()
+    plain = identifiability(J, r, np.zeros(4), LO, HI, NAMES)
+    inflated = identifiability(J, r, np.zeros(4), LO, HI, NAMES, stride=k)
+    assert plain.inflation == 1.0
+    assert inflated.inflation == pytest.approx((1 + rho) / (1 - rho), rel=0.15)
+    assert np.allclose(inflated.std / plain.std, np.sqrt(inflated.inflation))
+    assert "for residuals correlated along frequency" in inflated.table()
+    white = identifiability(J, 1e-3 * rng.standard_normal(m), np.zeros(4), LO, HI, NAMES, stride=k)
+    assert white.inflation < 1.1
+    with pytest.raises(CalibrationError, match="stride"):
+        identifiability(J, r, np.zeros(4), LO, HI, NAMES, stride=0)
+
+
+def test_bad_shapes_raise():
+    J, r = _linear()
+    with pytest.raises(CalibrationError, match="Jacobian"):
+        identifiability(J[:, :3], r, np.zeros(4), LO, HI, NAMES)
+    with pytest.raises(CalibrationError, match="names"):
+        identifiability(J, r, np.zeros(4), LO, HI, NAMES[:3])
+
+
+@pytest.fixture(scope="module")
+def pinned_beam():
+    """Beam calibrated against a truth with k_bush at +40 % (bounds +-30 %), 0.5 % noise."""
+    model, _ = beam_model()
+    band = (20.0, 400.0)
+    sur, _ = build_surrogate(model, np.zeros(7), band)
+    p_true = np.array([0.0047, 0.1802, -0.1423, 0.1795, -0.0753, -0.0307, 0.40])
+    f = half_bandwidth_frequencies(*band, 0.01, 3)
+    rng = np.random.default_rng(1)
+    H = full_order_frf(model, p_true, f, 0.01)
+    H = H * (1 + 0.005 * (rng.standard_normal(H.shape) + 1j * rng.standard_normal(H.shape)) / np.sqrt(2))
+    data = [FitData(f, H, model.output_names)]
+    lo, hi = -0.3 * np.ones(7), 0.3 * np.ones(7)
+    cal = calibrate(sur, data, lo, hi, 0.01, n_starts=0)
+    return model, sur, data, cal, p_true, lo, hi
+
+
+def test_beam_parameter_beyond_its_bound_is_reported_pinned_the_others_identified(pinned_beam):
+    model, sur, data, cal, p_true, lo, hi = pinned_beam
+    obj = Objective(sur, data, 0.01)
+    idf = identifiability(obj.jacobian(cal.p), obj.residual(cal.p), cal.p, lo, hi, model.parameter_names)
+    assert idf.at_bound.tolist() == [0, 0, 0, 0, 0, 0, 1]
+    assert idf.identifiable.tolist() == [True] * 6 + [False]
+    assert "upper bound (+30.0 %)" in idf.reasons[6]
+    # the free estimates are near the truth on the scale of their std (0.01-0.2 % of p)
+    err = np.abs(cal.p[:6] - p_true[:6])
+    assert np.all(idf.std[:6] < 0.005) and np.all(err < 6 * idf.std[:6] + 1e-4)
+    assert "6 of 7 parameters identifiable" in idf.table()
+
+
+def test_crossvalidation_does_not_report_a_pinned_parameter_as_certain(pinned_beam):
+    model, sur, data, cal, p_true, lo, hi = pinned_beam
+    cv = cross_validate(sur, data, cal.p, lo, hi, 0.01, n_realizations=4, seed=0)
+    assert cv.n_at_bound.tolist() == [0, 0, 0, 0, 0, 0, 4]
+    # the pinned spread is exactly zero: that is what used to be printed as "CV 0.000 %"
+    assert cv.cv_percent[6] < 1e-6
+    assert cv.cv(6) is None and "at a bound in 4 of 4 realizations" in cv.cv_reason[6]
+    d = cv.to_dict()
+    assert d["cv_percent"][6] is None and d["cv_not_meaningful"][6].startswith("at a bound")
+    assert all(0 < d["cv_percent"][j] < 1 for j in range(6)) and d["cv_not_meaningful"][:6] == [None] * 6

@@ -1,0 +1,91 @@
+"""Hold-out validation: per-article damping, noise floor, wording that does not claim a pass."""
+
+import numpy as np
+import pytest
+
+from calibration import (
+    CalibrationError,
+    FitData,
+    IdentifiedModes,
+    build_surrogate,
+    full_order_frf,
+    noise_floor_sd,
+    reduced_modes,
+    validate,
+)
+from tests.calibration._models import beam_model
+
+BAND = (20.0, 400.0)
+P_TRUE = np.array([0.0047, 0.1802, -0.1423, 0.1795, -0.0753, -0.0307, 0.1311])
+HOLD = [1, 3, 5, 7, 9]
+
+
+@pytest.fixture(scope="module")
+def beam():
+    model, _ = beam_model()
+    sur0, _ = build_surrogate(model, np.zeros(7), BAND)
+    sur1, _ = build_surrogate(model, P_TRUE, BAND)
+    lam, X = reduced_modes(sur1, P_TRUE)
+    fe_hz = np.sqrt(np.clip(lam, 0, None)) / (2 * np.pi)
+    sel = (fe_hz > 15) & (fe_hz < 450)
+    return model, sur0, sur1, fe_hz[sel], (sur1.outputs @ X)[:, sel] + 0j
+
+
+def _article(model, zeta, name, noise=0.0, seed=0):
+    f = np.arange(20.0, 400.0, 0.25)
+    H = full_order_frf(model, P_TRUE, f, zeta)[:, HOLD]
+    sig = noise * np.abs(H)
+    if noise:
+        rng = np.random.default_rng(seed)
+        H = H + sig * (rng.standard_normal(H.shape) + 1j * rng.standard_normal(H.shape)) / np.sqrt(2)
+    return FitData(f, H, tuple(model.output_names[i] for i in HOLD), article=name), sig
+
+
+def test_each_article_takes_its_own_identified_damping(beam):
+    model, sur0, sur1, fe_hz, shapes = beam
+    (d1, _), (d2, _) = _article(model, 0.003, "A1"), _article(model, 0.008, "A2")
+    m1 = IdentifiedModes(fe_hz, np.full(fe_hz.size, 0.003), shapes, model.output_names)
+    m2 = IdentifiedModes(fe_hz, np.full(fe_hz.size, 0.008), shapes, model.output_names)
+    per = validate(sur0, sur1, P_TRUE, [d1, d2], [m1, m2])
+    first = validate(sur0, sur1, P_TRUE, [d1, d2], m1)  # the old behaviour: article 1's damping for both
+    a1, a2 = per.items
+    assert a1["article"] == "A1" and a2["article"] == "A2"
+    # what is left is the out-of-band modes at zeta0 = 1 % instead of the article's damping
+    assert a1["sd_calibrated"] < 5e-5 and a2["sd_calibrated"] < 5e-5
+    assert first.items[1]["sd_calibrated"] > 10 * per.items[1]["sd_calibrated"]
+    assert first.items[0]["sd_calibrated"] == pytest.approx(a1["sd_calibrated"])
+    assert [p["zeta"] for p in per.pairs_calibrated[1]] == [0.008] * fe_hz.size
+    with pytest.raises(CalibrationError, match="2 sets of identified modes for 1 data items"):
+        validate(sur0, sur1, P_TRUE, [d1], [m1, m2])
+
+
+@pytest.mark.parametrize("noise", [0.01, 0.03])
+def test_noise_floor_predicts_the_sd_of_the_truth(beam, noise):
+    model, sur0, sur1, fe_hz, shapes = beam
+    d, sig = _article(model, 0.003, "A1", noise=noise, seed=3)
+    m = IdentifiedModes(fe_hz, np.full(fe_hz.size, 0.003), shapes, model.output_names)
+    # zeta0 = the article's damping also on unpaired (out-of-band) modes: only the noise is left
+    v = validate(sur0, sur1, P_TRUE, [d], [m], zeta0=0.003, std_error=[sig])
+    assert v.sd_floor == pytest.approx(noise**2 / np.log(10) ** 2, rel=0.01)  # sigma/|H| with the noisy |H|
+    assert noise_floor_sd(d, sig) == v.sd_floor
+    # the true parameters with the true damping leave only the noise: ratio ~1
+    assert 0.9 < v.floor_ratio < 1.15
+    assert v.improved and v.below_target is None and v.verdict == "improved"
+    s = v.summary()
+    assert s.startswith("hold-out SD (raw lines, identified damping) ") and f"({v.floor_ratio:.1f}x)" in s
+    assert "pass" not in s.lower()
+    d_json = v.to_dict()
+    assert "passed" not in d_json and d_json["verdict"] == "improved" and d_json["sd_floor"] == v.sd_floor
+
+
+def test_wording_with_target_and_when_worse(beam):
+    model, sur0, sur1, fe_hz, shapes = beam
+    d, _ = _article(model, 0.003, "A1")
+    m = IdentifiedModes(fe_hz, np.full(fe_hz.size, 0.003), shapes, model.output_names)
+    v = validate(sur0, sur1, P_TRUE, d, m, target_sd=1e-9)
+    assert v.verdict == "improved, above target 1e-09" and v.sd_floor is None and v.floor_ratio is None
+    # "calibrated" point worse than nominal: the nominal surrogate evaluated far from the truth
+    w = validate(sur1, sur0, -P_TRUE, d, m)
+    assert not w.improved and w.verdict == "worse"
+    with pytest.raises(CalibrationError, match="shape"):
+        validate(sur0, sur1, P_TRUE, [d], [m], std_error=[np.ones(3)])
