@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from calibration._executor import SerialExecutor
-from calibration._fit import FitData, Objective, _check_bounds, _run_start, single_thread
+from calibration._fit import FitData, Objective, check_bounds, run_start, single_thread
 
 
 @dataclass(frozen=True)
@@ -71,7 +71,7 @@ def _realization(args):
     sur, fit, test, p_start, lower, upper, zeta0, quantity, max_nfev = args
     with single_thread():
         obj = Objective(sur, fit, zeta0, quantity)
-        out = _run_start((obj, p_start, lower, upper, max_nfev, 1e-8))
+        out = run_start((obj, p_start, lower, upper, max_nfev, 1e-8))
         sd_test = Objective(sur, test, zeta0, quantity).sd(out.p)
     return out.p, out.sd, sd_test
 
@@ -99,7 +99,7 @@ def cross_validate(
     n_realizations : int (paper: 20 in the text, 10 in the timing)
     """
     t0 = time.perf_counter()
-    lower, upper = _check_bounds(lower, upper, surrogate.n_params)
+    lower, upper = check_bounds(lower, upper, surrogate.n_params)
     data = [data] if isinstance(data, FitData) else list(data)
     rng = np.random.default_rng(seed)
     jobs = []

@@ -180,7 +180,7 @@ def build_model(camp: Campaign, articles, log=print):
     return pm, model
 
 
-def _identified_modes(article: Article) -> IdentifiedModes:
+def identified_modes(article: Article) -> IdentifiedModes:
     m = article.identification.modal
     return IdentifiedModes(m.frequency_hz, m.damping, m.shapes, article.ident_channels)
 
@@ -263,7 +263,7 @@ def run_campaign(camp: Campaign, log=print) -> dict:
                     rows = [a.channels.index(n) for n in camp.channels.holdout]
                     raw.append(FitData(a.freq_hz, a.frf[:, rows], tuple(camp.channels.holdout), a.drives,
                                        article=a.name))
-                val = validate(sur0, cyc.surrogate, cyc.p, raw, _identified_modes(arts[0]), c.zeta0,
+                val = validate(sur0, cyc.surrogate, cyc.p, raw, identified_modes(arts[0]), c.zeta0,
                                camp.validation.target_sd, camp.validation.mac_min, arts[0].quantity, band)
                 log(f"[{label}] hold-out SD {val.sd_nominal:.4g} -> {val.sd_calibrated:.4g} "
                     f"({'passed' if val.passed else 'FAILED'})")
@@ -330,13 +330,13 @@ def _write_outputs(camp, pm, model, sur0, articles, results, D, timings, outdir,
         "timings": timings,
     }
     path = outdir / "calibration.json"
-    path.write_text(json.dumps(result, indent=1, default=_json_default))
+    path.write_text(json.dumps(result, indent=1, default=json_default))
     result["result_file"] = str(path)
     log(f"wrote {path}")
     return result
 
 
-def _json_default(o):
+def json_default(o):
     if isinstance(o, np.ndarray):
         return o.tolist()
     if isinstance(o, (np.floating, np.integer)):

@@ -52,6 +52,7 @@ import scipy.sparse.linalg as spla
 from femodel import AffineMatrix
 
 from calibration._errors import CalibrationError
+from calibration._threads import blas_threads as _blas_threads  # module-local name as before; shared with _fit.single_thread
 
 _QUANTITIES = ("accelerance", "mobility", "receptance")
 
@@ -318,17 +319,6 @@ def _shift_invert_modes(Ks, Ms, s, solve, max_hz: float, max_modes: int, k0: int
     keep = lam <= (2 * np.pi * max_hz) ** 2
     freqs = np.sqrt(np.clip(lam[keep], 0.0, None)) / (2 * np.pi)
     return freqs, vec[:, keep]
-
-
-def _blas_threads(n):
-    """Context limiting BLAS to ``n`` threads (no-op without threadpoolctl)."""
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:
-        import contextlib
-
-        return contextlib.nullcontext()
-    return threadpool_limits(limits=n, user_api="blas")
 
 
 def full_modes(K, M, max_hz: float, shift_hz: float, max_modes: int = 600, dense_below: int = 1500,
