@@ -76,6 +76,15 @@ class FRFModel:
     parametric : femodel.ParametricModel, optional
         When given, its fast shared-pattern ``stiffness``/``mass``/``dK``/``dM``
         are used for the full-order work (same values as K, M).
+
+    Attributes
+    ----------
+    factor_cache : dict
+        Symbolic factorization and sparsity-union data that
+        :func:`build_surrogate` reuses across cycles while K's and M's
+        patterns stay the same.  Not part of the value (excluded from
+        comparison and repr, empty on every new instance) and not pickled:
+        it stays in the process that filled it.
     """
 
     K: AffineMatrix
@@ -86,6 +95,7 @@ class FRFModel:
     output_names: tuple = ()
     parameter_names: tuple = ()
     parametric: object = None
+    factor_cache: dict = field(default_factory=dict, init=False, compare=False, repr=False)
 
     def __post_init__(self) -> None:
         n = self.K.shape[0]
@@ -113,7 +123,7 @@ class FRFModel:
         return self.K.n_params
 
     def __getstate__(self):  # the factorization cache (see _factor) stays in this process
-        return {k: v for k, v in self.__dict__.items() if k != "_factor_cache"}
+        return {**self.__dict__, "factor_cache": {}}
 
     def stiffness(self, p):
         return self.parametric.stiffness(p) if self.parametric is not None else self.K.at(p)
@@ -458,7 +468,7 @@ def build_surrogate(
         raise CalibrationError(f"band_hz: need 0 <= low < high, got {band_hz}")
     if shift_hz is None:
         shift_hz = max(low / 4.0, high / 50.0)
-    cache = model.__dict__.setdefault("_factor_cache", {})
+    cache = model.factor_cache
     cache.pop("factor_s", None)
     # the local term tables (projection, derivative loads) are built on a second core
     # while this one factors and runs Lanczos; first build only (cached on the matrices)
@@ -598,12 +608,12 @@ def _congruent(A: AffineMatrix, Li: np.ndarray) -> AffineMatrix:
 
 
 def _local_terms(A: AffineMatrix) -> list:
-    """Per term: (rows, A_k[rows][:, rows]) for sparse terms, (None, A_k) for dense ones (cached on ``A``).
+    """Per term: (rows, A_k[rows][:, rows]) for sparse terms, (None, A_k) for dense ones (kept in ``A.cache``).
 
     The terms are symmetric, so their non-zero columns are their non-zero rows
     and ``A_k T`` needs only ``T[rows]`` (contiguous, cache-friendly).
     """
-    cached = A.__dict__.get("_local_rows")
+    cached = A.cache.get("calibration.local_rows")
     if cached is None:
         cached = []
         for m in A.matrices:
@@ -613,7 +623,7 @@ def _local_terms(A: AffineMatrix) -> list:
                 cached.append((rows, sp.csr_matrix(m[rows][:, rows])))
             else:
                 cached.append((None, np.asarray(m)))
-        object.__setattr__(A, "_local_rows", cached)
+        A.cache["calibration.local_rows"] = cached
     return cached
 
 
@@ -649,8 +659,8 @@ def _derivative_loads(model: FRFModel, p, Phi: np.ndarray, lam: np.ndarray) -> n
 
 def _local_halves(A: AffineMatrix) -> list:
     """Per term: (rows, H_k) with H_k = strict lower triangle + half the diagonal of the local
-    term (so A_k = H_k + H_k^T), or (None, A_k) for dense terms (cached on ``A``)."""
-    cached = A.__dict__.get("_local_halves")
+    term (so A_k = H_k + H_k^T), or (None, A_k) for dense terms (kept in ``A.cache``)."""
+    cached = A.cache.get("calibration.local_halves")
     if cached is None:
         cached = []
         for rows, mk in _local_terms(A):
@@ -659,7 +669,7 @@ def _local_halves(A: AffineMatrix) -> list:
             else:
                 h = sp.tril(mk, k=-1, format="csr") + sp.diags(0.5 * mk.diagonal(), format="csr")
                 cached.append((rows, sp.csr_matrix(h)))
-        object.__setattr__(A, "_local_halves", cached)
+        A.cache["calibration.local_halves"] = cached
     return cached
 
 
@@ -710,11 +720,11 @@ def reduced_modes(sur: Surrogate, p) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _stacked(A: AffineMatrix) -> np.ndarray:
-    """The dense reduced terms of ``A`` as one (n_terms, r, r) array (cached on the object)."""
-    cached = A.__dict__.get("_stack")
+    """The dense reduced terms of ``A`` as one (n_terms, r, r) array (kept in ``A.cache``)."""
+    cached = A.cache.get("calibration.stack")
     if cached is None:
         cached = np.stack([np.asarray(m) for m in A.matrices])
-        object.__setattr__(A, "_stack", cached)
+        A.cache["calibration.stack"] = cached
     return cached
 
 
