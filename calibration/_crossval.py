@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from calibration._executor import SerialExecutor
-from calibration._fit import FitData, Objective, _check_bounds, _run_start, single_thread
+from calibration._fit import FitData, Objective, check_bounds, run_start, single_thread
 
 
 @dataclass(frozen=True)
@@ -95,7 +95,7 @@ def _realization(args):
     sur, fit, test, p_start, lower, upper, zeta0, quantity, max_nfev, damping = args
     with single_thread():
         obj = _objective(sur, fit, zeta0, quantity, damping)
-        out = _run_start((obj, p_start, lower, upper, max_nfev, 1e-8))
+        out = run_start((obj, p_start, lower, upper, max_nfev, 1e-8))
         sd_test = _objective(sur, test, zeta0, quantity, damping).sd(out.p)
     return out.p, out.sd, sd_test
 
@@ -132,7 +132,7 @@ def cross_validate(
         A realization's estimate within ``bound_tol * (upper - lower)`` of a bound counts as at the bound.
     """
     t0 = time.perf_counter()
-    lower, upper = _check_bounds(lower, upper, surrogate.n_params)
+    lower, upper = check_bounds(lower, upper, surrogate.n_params)
     data = [data] if isinstance(data, FitData) else list(data)
     rng = np.random.default_rng(seed)
     jobs = []

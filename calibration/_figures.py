@@ -49,9 +49,9 @@ def member_figures(outdir: Path, label, pm, model, sur0, arts, cyc, val, cv, cam
     written = []
     c = camp.calibration
     band = (camp.band.low_hz, camp.band.high_hz)
-    from calibration._pipeline import _identified_modes
+    from calibration._pipeline import identified_modes
 
-    modes = _identified_modes(arts[0])
+    modes = identified_modes(arts[0])
     z0, *_ = mapped_damping(sur0, np.zeros(pm.n_params), modes, c.zeta0, camp.validation.mac_min, band)
     z1, *_ = mapped_damping(cyc.surrogate, cyc.p, modes, c.zeta0, camp.validation.mac_min, band)
     # FRF overlays: up to 3 calibration + 3 hold-out channels, first drive

@@ -19,7 +19,8 @@ import numpy as np
 from calibration._errors import CalibrationError
 from calibration._executor import SerialExecutor
 from calibration._metric import LN10, log_deviation, square_deviation
-from calibration._surrogate import Surrogate, _blas_threads, surrogate_frf, surrogate_frf_jacobian
+from calibration._surrogate import Surrogate, surrogate_frf, surrogate_frf_jacobian
+from calibration._threads import blas_threads
 
 
 #: Convergence tolerance (xtol, ftol, gtol) of the damping-continuation stages before the last.
@@ -320,7 +321,7 @@ def latin_hypercube_starts(lower, upper, n: int, seed: int | None = 0) -> np.nda
     return qmc.scale(u, lower, upper)
 
 
-def _check_bounds(lower, upper, n_p):
+def check_bounds(lower, upper, n_p):
     lower = np.asarray(lower, float)
     upper = np.asarray(upper, float)
     if lower.shape != (n_p,) or upper.shape != (n_p,):
@@ -333,7 +334,7 @@ def _check_bounds(lower, upper, n_p):
 
 def single_thread():
     """Context limiting BLAS to one thread (parallelism comes from the executor; avoids oversubscription)."""
-    return _blas_threads(1)
+    return blas_threads(1)
 
 
 def run_start(args) -> StartOutcome:
@@ -455,7 +456,7 @@ def calibrate(
     Calibration
     """
     n_p = surrogate.n_params
-    lower, upper = _check_bounds(lower, upper, n_p)
+    lower, upper = check_bounds(lower, upper, n_p)
     objs = [Objective(surrogate, d, z, quantity) for z, d in continuation]
     objs.append(Objective(surrogate, data, zeta0, quantity))
     first = np.zeros(n_p) if p_start is None else np.asarray(p_start, float)

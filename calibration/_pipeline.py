@@ -185,7 +185,7 @@ def build_model(camp: Campaign, articles, log=print):
     return pm, model
 
 
-def _identified_modes(article: Article) -> IdentifiedModes:
+def identified_modes(article: Article) -> IdentifiedModes:
     m = article.identification.modal
     return IdentifiedModes(m.frequency_hz, m.damping, m.shapes, article.ident_channels)
 
@@ -241,7 +241,7 @@ def _refined(camp: Campaign, model, arts, cyc, band, lower, upper, log, label):
     c = camp.calibration
     raw = [_raw_data(a, camp.channels.calibrate) for a in arts]
     idents = [(a.identification, a.ident_channels) for a in arts]
-    modes = [_identified_modes(a) for a in arts]
+    modes = [identified_modes(a) for a in arts]
     opts = dict(quantity=arts[0].quantity, mac_min=camp.validation.mac_min, band_hz=band,
                 max_nfev=c.max_evaluations)
     t0 = time.perf_counter()
@@ -300,7 +300,7 @@ def _per_article(camp: Campaign, sur0, sur, arts, p, band, lower, upper, log, la
     c = camp.calibration
     out = []
     for a in arts:
-        modes = _identified_modes(a)
+        modes = identified_modes(a)
         r = refine(sur, p, [_raw_data(a, camp.channels.calibrate)], [(a.identification, a.ident_channels)], [modes],
                    lower, upper, c.zeta0, floors=(0.0,), quantity=a.quantity, mac_min=camp.validation.mac_min,
                    band_hz=band, max_nfev=c.max_evaluations)
@@ -378,7 +378,7 @@ def run_campaign(camp: Campaign, log=print) -> dict:
                 raw = [_raw_data(a, camp.channels.holdout) for a in arts]
                 errs = [None if a.std_error is None else
                         a.std_error[:, [a.channels.index(n) for n in camp.channels.holdout]] for a in arts]
-                val = validate(sur0, sur_final, p_final, raw, [_identified_modes(a) for a in arts], c.zeta0,
+                val = validate(sur0, sur_final, p_final, raw, [identified_modes(a) for a in arts], c.zeta0,
                                camp.validation.target_sd, camp.validation.mac_min, arts[0].quantity, band,
                                std_error=None if any(e is None for e in errs) else errs)
                 log(f"[{label}] {val.summary()}")
@@ -466,13 +466,13 @@ def _write_outputs(camp, pm, model, sur0, articles, results, D, timings, outdir,
         "timings": timings,
     }
     path = outdir / "calibration.json"
-    path.write_text(json.dumps(result, indent=1, default=_json_default))
+    path.write_text(json.dumps(result, indent=1, default=json_default))
     result["result_file"] = str(path)
     log(f"wrote {path}")
     return result
 
 
-def _json_default(o):
+def json_default(o):
     if isinstance(o, np.ndarray):
         return o.tolist()
     if isinstance(o, (np.floating, np.integer)):

@@ -48,12 +48,12 @@ import numpy as np
 from calibration._errors import CalibrationError
 from calibration._fit import FitData, log_frequency_weights
 from calibration._metric import LN10, log_deviation, square_deviation
+from calibration._threads import blas_threads
 from calibration._surrogate import (
     Surrogate,
-    _blas_threads,
-    _omegas,
-    _quantity_factor,
-    _stacked,
+    modal_omegas,
+    quantity_factor,
+    reduced_term_stack,
     reduced_modes,
 )
 from calibration._validation import IdentifiedModes, mapped_damping
@@ -192,11 +192,11 @@ class ModalDampingObjective:
         return lam, X, [z[best] for z in self.damping_at(x)], best
 
     def _frf(self, lam, X, zeta, d, oi, ii, w):
-        om, rigid = _omegas(lam, self.sur.rigid_hz)
+        om, rigid = modal_omegas(lam, self.sur.rigid_hz)
         c = np.where(rigid, 0.0, 2 * zeta * om)
         lam_c = np.where(rigid, 0.0, om**2)
         r = 1.0 / (lam_c[None, :] - w[:, None] ** 2 + 1j * w[:, None] * c[None, :])
-        q = _quantity_factor(w, self.quantity)
+        q = quantity_factor(w, self.quantity)
         u = self.sur.outputs[oi] @ X
         v = X.T @ self.sur.inputs[:, ii]
         H = np.einsum("om,fm,mi->foi", u, r * q[:, None], v, optimize=True)
@@ -243,8 +243,8 @@ class ModalDampingObjective:
         sur = self.sur
         dcK = sur.K.coefficient_jacobian(p)
         dcM = sur.M.coefficient_jacobian(p)
-        A = X.T @ np.tensordot(dcK.T, _stacked(sur.K), axes=1) @ X  # (n_p, m, m)
-        Bm = X.T @ np.tensordot(dcM.T, _stacked(sur.M), axes=1) @ X
+        A = X.T @ np.tensordot(dcK.T, reduced_term_stack(sur.K), axes=1) @ X  # (n_p, m, m)
+        Bm = X.T @ np.tensordot(dcM.T, reduced_term_stack(sur.M), axes=1) @ X
         n_p, m = A.shape[0], A.shape[1]
         dlam = np.einsum("jkk->jk", A) - lam[None, :] * np.einsum("jkk->jk", Bm)
         gap = lam[None, :] - lam[:, None]  # (l, k): lambda_k - lambda_l
@@ -453,7 +453,7 @@ def refine(
     plain = ModalDampingObjective(surrogate, [replace(d, weights=None) for d in raw], zeta, p, 0.0, quantity)
     sd_raw_start = plain.sd_unweighted(p)
     stages = []
-    with _blas_threads(2):
+    with blas_threads(2):
         for fl in floors:
             t0 = time.perf_counter()
             zf = fl * zeta0

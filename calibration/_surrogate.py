@@ -52,6 +52,7 @@ import scipy.sparse.linalg as spla
 from femodel import AffineMatrix
 
 from calibration._errors import CalibrationError
+from calibration._threads import blas_threads as _blas_threads  # module-local name as before; shared with _fit.single_thread
 
 _QUANTITIES = ("accelerance", "mobility", "receptance")
 
@@ -75,6 +76,15 @@ class FRFModel:
     parametric : femodel.ParametricModel, optional
         When given, its fast shared-pattern ``stiffness``/``mass``/``dK``/``dM``
         are used for the full-order work (same values as K, M).
+
+    Attributes
+    ----------
+    factor_cache : dict
+        Symbolic factorization and sparsity-union data that
+        :func:`build_surrogate` reuses across cycles while K's and M's
+        patterns stay the same.  Not part of the value (excluded from
+        comparison and repr, empty on every new instance) and not pickled:
+        it stays in the process that filled it.
     """
 
     K: AffineMatrix
@@ -85,6 +95,7 @@ class FRFModel:
     output_names: tuple = ()
     parameter_names: tuple = ()
     parametric: object = None
+    factor_cache: dict = field(default_factory=dict, init=False, compare=False, repr=False)
 
     def __post_init__(self) -> None:
         n = self.K.shape[0]
@@ -112,7 +123,7 @@ class FRFModel:
         return self.K.n_params
 
     def __getstate__(self):  # the factorization cache (see _factor) stays in this process
-        return {k: v for k, v in self.__dict__.items() if k != "_factor_cache"}
+        return {**self.__dict__, "factor_cache": {}}
 
     def stiffness(self, p):
         return self.parametric.stiffness(p) if self.parametric is not None else self.K.at(p)
@@ -320,17 +331,6 @@ def _shift_invert_modes(Ks, Ms, s, solve, max_hz: float, max_modes: int, k0: int
     return freqs, vec[:, keep]
 
 
-def _blas_threads(n):
-    """Context limiting BLAS to ``n`` threads (no-op without threadpoolctl)."""
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:
-        import contextlib
-
-        return contextlib.nullcontext()
-    return threadpool_limits(limits=n, user_api="blas")
-
-
 def _dense_shift_inverted(K: np.ndarray, M: np.ndarray, s: float):
     """All finite modes of a small dense pencil whose M may be singular, and a solver for K + s M.
 
@@ -500,7 +500,7 @@ def build_surrogate(
         raise CalibrationError(f"band_hz: need 0 <= low < high, got {band_hz}")
     if shift_hz is None:
         shift_hz = max(low / 4.0, high / 50.0)
-    cache = model.__dict__.setdefault("_factor_cache", {})
+    cache = model.factor_cache
     cache.pop("factor_s", None)
     # the local term tables (projection, derivative loads) are built on a second core
     # while this one factors and runs Lanczos; first build only (cached on the matrices)
@@ -640,12 +640,12 @@ def _congruent(A: AffineMatrix, Li: np.ndarray) -> AffineMatrix:
 
 
 def _local_terms(A: AffineMatrix) -> list:
-    """Per term: (rows, A_k[rows][:, rows]) for sparse terms, (None, A_k) for dense ones (cached on ``A``).
+    """Per term: (rows, A_k[rows][:, rows]) for sparse terms, (None, A_k) for dense ones (kept in ``A.cache``).
 
     The terms are symmetric, so their non-zero columns are their non-zero rows
     and ``A_k T`` needs only ``T[rows]`` (contiguous, cache-friendly).
     """
-    cached = A.__dict__.get("_local_rows")
+    cached = A.cache.get("calibration.local_rows")
     if cached is None:
         cached = []
         for m in A.matrices:
@@ -655,7 +655,7 @@ def _local_terms(A: AffineMatrix) -> list:
                 cached.append((rows, sp.csr_matrix(m[rows][:, rows])))
             else:
                 cached.append((None, np.asarray(m)))
-        object.__setattr__(A, "_local_rows", cached)
+        A.cache["calibration.local_rows"] = cached
     return cached
 
 
@@ -691,8 +691,8 @@ def _derivative_loads(model: FRFModel, p, Phi: np.ndarray, lam: np.ndarray) -> n
 
 def _local_halves(A: AffineMatrix) -> list:
     """Per term: (rows, H_k) with H_k = strict lower triangle + half the diagonal of the local
-    term (so A_k = H_k + H_k^T), or (None, A_k) for dense terms (cached on ``A``)."""
-    cached = A.__dict__.get("_local_halves")
+    term (so A_k = H_k + H_k^T), or (None, A_k) for dense terms (kept in ``A.cache``)."""
+    cached = A.cache.get("calibration.local_halves")
     if cached is None:
         cached = []
         for rows, mk in _local_terms(A):
@@ -701,7 +701,7 @@ def _local_halves(A: AffineMatrix) -> list:
             else:
                 h = sp.tril(mk, k=-1, format="csr") + sp.diags(0.5 * mk.diagonal(), format="csr")
                 cached.append((rows, sp.csr_matrix(h)))
-        object.__setattr__(A, "_local_halves", cached)
+        A.cache["calibration.local_halves"] = cached
     return cached
 
 
@@ -751,16 +751,16 @@ def reduced_modes(sur: Surrogate, p) -> tuple[np.ndarray, np.ndarray]:
     return lam, X
 
 
-def _stacked(A: AffineMatrix) -> np.ndarray:
-    """The dense reduced terms of ``A`` as one (n_terms, r, r) array (cached on the object)."""
-    cached = A.__dict__.get("_stack")
+def reduced_term_stack(A: AffineMatrix) -> np.ndarray:
+    """The dense reduced terms of ``A`` as one (n_terms, r, r) array (kept in ``A.cache``)."""
+    cached = A.cache.get("calibration.stack")
     if cached is None:
         cached = np.stack([np.asarray(m) for m in A.matrices])
-        object.__setattr__(A, "_stack", cached)
+        A.cache["calibration.stack"] = cached
     return cached
 
 
-def _quantity_factor(w: np.ndarray, quantity: str) -> np.ndarray:
+def quantity_factor(w: np.ndarray, quantity: str) -> np.ndarray:
     if quantity == "accelerance":
         return -(w**2) + 0j
     if quantity == "mobility":
@@ -770,7 +770,7 @@ def _quantity_factor(w: np.ndarray, quantity: str) -> np.ndarray:
     raise CalibrationError(f"FRF quantity must be one of {_QUANTITIES}, got {quantity!r}")
 
 
-def _omegas(lam: np.ndarray, rigid_hz: float) -> tuple[np.ndarray, np.ndarray]:
+def modal_omegas(lam: np.ndarray, rigid_hz: float) -> tuple[np.ndarray, np.ndarray]:
     om = np.sqrt(np.clip(lam, 0.0, None))
     rigid = om < 2 * np.pi * rigid_hz
     om = np.where(rigid, 0.0, om)
@@ -802,12 +802,12 @@ def modal_frf(
     (n_f, n_out, n_in) complex FRF, SI (e.g. (m/s^2)/N).
     """
     w = 2 * np.pi * np.asarray(freq_hz, dtype=float)
-    om, rigid = _omegas(lam, rigid_hz)
+    om, rigid = modal_omegas(lam, rigid_hz)
     zeta = np.broadcast_to(np.asarray(zeta, dtype=float), om.shape)
     c = np.where(rigid, 0.0, 2 * zeta * om)
     lam_c = np.where(rigid, 0.0, om**2)
     r = 1.0 / (lam_c[None, :] - w[:, None] ** 2 + 1j * w[:, None] * c[None, :])  # (n_f, m)
-    q = _quantity_factor(w, quantity)
+    q = quantity_factor(w, quantity)
     H = np.einsum("om,fm,mi->foi", phi_out, r * q[:, None], phi_in, optimize=True)
     return H
 
@@ -852,11 +852,11 @@ def surrogate_frf_jacobian(
     p = np.asarray(p, dtype=float)
     lam, X = reduced_modes(sur, p)
     w = 2 * np.pi * np.asarray(freq_hz, dtype=float)
-    om, rigid = _omegas(lam, sur.rigid_hz)
+    om, rigid = modal_omegas(lam, sur.rigid_hz)
     c = 2 * zeta0 * om
     lam_c = om**2
     r = 1.0 / (lam_c[None, :] - w[:, None] ** 2 + 1j * w[:, None] * c[None, :])  # (n_f, m)
-    q = _quantity_factor(w, quantity)
+    q = quantity_factor(w, quantity)
     Co = sur.outputs if outputs is None else sur.outputs[np.asarray(outputs)]
     u = Co @ X  # (n_out, m)
     v = X.T @ sur.inputs  # (m, n_in)
@@ -865,8 +865,8 @@ def surrogate_frf_jacobian(
     # A_j, B_j in modal coordinates, from the projected terms and coefficient derivatives
     dcK = sur.K.coefficient_jacobian(p)  # (n_terms, n_p)
     dcM = sur.M.coefficient_jacobian(p)
-    A = X.T @ np.tensordot(dcK.T, _stacked(sur.K), axes=1) @ X  # (n_p, m, m)
-    Bm = X.T @ np.tensordot(dcM.T, _stacked(sur.M), axes=1) @ X
+    A = X.T @ np.tensordot(dcK.T, reduced_term_stack(sur.K), axes=1) @ X  # (n_p, m, m)
+    Bm = X.T @ np.tensordot(dcM.T, reduced_term_stack(sur.M), axes=1) @ X
     osum = om[:, None] + om[None, :]
     both_rigid = rigid[:, None] & rigid[None, :]
     with np.errstate(divide="ignore", invalid="ignore"):

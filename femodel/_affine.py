@@ -14,7 +14,7 @@ onto a fixed reduction basis keeps the reduced matrix exact in p.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
@@ -30,10 +30,22 @@ class AffineMatrix:
         The fixed terms ``A_k`` (SI units), evaluated at the nominal point.
     exponents : (n_terms, n_params) int array
         ``e_kj``: the power of (1 + p_j) that term k scales with.
+
+    Attributes
+    ----------
+    cache : dict
+        Scratch space for data derived from the terms alone (e.g. per-term
+        tables of the rows a local term touches), filled by whoever needs it
+        under a key it owns.  Not part of the value: excluded from
+        comparison and repr, and a new, empty dict on every instance
+        (``dataclasses.replace`` included), so derived data never outlives
+        the terms it was computed from.  Holds only what a pure function of
+        ``matrices`` and ``exponents`` would return.
     """
 
     matrices: tuple
     exponents: np.ndarray
+    cache: dict = field(default_factory=dict, init=False, compare=False, repr=False)
 
     def __post_init__(self) -> None:
         exps = np.asarray(self.exponents, dtype=float)

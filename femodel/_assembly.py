@@ -322,7 +322,7 @@ def _cd_transform(model: FEModel):
     return model.cd_axes()
 
 
-def _to_cd(ke: np.ndarray, node_rows: np.ndarray, cd_axes, dof_per_node: int) -> np.ndarray:
+def to_cd(ke: np.ndarray, node_rows: np.ndarray, cd_axes, dof_per_node: int) -> np.ndarray:
     """Rotate element matrices from basic to the grids' CD systems (3x3 block-wise)."""
     if cd_axes is None:
         return ke
@@ -440,10 +440,10 @@ def _add_bars(model, col, cd_axes, wt):
             pins=tab.fields.get("pins"),
         )
         pat = BlockPattern(nodes, model.n_grids)
-        kE = _to_cd(out["stiffness_E"], nodes, cd_axes, 6)
-        kG = _to_cd(out["stiffness_G"], nodes, cd_axes, 6)
-        mu = _to_cd(out["mass_unit"], nodes, cd_axes, 6)
-        mt = _to_cd(out["mass_torsion_unit"], nodes, cd_axes, 6) if "mass_torsion_unit" in out else None
+        kE = to_cd(out["stiffness_E"], nodes, cd_axes, 6)
+        kG = to_cd(out["stiffness_G"], nodes, cd_axes, 6)
+        mu = to_cd(out["mass_unit"], nodes, cd_axes, 6)
+        mt = to_cd(out["mass_torsion_unit"], nodes, cd_axes, 6) if "mass_torsion_unit" in out else None
         pids = tab["pid"]
         pcard = prop["card"][pr]
         A = prop["A"][pr]
@@ -487,9 +487,9 @@ def _add_rods(model, col, cd_axes, wt):
         nodes = model.grid_index(tab["nodes"].ravel(), what=f"{card} grid").reshape(-1, 2)
         out = rod_matrices(model.xyz[nodes[:, 0]], model.xyz[nodes[:, 1]], A, J, coupled=model.coupmass, ids=tab.ids)
         pat = BlockPattern(nodes, model.n_grids)
-        kE = _to_cd(out["stiffness_E"], nodes, cd_axes, 6)
-        kG = _to_cd(out["stiffness_G"], nodes, cd_axes, 6)
-        mu = _to_cd(out["mass_unit"], nodes, cd_axes, 6)
+        kE = to_cd(out["stiffness_E"], nodes, cd_axes, 6)
+        kG = to_cd(out["stiffness_G"], nodes, cd_axes, 6)
+        mu = to_cd(out["mass_unit"], nodes, cd_axes, 6)
         # group by material (CONROD carries its own section, so per material)
         for mid in np.unique(mids):
             sel = mids == mid
@@ -551,7 +551,7 @@ def _add_bushes(model, col, cd_axes):
     kvals = prop["k"][pr]
     pids = tab["pid"]
     for i in range(6):
-        ke = _to_cd(kk[i], nodes, cd_axes, 6)
+        ke = to_cd(kk[i], nodes, cd_axes, 6)
         for pid in np.unique(pids):
             sel = (pids == pid) & (kvals[:, i] != 0)
             if np.any(sel):
@@ -566,8 +566,8 @@ def _add_conm2(model, col, cd_axes, wt):
         return
     nodes = model.grid_index(tab["nodes"][:, 0], what="CONM2 grid")[:, None]
     m_unit, mi = conm2_matrices(tab["offset"], tab["inertia"])
-    m_unit = _to_cd(m_unit, nodes, cd_axes, 6)
-    mi = _to_cd(mi, nodes, cd_axes, 6)
+    m_unit = to_cd(m_unit, nodes, cd_axes, 6)
+    mi = to_cd(mi, nodes, cd_axes, 6)
     pat = BlockPattern(nodes, model.n_grids)
     mass = tab["mass"]
     for i, eid in enumerate(tab.ids.tolist()):
@@ -595,7 +595,7 @@ def _add_shells(model, col, cd_axes, wt):
     if not cards:
         return
     try:
-        from femodel._elements_shell import _shell_stiffness_batches, shell_mass, shell_stiffness
+        from femodel._elements_shell import shell_stiffness_batches, shell_mass, shell_stiffness
     except ImportError as exc:  # pragma: no cover - the kernel module ships with femodel
         raise ModelError(f"shell elements present but the shell kernels are unavailable: {exc}") from None
     prop = model.properties.get("PSHELL")
@@ -676,15 +676,15 @@ def _add_shells(model, col, cd_axes, wt):
 
         def scatter_groups(groups):
             """Form and scatter the batches of the property groups ``groups`` (each in element order)."""
-            for sl, blocks in _shell_stiffness_batches(xyz, dm, db, ds, model.k6rot, ids=tab.ids,
+            for sl, blocks in shell_stiffness_batches(xyz, dm, db, ds, model.k6rot, ids=tab.ids,
                                                        merge={"membrane": ("membrane", "drill")}, bounds=first,
                                                        select=lambda sl: group_of[sl.start] in groups):
                 g = int(group_of[sl.start])
                 start = sl.start - int(first[g])
                 nod = nodes[sl]
                 for name, ke in blocks.items():
-                    acc(g, name, _to_cd(ke, nod, cd_axes, 6), start)
-                mu_unit = _to_cd(shell_mass(xyz[sl], np.ones(sl.stop - sl.start), model.coupmass, ids=tab.ids[sl]),
+                    acc(g, name, to_cd(ke, nod, cd_axes, 6), start)
+                mu_unit = to_cd(shell_mass(xyz[sl], np.ones(sl.stop - sl.start), model.coupmass, ids=tab.ids[sl]),
                                  nod, cd_axes, 6)
                 for name, scale in (("mass", mscale), ("nsm", wnsm)):
                     if name == "nsm" and not has_nsm[g]:
@@ -769,8 +769,8 @@ def _add_pcomp(model, col, cd_axes, wt, card, tab, pcomp, shell_stiffness, shell
     pat = BlockPattern(nodes, model.n_grids)
     pids = ",".join(str(int(p)) for p in np.unique(tab["pid"])[:5])
     for key, ke in k.items():
-        col.add("K", [], f"{card} PCOMP {pids} {key}", _to_cd(ke, nodes, cd_axes, 6), pat, symmetric=True)
-    col.add("M", [], f"{card} PCOMP {pids} mass", _to_cd(m, nodes, cd_axes, 6), pat, [wt] * len(tab))
+        col.add("K", [], f"{card} PCOMP {pids} {key}", to_cd(ke, nodes, cd_axes, 6), pat, symmetric=True)
+    col.add("M", [], f"{card} PCOMP {pids} mass", to_cd(m, nodes, cd_axes, 6), pat, [wt] * len(tab))
 
 
 def _iso_c(E, nu):
@@ -807,11 +807,16 @@ def _add_solids(model, col, cd_axes, wt):
         c_unit = _iso_c(np.ones_like(E), nu)
         k = solid_stiffness(xyz, c_unit, ids=tab.ids)
         m = solid_mass(xyz, np.ones(len(tab)), model.coupmass, ids=tab.ids)
-        k = _to_cd(k, nodes, cd_axes, 3)
-        m = _to_cd(m, nodes, cd_axes, 3)
+        k = to_cd(k, nodes, cd_axes, 3)
+        m = to_cd(m, nodes, cd_axes, 3)
         pat = BlockPattern(nodes, model.n_grids, 3)
         for mid in np.unique(mids):
             sel = mids == mid
             lab = f"{tab.card} PSOLID {','.join(str(int(p)) for p in np.unique(tab['pid'][sel])[:3])}"
             col.add("K", [(("MAT1", int(mid), "E"), 1)], lab + " stiffness", k[sel], pat.subset(sel), E[sel])
             col.add("M", [(("MAT1", int(mid), "RHO"), 1)], lab + " mass", m[sel], pat.subset(sel), wt * rho[sel])
+
+
+# femodel/_parametric.py (owned by another change) still imports the old private
+# name; drop this alias once its import reads ``to_cd``.
+_to_cd = to_cd

@@ -38,8 +38,11 @@ def resolve_coords(defs: dict[int, dict], grid_xyz_basic) -> dict[int, CoordSyst
         ``{"kind": "R"|"C"|"S", "type": 2, "rid": int, "points": (3, 3) in RID's
         coordinates (already in SI length)}`` for CORD2x, or ``{"kind": ..,
         "type": 1, "grids": (g1, g2, g3)}`` for CORD1x.
-    grid_xyz_basic : callable(grid_id) -> (3,) basic position or None
-        Looks up a grid's basic position (None while not yet resolvable).
+    grid_xyz_basic : callable(grid_id, systems) -> (3,) basic position or None
+        Looks up a grid's basic position given the systems resolved so far
+        (``systems``: dict cid -> CoordSystem); None while the grid's own
+        position system is not yet resolved.  A CORD1x may so use grids
+        positioned in other CORD1x/CORD2x systems, as in Nastran.
 
     Returns
     -------
@@ -59,7 +62,7 @@ def resolve_coords(defs: dict[int, dict], grid_xyz_basic) -> dict[int, CoordSyst
                     continue
                 pts = out[rid].to_basic(np.asarray(d["points"], dtype=float))
             else:
-                pts = [grid_xyz_basic(g) for g in d["grids"]]
+                pts = [grid_xyz_basic(g, out) for g in d["grids"]]
                 if any(p is None for p in pts):
                     continue
                 pts = np.asarray(pts)

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from femodel._elements_shell import ElementGeometryError, _check_xyz, _describe
+from femodel._elements_shell import ElementGeometryError, check_xyz, describe_bad
 
 __all__ = ["solid_stiffness", "solid_mass", "SOLID_NAMES"]
 
@@ -170,7 +170,7 @@ def _strain_b(dxyz: np.ndarray) -> np.ndarray:
 def _check_det(det, ids, nn):
     bad = ~(det > 0)
     if bad.any():
-        raise ElementGeometryError(_describe(
+        raise ElementGeometryError(describe_bad(
             bad, ids, "are degenerate or inverted (non-positive Jacobian at an integration "
             "point; check grid order and coincident grids)", SOLID_NAMES[nn]))
 
@@ -203,7 +203,7 @@ def solid_stiffness(xyz, c, ids=None) -> np.ndarray:
     ElementGeometryError
         Degenerate or inverted elements (listed by id or index).
     """
-    xyz = _check_xyz(xyz, tuple(_ELEMENTS), "solid")
+    xyz = check_xyz(xyz, tuple(_ELEMENTS), "solid")
     n, nn = xyz.shape[:2]
     c = np.broadcast_to(np.asarray(c, dtype=float), (n, 6, 6))
     shape, rule = _ELEMENTS[nn]
@@ -270,7 +270,7 @@ def solid_mass(xyz, rho, coupled: bool, ids=None) -> np.ndarray:
     ndarray, shape (n, 3nn, 3nn)
         Element mass [kg], DOF per grid T1 T2 T3; total per direction rho V.
     """
-    xyz = _check_xyz(xyz, tuple(_ELEMENTS), "solid")
+    xyz = check_xyz(xyz, tuple(_ELEMENTS), "solid")
     n, nn = xyz.shape[:2]
     rho = np.broadcast_to(np.asarray(rho, dtype=float), (n,))
     shape, rule = _ELEMENTS[nn]

@@ -166,7 +166,7 @@ class _Data:
     quantity: str
 
 
-def _prepare(freq_hz, H, *, band_hz, weights, valid, quantity) -> _Data:
+def prepare_data(freq_hz, H, *, band_hz, weights, valid, quantity) -> _Data:
     f = frequency_grid(freq_hz)
     Ha = np.asarray(H)
     if Ha.ndim != 3:
@@ -241,7 +241,7 @@ def default_block_rows(order: int, n_out: int) -> int:
     return int(max(int(np.ceil(2 * n / p)), int(np.ceil(n / p)) + 2, min(n, 16)))
 
 
-def _choose_block_rows(data: _Data, order: int, block_rows: int | None) -> int:
+def choose_block_rows(data: _Data, order: int, block_rows: int | None) -> int:
     """``block_rows`` or the default, capped by the number of lines; checked against the order."""
     nf, p, m = data.H.shape
     if block_rows is None:
@@ -257,7 +257,7 @@ def _choose_block_rows(data: _Data, order: int, block_rows: int | None) -> int:
     return q
 
 
-def _basis(data: _Data, block_rows: int):
+def data_basis(data: _Data, block_rows: int):
     z = unit_circle(data.omega, data.alpha)
     Hs = data.H * data.out_scale[None, :, None]
     p, m = data.H.shape[1:]
@@ -410,13 +410,13 @@ def identify(
     n = int(order)
     if n < 1 or n != order:
         raise IdentificationError(f"order must be a positive integer, got {order!r}")
-    data = _prepare(freq_hz, H, band_hz=band_hz, weights=weights, valid=valid, quantity=quantity)
-    q = _choose_block_rows(data, n, block_rows)
-    basis, sv = _basis(data, q)
-    return _assemble(data, basis, sv, n, q, enforce_stability, zeta_max, min_contribution, min_importance, refine)
+    data = prepare_data(freq_hz, H, band_hz=band_hz, weights=weights, valid=valid, quantity=quantity)
+    q = choose_block_rows(data, n, block_rows)
+    basis, sv = data_basis(data, q)
+    return identification_of_order(data, basis, sv, n, q, enforce_stability, zeta_max, min_contribution, min_importance, refine)
 
 
-def _assemble(data, basis, sv, n, q, enforce_stability, zeta_max, min_contribution, min_importance, refine):
+def identification_of_order(data, basis, sv, n, q, enforce_stability, zeta_max, min_contribution, min_importance, refine):
     A, B, C, D, blocks, was_unstable = _fit(data, basis, sv, n, enforce_stability=enforce_stability, refine=refine)
     lam = block_poles(A, blocks)
     contrib = contributions(data, A, B, C, blocks)

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ._errors import IdentificationError
-from ._identify import Identification, _assemble, _basis, _choose_block_rows, _prepare, block_modal
+from ._identify import Identification, identification_of_order, data_basis, choose_block_rows, prepare_data, block_modal
 from ._poles import Poles, mac
 from ._subspace import real_modal_form
 
@@ -115,14 +115,14 @@ def stabilization(
     ords = tuple(int(o) for o in orders)
     if not ords or any(o < 1 for o in ords) or any(b <= a for a, b in zip(ords, ords[1:])):
         raise IdentificationError(f"orders must be increasing positive integers, got {list(orders)!r}")
-    data = _prepare(freq_hz, H, band_hz=band_hz, weights=weights, valid=valid, quantity=quantity)
-    q = _choose_block_rows(data, ords[-1], block_rows)
-    basis, sv = _basis(data, q)
+    data = prepare_data(freq_hz, H, band_hz=band_hz, weights=weights, valid=valid, quantity=quantity)
+    q = choose_block_rows(data, ords[-1], block_rows)
+    basis, sv = data_basis(data, q)
     poles, shapes, sf, sd, ss = [], [], [], [], []
     prev: Identification | None = None
     prev_shapes = None
     for n in ords:
-        ident = _assemble(
+        ident = identification_of_order(
             data, basis, sv, n, q, enforce_stability, zeta_max, min_contribution, min_importance, refine=0
         )
         Am, Bm, Cm, blocks = real_modal_form(ident.model.A, ident.model.B, ident.model.C)

@@ -88,7 +88,7 @@ def fim_logdet(phi_rows: np.ndarray) -> float:
     return float(logdet) if sign > 0 else -np.inf
 
 
-def _group_structure(n_rows: int, group_labels) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def group_structure(n_rows: int, group_labels) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Return (unique labels, padded row index table (n_groups, kmax) with -1, row -> group)."""
     if group_labels is None:
         labels = np.arange(n_rows)
@@ -111,7 +111,7 @@ def _group_structure(n_rows: int, group_labels) -> tuple[np.ndarray, np.ndarray,
     return labels, table, inverse
 
 
-def _as_group_indices(values, labels: np.ndarray, what: str) -> np.ndarray:
+def as_group_indices(values, labels: np.ndarray, what: str) -> np.ndarray:
     if values is None:
         return np.zeros(0, dtype=np.int64)
     values = np.atleast_1d(np.asarray(values))
@@ -209,13 +209,13 @@ def effective_independence(
     if not np.all(np.isfinite(phi)):
         raise PretestError("mode-shape matrix contains NaN or infinite values")
     n_rows, n_modes = phi.shape
-    labels, table, _ = _group_structure(n_rows, group_labels)
+    labels, table, _ = group_structure(n_rows, group_labels)
     n_groups = labels.size
     n_sensors = int(n_sensors)
     if n_sensors < 1:
         raise PretestError(f"number of sensors must be >= 1, got {n_sensors}")
-    inc = _as_group_indices(include, labels, "include")
-    exc = _as_group_indices(exclude, labels, "exclude")
+    inc = as_group_indices(include, labels, "include")
+    exc = as_group_indices(exclude, labels, "exclude")
     both = np.intersect1d(inc, exc)
     if both.size:
         raise PretestError(f"candidate(s) both included and excluded: {labels[both].tolist()[:10]}")
@@ -556,7 +556,7 @@ def exhaustive_best_subset(phi: np.ndarray, n_sensors: int, *, group_labels=None
         Log-determinant of every subset (for ranking the greedy choice).
     """
     phi = np.asarray(phi, dtype=float)
-    labels, table, _ = _group_structure(phi.shape[0], group_labels)
+    labels, table, _ = group_structure(phi.shape[0], group_labels)
     from math import comb
 
     n_sub = comb(labels.size, n_sensors)

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pretest._efi import _as_group_indices, _group_structure
+from pretest._efi import as_group_indices, group_structure
 from pretest._errors import PretestError
 
 __all__ = ["RefineResult", "refine_automac"]
@@ -92,7 +92,7 @@ def refine_automac(
     """
     phi = np.asarray(phi, dtype=float)
     n_rows, m = phi.shape
-    labels, table, _ = _group_structure(n_rows, group_labels)
+    labels, table, _ = group_structure(n_rows, group_labels)
     n_groups = labels.size
     sel = np.zeros(n_groups, dtype=bool)
     groups = np.asarray(groups, dtype=np.int64)
@@ -100,9 +100,9 @@ def refine_automac(
         raise PretestError("starting selection must name candidate groups 0..n_groups-1")
     sel[groups] = True
     protected = np.zeros(n_groups, dtype=bool)
-    protected[_as_group_indices(include, labels, "include")] = True
+    protected[as_group_indices(include, labels, "include")] = True
     available = np.ones(n_groups, dtype=bool)
-    available[_as_group_indices(exclude, labels, "exclude")] = False
+    available[as_group_indices(exclude, labels, "exclude")] = False
     col = np.linalg.norm(phi, axis=0)
     col[col == 0] = 1.0
     pad = np.where((table >= 0)[:, :, None], phi[np.maximum(table, 0)], 0.0) / col

@@ -43,7 +43,7 @@ def run(args) -> int:
     import sys
 
     from calibration import load_campaign, run_campaign
-    from calibration._pipeline import _json_default
+    from calibration._pipeline import json_default
 
     camp = _override(load_campaign(args.campaign), args)
     # progress goes to stdout, or to stderr with --json (stdout holds only the JSON object)
@@ -55,7 +55,7 @@ def run(args) -> int:
 
     res = run_campaign(camp, log=log)
     if args.json:
-        print(json.dumps(res, default=_json_default))
+        print(json.dumps(res, default=json_default))
         return 0
     for m in res["members"]:
         print(f"\n== {m['member']} ({', '.join(m['articles'])})")

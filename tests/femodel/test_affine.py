@@ -60,3 +60,20 @@ def test_bad_input_is_named():
         a.at(np.array([-1.0]))
     with pytest.raises(ValueError, match="exponents must be"):
         AffineMatrix(_random_terms(rng, n_terms=2), np.array([[1]]))
+
+
+def test_cache_slot_is_per_instance_and_not_part_of_the_value():
+    """``cache`` holds derived data only: a new object (``replace`` too) starts empty, eq/repr ignore it."""
+    import pickle
+    from dataclasses import replace
+
+    rng = np.random.default_rng(3)
+    a = AffineMatrix(_random_terms(rng, n=5, n_terms=2), np.array([[1, 0], [0, 1]]))
+    a.cache["rows"] = [np.arange(5)]
+    b = replace(a, matrices=tuple(2.0 * m for m in a.matrices))
+    assert b.cache == {} and b.cache is not a.cache
+    assert AffineMatrix(a.matrices, a.exponents).cache == {}
+    assert "cache" not in repr(a) and "rows" not in repr(a)
+    c = pickle.loads(pickle.dumps(a))
+    np.testing.assert_array_equal(c.cache["rows"][0], np.arange(5))  # derived from the same terms, so it travels
+    np.testing.assert_allclose(c.at([0.5, 0.0]).toarray(), a.at([0.5, 0.0]).toarray(), rtol=0, atol=0)

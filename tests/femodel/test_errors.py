@@ -92,3 +92,22 @@ def test_bad_field_is_reported_with_file(tmp_path):
     p = _deck(tmp_path, "CBAR,1,1,1,2,abc,1.,0.\n")
     with pytest.raises(femodel.ModelError, match=r"d\.bdf"):
         femodel.read_bdf(p)
+
+
+def test_circular_cord1_names_the_file_and_systems(tmp_path):
+    """CORD1R 7 on grids positioned in CORD1R 7 itself can never be resolved."""
+    p = _deck(tmp_path, "GRID,10,7,0.,0.,0.\nGRID,11,7,0.,0.,1.\nGRID,12,,1.,0.,0.\nCORD1R,7,10,11,12\n")
+    with pytest.raises(femodel.ModelError, match=r"d\.bdf: coordinate systems \[7\] cannot be resolved"):
+        femodel.read_bdf(p)
+
+
+def test_rejected_cards_are_counted_never_zero(tmp_path):
+    """pyNastran holds RADLST (no converter of its own) as rejected raw cards; both are listed."""
+    from femodel._reader import card_counts
+
+    p = _deck(tmp_path, "CBAR,1,1,1,2,0.,1.,0.\nRADLST,1,2,3\nRADLST,2,2,3\n")
+    with pytest.raises(femodel.ModelError, match=r"unsupported card types: RADLST x2 "):
+        femodel.read_bdf(p)
+    # counted once whether or not pyNastran's own count has them
+    assert card_counts({"GRID": 2}, [["RADLST", "1"], ["radlst*", "2"]]) == {"GRID": 2, "RADLST": 2}
+    assert card_counts({"GRID": 2, "RADLST": 2}, [["RADLST", "1"], ["RADLST", "2"]]) == {"GRID": 2, "RADLST": 2}

@@ -98,3 +98,48 @@ def test_mpc_of_the_case_control_set_ties_dof(tmp_path):
     ug = asm.expand(ua)
     assert ug[asm.gset.index(3, 2)] == pytest.approx(3.0)
     assert ug[asm.gset.index(3, 3)] == 0.0
+
+
+# CORD2R 5: origin (1, 0, 0), e1 = +y, e2 = -x, e3 = +z, so local (a, b, c) -> basic (1 - b, a, c).
+# Grids 10, 11, 12 are positioned in it at basic (1, 0, 0), (1, 0, 2), (2, 0, 0); the CORD1R 7
+# built on them is basic translated by (1, 0, 0).
+CHAINED_CORDS = (
+    "CORD2R,5,0,1.,0.,0.,1.,0.,1.,+C5\n+C5,1.,1.,0.\n"
+    "GRID,10,5,0.,0.,0.\nGRID,11,5,0.,0.,2.\nGRID,12,5,0.,-1.,0.\n"
+    "CORD1R,7,10,11,12\n"
+    "GRID,20,7,0.5,0.25,3.\n"
+)
+
+
+@pytest.mark.parametrize("units, scale", [("si", 1.0), ("mm-t-s", 1e-3)])
+def test_cord1_on_grids_positioned_in_another_system(tmp_path, units, scale):
+    """Nastran lets CORD1x use grids given in other systems; they are resolved first."""
+    p = tmp_path / "chain.bdf"
+    p.write_text("BEGIN BULK\n" + CHAINED_CORDS + "ENDDATA\n")
+    m = femodel.read_bdf(p, units=units)
+    np.testing.assert_allclose(m.xyz[m.grid_index([10, 11, 12])], np.array([[1, 0, 0], [1, 0, 2], [2, 0, 0]]) * scale,
+                               atol=1e-15)
+    np.testing.assert_allclose(m.coords[7].origin, np.array([1.0, 0.0, 0.0]) * scale, atol=1e-15)
+    np.testing.assert_allclose(m.coords[7].axes, np.eye(3), atol=1e-15)
+    np.testing.assert_allclose(m.xyz[m.grid_index(20)[0]], np.array([1.5, 0.25, 3.0]) * scale, atol=1e-15)
+
+
+def test_cord2r_in_a_cylindrical_rid_scales_lengths_not_angles(tmp_path):
+    """CORD2R 8 given as (r, theta, z) points of CORD2C 6; mm-t-s and SI decks put grid 30 at the same place.
+
+    System 8: origin (0, 1, 0), e1 = +y, e2 = -x, e3 = +z; grid 30 at local
+    (0.5, 0.2, 0.1) m is at basic (-0.2, 1.5, 0.1) m.
+    """
+    def deck(L):
+        return (
+            "BEGIN BULK\nCORD2C,6,0,0.,0.,0.,0.,0.,1.,+C6\n+C6,1.,0.,0.\n"
+            f"CORD2R,8,6,{L!r},90.,0.,{L!r},90.,{L!r},+C8\n+C8,{2 * L!r},90.,0.\n"
+            f"GRID,30,8,{0.5 * L!r},{0.2 * L!r},{0.1 * L!r}\nENDDATA\n"
+        )
+
+    for units, L in (("si", 1.0), ("mm-t-s", 1e3)):
+        p = tmp_path / f"rid_{units}.bdf"
+        p.write_text(deck(L))
+        m = femodel.read_bdf(p, units=units)
+        np.testing.assert_allclose(m.xyz[0], [-0.2, 1.5, 0.1], atol=1e-12)
+        np.testing.assert_allclose(m.coords[8].axes, [[0, 1, 0], [-1, 0, 0], [0, 0, 1]], atol=1e-12)
