@@ -815,8 +815,3 @@ def _add_solids(model, col, cd_axes, wt):
             lab = f"{tab.card} PSOLID {','.join(str(int(p)) for p in np.unique(tab['pid'][sel])[:3])}"
             col.add("K", [(("MAT1", int(mid), "E"), 1)], lab + " stiffness", k[sel], pat.subset(sel), E[sel])
             col.add("M", [(("MAT1", int(mid), "RHO"), 1)], lab + " mass", m[sel], pat.subset(sel), wt * rho[sel])
-
-
-# femodel/_parametric.py (owned by another change) still imports the old private
-# name; drop this alias once its import reads ``to_cd``.
-_to_cd = to_cd

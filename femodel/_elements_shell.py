@@ -801,9 +801,3 @@ def shell_mass(xyz, mu, coupled: bool, ids=None) -> np.ndarray:
     for d in range(3):
         m[:, d::6, d::6] = mnn
     return m
-
-
-# femodel/_parametric.py (owned by another change) still imports the old private
-# names; drop these aliases once its import reads ``bending_lengths, unit_shear``.
-_bending_lengths = bending_lengths
-_unit_shear = unit_shear

@@ -258,8 +258,8 @@ def _shell_shear_elements(fe, params: ParameterSet, key_index: dict) -> list:
     (a, b) exponent rows, the row of each (jt, ja, jb) triple, the triple of
     each element, the a rows of the triples).
     """
-    from femodel._assembly import _to_cd
-    from femodel._elements_shell import RESIDUAL_BENDING_COEFF, _bending_lengths, _unit_shear, shell_frames
+    from femodel._assembly import to_cd
+    from femodel._elements_shell import RESIDUAL_BENDING_COEFF, bending_lengths, shell_frames, unit_shear
 
     coeff = float(RESIDUAL_BENDING_COEFF)
     prop = fe.properties.get("PSHELL")
@@ -305,9 +305,9 @@ def _shell_shear_elements(fe, params: ParameterSet, key_index: dict) -> list:
         nodes = fe.grid_index(tab["nodes"][idx].ravel()).reshape(n, -1)
         xyz = fe.xyz[nodes]
         _, xy, _ = shell_frames(xyz, tab.ids[idx])
-        L = _bending_lengths(xy)
+        L = bending_lengths(xy)
         # the shear term per direction for unit shear stiffness (only the shear kernel is evaluated)
-        unit = [_to_cd(u, nodes, cd_axes, 6) for u in _unit_shear(xyz, tab.ids[idx])]
+        unit = [to_cd(u, nodes, cd_axes, 6) for u in unit_shear(xyz, tab.ids[idx])]
         # exponent rows depend on (jt, ja, jb) only: form them per distinct triple
         code = np.column_stack([jt[idx], ja[idx], jb[idx]])
         triples, tinv = np.unique(code, axis=0, return_inverse=True)
