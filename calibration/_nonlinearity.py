@@ -48,7 +48,8 @@ def _z_of_p(p: float) -> float:
     """One-sided standard-normal z of a p-value."""
     from scipy.stats import norm
 
-    return float(norm.isf(p)) if np.isfinite(p) else float("nan")
+    # p = 1 (a statistic far below its expectation: a conservative floor) is held at z ~ -8, not -inf
+    return float(norm.isf(min(p, 1.0 - 1e-16))) if np.isfinite(p) else float("nan")
 
 
 def _chi2_z(t: float, dof: int) -> float:
@@ -177,10 +178,11 @@ def frf_level_from_run(run, level: float | None = None, unit: str = "N", valid_o
 class ModeFit:
     """One resonance fitted at one level (one complex mode + constant + slope per channel).
 
-    ``frequency_hz``/``damping`` with their standard deviations (Gauss-Newton,
-    scaled by ``max(1, chi2/dof)`` when standard errors are given so that model
-    misfit inflates them, by the residual variance when the noise comes from the
-    residual). ``chi2_per_dof`` is NaN without standard errors.
+    ``frequency_hz``/``damping`` with their standard deviations: Gauss-Newton,
+    scaled by ``max(1, chi2/dof)`` when standard errors are given (model misfit
+    inflates them); without standard errors the heteroscedasticity-consistent
+    sandwich estimate from the fit residual (HC1). ``chi2_per_dof`` is NaN
+    without standard errors.
     """
 
     frequency_hz: float
@@ -189,7 +191,9 @@ class ModeFit:
     damping_sd: float
     chi2_per_dof: float
     n_lines: int
-    residual_rms: np.ndarray  # (n_out, n_in) RMS fit residual, FRF units
+    residual_rms: np.ndarray  # (n_ch,) RMS fit residual, receptance units
+    residual_rel_rms: np.ndarray  # (n_ch,) RMS of the fit residual relative to the FRF
+    peak_snr: float  # modal peak / noise at the peak, best channel
     band_hz: tuple[float, float]
 
 
@@ -287,15 +291,29 @@ def _fit_mode(
     if dof < 1:
         raise CalibrationError(f"{name}: too few lines for the local fit near {f0:.4g} Hz")
     chi2 = float(r @ r) / dof
-    # with standard errors, misfit beyond noise inflates the covariance; without, the residual is the noise
-    s2 = max(1.0, chi2) if S is not None else chi2
     # column scaling keeps J^T J well conditioned (coefficients span many decades)
     cn = np.linalg.norm(J, axis=0)
     cn[cn == 0] = 1.0
     Js = J / cn
-    cov = np.linalg.pinv(Js.T @ Js) / np.outer(cn, cn) * s2
+    Ainv = np.linalg.pinv(Js.T @ Js)
+    if S is not None:
+        # with standard errors, misfit beyond noise inflates the covariance
+        cov_s = Ainv * max(1.0, chi2)
+    else:
+        # without, the residual is the noise, of unknown shape over the lines (absolute, relative or
+        # between): the heteroscedasticity-consistent sandwich (HC1) instead of one common variance
+        Jr = Js * r[:, None]
+        cov_s = Ainv @ (Jr.T @ Jr) @ Ainv * (r.size / dof)
+    cov = cov_s / np.outer(cn, cn)
     sd_wr, sd_z = np.sqrt(max(cov[0, 0], 0.0)), np.sqrt(max(cov[1, 1], 0.0))
-    rms = np.sqrt(np.mean(np.abs(R) ** 2, axis=0))
+    # residual RMS per channel, absolute and relative, corrected for the fitted parameters
+    dof_scale = r.size / dof
+    rms = np.sqrt(np.mean(np.abs(R) ** 2, axis=0) * dof_scale)
+    rel_rms = np.sqrt(np.mean(np.abs(R / Y) ** 2, axis=0) * dof_scale)
+    # the mode's peak (|A| / (2 zeta wr^2)) against the noise there: a noise bump fitted as a mode scores low
+    k_pk = int(np.argmin(np.abs(w - wr)))
+    noise_pk = rms if S is None else S[m][k_pk]
+    peak_snr = float(np.max(np.abs(A) / (2 * zeta * wr**2) / noise_pk))
     return ModeFit(
         frequency_hz=float(wr / (2 * np.pi)),
         damping=zeta,
@@ -304,6 +322,8 @@ def _fit_mode(
         chi2_per_dof=chi2 if S is not None else float("nan"),
         n_lines=n,
         residual_rms=rms,
+        residual_rel_rms=rel_rms,
+        peak_snr=peak_snr,
         band_hz=(float(band[0]), float(band[1])),
     )
 
@@ -338,12 +358,15 @@ def _half_power_zeta(f: np.ndarray, a: np.ndarray, k: int) -> float:
     return float(max(span, df) / (2 * f[k]))
 
 
-def find_modes(level: FRFLevel, prominence_decades: float = 0.3) -> np.ndarray:
+def find_modes(level: FRFLevel, prominence_decades: float = 0.3, min_snr: float = 5.0) -> np.ndarray:
     """Resonance frequencies (Hz) picked as peaks of the channel-averaged receptance magnitude.
 
     A peak must stand ``prominence_decades`` above its surroundings in log10
-    magnitude (0.3: a factor 2). Pass ``modes_hz`` to :func:`level_dependence`
-    instead when the modes are known (identification) or close together.
+    magnitude (0.3: a factor 2) and, when standard errors are given, exceed
+    ``min_snr`` times its standard error on at least one channel (a noise
+    bump in a resonance's far tail is not a mode). Pass ``modes_hz`` to
+    :func:`level_dependence` instead when the modes are known (identification)
+    or close together.
     """
     from scipy.signal import find_peaks
 
@@ -354,6 +377,9 @@ def find_modes(level: FRFLevel, prominence_decades: float = 0.3) -> np.ndarray:
         j = int(np.argmax(a))
         if 0 < j < a.size - 1 and a[j] > 2 * min(a[0], a[-1]):
             k = np.array([j])
+    if level.std_error is not None and k.size:
+        snr = np.abs(level.frf[k]) / level.std_error[k]
+        k = k[snr.reshape(k.size, -1).max(axis=1) >= min_snr]
     return level.frequency_hz[k]
 
 
@@ -473,6 +499,7 @@ def level_dependence(
     damping_repeatability: float = 0.0,
     scatter_delta: float = 0.0,
     max_relative_noise: float = 0.3,
+    min_snr: float = 5.0,
 ) -> LevelDependence:
     """Does each mode's natural frequency and damping change with excitation level beyond noise?
 
@@ -500,6 +527,10 @@ def level_dependence(
     max_relative_noise : float
         Lines whose relative standard error exceeds this are left out of the
         model-free check (the log ratio is not Gaussian there: antiresonances).
+    min_snr : float
+        A mode whose fitted peak is less than ``min_snr`` times the noise there
+        (standard error, or fit residual RMS) at any level is left out, and the
+        evidence says so.
 
     Returns
     -------
@@ -519,7 +550,7 @@ def level_dependence(
     if len(shapes) != 1:
         raise CalibrationError(f"the levels have different channel sets {sorted(shapes)}: {names}")
     if modes_hz is None:
-        modes = find_modes(levels[0])
+        modes = find_modes(levels[0], min_snr=min_snr)
         if modes.size == 0:
             raise CalibrationError(f"{names[0]}: no resonance peak found; pass modes_hz")
     else:
@@ -548,12 +579,24 @@ def level_dependence(
         Y, S = _receptance(d)
         Y = Y.reshape(Y.shape[0], -1)
         S = None if S is None else S.reshape(S.shape[0], -1)
+        z0 = np.clip(zeta0, 1e-5, 0.2)
         fits.append(
             tuple(
-                _fit_mode(d.frequency_hz, Y, S, fr, min(max(zeta0[r], 1e-5), 0.2), bands[r], f"{d.name}, mode {r + 1}")
+                _fit_mode(d.frequency_hz, Y, S, fr, z0[r], bands[r], f"{d.name}, mode {r + 1}")
                 for r, fr in enumerate(modes)
             )
         )
+    # a "mode" that does not stand min_snr above the noise at every level is a noise bump: dropped
+    snr = np.array([[fl[r].peak_snr for fl in fits] for r in range(modes.size)])
+    weak = snr.min(axis=1) < min_snr
+    dropped = [
+        f"peak near {modes[r]:.5g} Hz left out: modal peak only {snr[r].min():.3g}x the noise (< {min_snr:g})"
+        for r in np.nonzero(weak)[0]
+    ]
+    if weak.all():
+        raise CalibrationError(f"no resonance stands {min_snr:g}x above the noise in {names}: {'; '.join(dropped)}")
+    modes = modes[~weak]
+    fits = [tuple(fl[r] for r in np.nonzero(~weak)[0]) for fl in fits]
     has_se = all(d.std_error is not None for d in levels)
     noise = "per-line standard errors" if has_se else "local fit residual (no standard errors)"
     if frequency_repeatability or damping_repeatability or scatter_delta:
@@ -665,6 +708,7 @@ def level_dependence(
         )
         + f" ({len(levels)} levels, {span}; noise from {noise}; threshold {z_threshold:g} sigma)",
     )
+    ev.extend(dropped)
     return LevelDependence(
         flagged=flagged,
         levels=tuple(lv.tolist()),
@@ -690,13 +734,22 @@ def _common_lines(fa: np.ndarray, fb: np.ndarray, rtol: float = 1e-6) -> tuple[n
 
 
 def _noise_of(d: FRFLevel, fits: tuple[ModeFit, ...], idx: np.ndarray) -> np.ndarray:
-    """Per-line noise (FRF units) on lines idx: standard errors, or the fit residual RMS."""
+    """Per-line noise (FRF units) on lines idx: the standard errors, or from the fit residual.
+
+    Without standard errors the residual of the local fits says how large the noise
+    is but not how it is spread over the lines; the larger of the two simple models
+    is taken on every line (absolute: the residual RMS; relative: the relative
+    residual RMS times |H|), so the floor is not underestimated whichever holds.
+    """
     if d.std_error is not None:
         return d.std_error[idx]
-    # residual RMS of the receptance fits, back to the FRF quantity on each line
-    rms = np.sqrt(np.mean([f.residual_rms**2 for f in fits], axis=0)).reshape(d.frf.shape[1:])
+    shape = d.frf.shape[1:]
+    absolute = np.sqrt(np.mean([f.residual_rms**2 for f in fits], axis=0)).reshape(shape)
+    relative = np.sqrt(np.mean([f.residual_rel_rms**2 for f in fits], axis=0)).reshape(shape)
     w = 2 * np.pi * d.frequency_hz[idx]
-    return rms[None] * (w ** _POWER[d.quantity])[:, None, None]
+    return np.maximum(
+        absolute[None] * (w ** _POWER[d.quantity])[:, None, None], relative[None] * np.abs(d.frf[idx])
+    )
 
 
 # ------------------------------------------------------------------ distortion

@@ -283,3 +283,61 @@ def test_sweep_direction_linear_agrees_within_noise(with_std_error):
 def test_nonlinearity_needs_a_check():
     with pytest.raises(CalibrationError, match="no nonlinearity check"):
         nonlinearity()
+
+
+# ------------------------------------------------- no standard errors; run files
+@pytest.mark.parametrize("noise", ["relative", "absolute"])
+def test_linear_without_standard_errors_not_flagged(noise):
+    """Noise floor from the local fit residual only (no std_error): still no false alarm over seeds."""
+    f = _lines()
+    H = _accelerance(f)
+    for seed in range(8):
+        rng = np.random.default_rng(100 + seed)
+        levels = []
+        for lvl in (1.0, 4.0):
+            s = 0.01 * (np.abs(H) if noise == "relative" else np.abs(H).max(axis=0, keepdims=True))
+            e = s * (rng.standard_normal(H.shape) + 1j * rng.standard_normal(H.shape)) / np.sqrt(2)
+            levels.append(FRFLevel(f, H + e, lvl))
+        r = level_dependence(levels)
+        assert not r.flagged, (seed, r.evidence)
+        assert "fit residual" in r.noise
+        np.testing.assert_allclose(r.modes_hz, F_HZ, rtol=2e-4)  # a noise bump is never taken for a mode
+    # and a real 0.5 % stiffening is still found without standard errors
+    hi = FRFLevel(f, _accelerance(f, F_HZ * [1, 1.005, 1]), 4.0)
+    r = level_dependence([levels[0], hi])
+    assert {(c.mode, c.quantity) for c in r.changes if c.flagged} == {(2, "frequency")}
+
+
+def test_run_files_sweep_order_and_distortion(tmp_path):
+    """Up and down stepped-sine run files of a hardening mode: order from time_s, jump and THD flagged."""
+    from acquisition.runfile import ChannelSpec, LineQuality, create_run, read_run
+
+    from calibration import distortion_of_run, frf_level_from_run
+
+    sens = (ChannelSpec("acc1", "response", "acceleration", "m/s^2", grid=1, direction=(0.0, 0.0, 1.0)),)
+    drv = (ChannelSpec("F1", "force", "force", "N", grid=1, direction=(0.0, 0.0, 1.0)),)
+    f = np.linspace(97, 106, 91)
+    rng = np.random.default_rng(7)
+    runs = {}
+    for direction in ("up", "down"):
+        H = -((2 * np.pi * f) ** 2)[:, None, None] * _duffing_sweep(f, direction, beta=2.5e5)
+        Hn, s = _noisy(H, 0.01, rng)
+        thd = np.full((f.size, 2), 0.002)
+        thd[:, 0] += 0.05 * (np.abs(H[:, 0, 0]) / np.abs(H).max()) ** 2  # distortion grows with the response
+        path = tmp_path / f"{direction}.h5"
+        order = range(f.size) if direction == "up" else range(f.size - 1, -1, -1)
+        with create_run(path, article="BRB-1", sensors=sens, drives=drv) as w:
+            for t, k in enumerate(order):
+                q = LineQuality(force_n=np.ones(1), std_error=s[k], thd=thd[k], time_s=float(t))
+                w.append_line(f[k], Hn[k], q)
+        runs[direction] = read_run(path)
+    up, down = frf_level_from_run(runs["up"]), frf_level_from_run(runs["down"])
+    assert (up.sweep, down.sweep) == ("up", "down") and up.level == pytest.approx(1.0)
+    r = sweep_direction(up, down)
+    assert r.flagged and r.bands[0].peak_up_hz > r.bands[0].peak_down_hz
+    d = distortion_of_run(runs["up"], modes_hz=[100.0], damping=[0.002], threshold=0.02)
+    assert d.flagged and {x.channel for x in d.lines} == {"acc1"}
+    assert max(x.thd for x in d.lines) > 0.04
+    v = nonlinearity(sweep=r, distortion=d)
+    assert v.verdict == "nonlinear" and "sweep direction: FLAGGED" in v.evidence
+    assert v.to_dict()["distortion"]["flagged"]
