@@ -463,6 +463,21 @@ class LevelDependence:
             "modes_hz": list(self.modes_hz),
             "changes": [c.to_dict() for c in self.changes],
             "pairs": [p.to_dict() for p in self.pairs],
+            "fits": [
+                [
+                    {
+                        "frequency_hz": m.frequency_hz,
+                        "frequency_sd_hz": m.frequency_sd_hz,
+                        "damping": m.damping,
+                        "damping_sd": m.damping_sd,
+                        "peak_snr": m.peak_snr,
+                        "n_lines": m.n_lines,
+                        "band_hz": list(m.band_hz),
+                    }
+                    for m in per_level
+                ]
+                for per_level in self.fits
+            ],
             "noise": self.noise,
             "z_threshold": self.z_threshold,
             "evidence": list(self.evidence),
@@ -536,6 +551,18 @@ def level_dependence(
     -------
     LevelDependence
     """
+    positive = (("z_threshold", z_threshold), ("band_zeta", band_zeta), ("max_relative_noise", max_relative_noise))
+    for key, val in positive:
+        if not (np.isfinite(val) and val > 0):
+            raise CalibrationError(f"level_dependence: {key} must be finite and > 0, got {val}")
+    for key, val in (
+        ("frequency_repeatability", frequency_repeatability),
+        ("damping_repeatability", damping_repeatability),
+        ("scatter_delta", scatter_delta),
+        ("min_snr", min_snr),
+    ):
+        if not (np.isfinite(val) and val >= 0):
+            raise CalibrationError(f"level_dependence: {key} must be finite and >= 0, got {val}")
     levels = sorted(levels, key=lambda d: d.level)
     if len(levels) < 2:
         raise CalibrationError("level dependence needs FRFs at two or more levels")
@@ -967,6 +994,10 @@ def sweep_direction(
     relative noise is estimated from the median squared relative difference
     (the jump region must then cover less than half the lines).
     """
+    if not (z_threshold > 0 and np.isfinite(scatter_delta) and scatter_delta >= 0):
+        raise CalibrationError(
+            f"sweep_direction: need z_threshold > 0 and scatter_delta >= 0, got {z_threshold}, {scatter_delta}"
+        )
     for d, want in ((up, "up"), (down, "down")):
         if d.sweep not in ("unknown", want):
             raise CalibrationError(f"{d.name}: given as the {want} sweep but its lines were measured {d.sweep}")

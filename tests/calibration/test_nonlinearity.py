@@ -89,6 +89,7 @@ def test_linear_verdict_words_and_dict():
     assert "no level dependence beyond noise" in r.evidence[0]
     d = v.to_dict()
     assert d["verdict"] == "linear" and len(d["level"]["changes"]) == 6
+    assert len(d["level"]["fits"]) == 2 and d["level"]["fits"][0][1]["frequency_hz"] == pytest.approx(120, rel=1e-4)
 
 
 # -------------------------------------------------------------- nonlinear: flag
@@ -156,6 +157,10 @@ def test_level_dependence_refuses_bad_input():
         FRFLevel(f, H, 1.0, std_error=np.ones((f.size, 1, 1)), label="b.h5")
     with pytest.raises(CalibrationError, match="quantity"):
         FRFLevel(f, H, 1.0, quantity="inertance")
+    with pytest.raises(CalibrationError, match="z_threshold must be"):
+        level_dependence([a, FRFLevel(f, H, 2.0)], z_threshold=0)
+    with pytest.raises(CalibrationError, match="frequency_repeatability must be"):
+        level_dependence([a, FRFLevel(f, H, 2.0)], frequency_repeatability=-0.1)
 
 
 # ---------------------------------------------------------- real bolted beam
