@@ -19,6 +19,20 @@ from calibration._fit import (
     run_start,
 )
 from calibration._metric import log_deviation, square_deviation, stacked
+from calibration._nonlinearity import (
+    Distortion,
+    FRFLevel,
+    LevelDependence,
+    Nonlinearity,
+    SweepDirection,
+    distortion,
+    distortion_of_run,
+    find_modes,
+    frf_level_from_run,
+    level_dependence,
+    nonlinearity,
+    sweep_direction,
+)
 from calibration._sampling import half_bandwidth_frequencies
 from calibration._pipeline import build_model, load_articles, run_campaign
 from calibration._validation import (
@@ -82,6 +96,18 @@ __all__ = [
     "make_executor",
     "run_start",
     "CalibrationError",
+    "Distortion",
+    "FRFLevel",
+    "LevelDependence",
+    "Nonlinearity",
+    "SweepDirection",
+    "distortion",
+    "distortion_of_run",
+    "find_modes",
+    "frf_level_from_run",
+    "level_dependence",
+    "nonlinearity",
+    "sweep_direction",
     "FRFModel",
     "Surrogate",
     "build_surrogate",
