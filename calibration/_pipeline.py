@@ -20,6 +20,7 @@ from calibration._errors import CalibrationError
 from calibration._fit import FitData, Objective, calibrate_cycles
 from calibration._identifiability import identifiability
 from calibration._sampling import half_bandwidth_frequencies
+from calibration._signal import signal_pairs
 from calibration._surrogate import FRFModel, build_surrogate
 from calibration._validation import IdentifiedModes, noise_floor_sd, validate
 
@@ -38,6 +39,7 @@ class Article:
     ident_channels: tuple  # output rows of the identified model
     quantity: str
     std_error: np.ndarray | None = None  # like frf: standard error of each value; None if the run has none
+    pairs: np.ndarray | None = None  # (n_channels, n_in) bool: pairs with a signal above noise (None: all)
 
 
 def _sensor_rows(run, names, path):
@@ -92,17 +94,24 @@ def load_articles(camp: Campaign, log=print, identify_data: bool = True) -> list
             raise CalibrationError(
                 f"{path}: {bad.sum()} valid line(s) hold NaN/inf (first at {f[sel][bad][0]:.3f} Hz): flag them invalid"
             )
+        drives = tuple(run.drives[c].name for c in cols)
+        sig = signal_pairs(f[sel], H[sel], se)
+        for line in sig.describe(names, drives):
+            log(f"{path.name}: {line}: left out of calibration and validation")
+        if not sig.usable.any():
+            raise CalibrationError(f"{path}: no channel/drive pair carries a signal above the noise in the band")
         out.append(Article(
             name=entry.article or run.article,
             path=path,
             freq_hz=f[sel],
             frf=H[sel],
             channels=tuple(names),
-            drives=tuple(run.drives[c].name for c in cols),
+            drives=drives,
             identification=None,
             ident_channels=tuple(names),
             quantity=run.quantity,
             std_error=se,
+            pairs=None if sig.usable.all() else sig.usable,
         ))
     quantities = {a.quantity for a in out}
     if len(quantities) > 1:
@@ -196,7 +205,16 @@ def _equalized_data(article: Article, zeta, f, outputs):
     ss = equalized(article.identification, zeta)
     H = ss.frf(f)
     rows = [article.ident_channels.index(n) for n in outputs]
-    return FitData(f, H[:, rows], tuple(outputs), inputs=article.drives, article=article.name)
+    return FitData(f, H[:, rows], tuple(outputs), inputs=article.drives, article=article.name,
+                   mask=_pair_mask(article, outputs, f.size))
+
+
+def _pair_mask(article: Article, channels, n_f: int):
+    """FitData mask leaving out the pairs without signal (None when every pair has one)."""
+    if article.pairs is None:
+        return None
+    use = article.pairs[[article.channels.index(n) for n in channels]]
+    return None if use.all() else np.broadcast_to(use, (n_f, *use.shape)).copy()
 
 
 def _noise_floor(article: Article, channels) -> float | None:
@@ -204,7 +222,7 @@ def _noise_floor(article: Article, channels) -> float | None:
     if article.std_error is None:
         return None
     rows = [article.channels.index(n) for n in channels]
-    d = FitData(article.freq_hz, article.frf[:, rows], tuple(channels), article.drives, article=article.name)
+    d = _raw_data(article, channels)
     return noise_floor_sd(d, article.std_error[:, rows])
 
 
@@ -228,7 +246,8 @@ def _members(camp: Campaign, articles, f, log):
 def _raw_data(article: Article, channels) -> FitData:
     """The article's measured in-band lines on ``channels``."""
     rows = [article.channels.index(n) for n in channels]
-    return FitData(article.freq_hz, article.frf[:, rows], tuple(channels), article.drives, article=article.name)
+    return FitData(article.freq_hz, article.frf[:, rows], tuple(channels), article.drives, article=article.name,
+                   mask=_pair_mask(article, channels, article.freq_hz.size))
 
 
 def _refined(camp: Campaign, model, arts, cyc, band, lower, upper, log, label):
