@@ -349,14 +349,7 @@ class SynthCampaign:
                 self._cache["npz"] = {k: z[k] for k in z.files}
         return self._cache["npz"]
 
-    def floor_sd(self, channels=None, band_hz=None) -> float:
-        """SD (Eq. 2.23) of the truth against its own noisy data: the floor any model can reach.
-
-        mean |log10(H_true / H_noisy)|^2 over the complex values of the named
-        sensor channels (default all), all drives, lines within ``band_hz``
-        (default the synthesis band), pooled over articles. For noise of
-        relative rms s it is about s^2 / ln(10)^2.
-        """
+    def _selection(self, channels, band_hz, articles):
         z = self.truth()
         names = [str(x) for x in z["sensors"]]
         channels = names if channels is None else [channels] if isinstance(channels, str) else list(channels)
@@ -365,16 +358,84 @@ class SynthCampaign:
             raise SynthError(f"{self.truth_path}: unknown channel(s) {missing}; sensors are {names}")
         idx = [names.index(c) for c in channels]
         lo, hi = self.band_hz if band_hz is None else (float(band_hz[0]), float(band_hz[1]))
+        arts = range(len(self.articles)) if articles is None else \
+            [self.articles.index(a) if isinstance(a, str) else int(a) for a in articles]
+        return idx, lo, hi, list(arts)
+
+    def signal_pairs(self, article, channels=None, band_hz=None) -> np.ndarray:
+        """(n_channels, n_drives) bool: pairs whose median |H_true|/sigma over the band is >= 3.
+
+        A pair the structure does not couple (a vertical sensor under a lateral
+        drive of a planar frame) holds noise only; the campaign leaves such
+        pairs out (calibration._signal), and so do the floors here.
+        """
+        z = self.truth()
+        idx, lo, hi, (i,) = self._selection(channels, band_hz, [article])
+        f = z[f"frequency_hz_{i}"]
+        sel = (f >= lo) & (f <= hi)
+        return np.median(np.abs(z[f"truth_{i}"][sel][:, idx]) / z[f"sigma_{i}"][sel][:, idx], axis=0) >= 3.0
+
+    def floor_sd(self, channels=None, band_hz=None, articles=None, signal_only: bool = True) -> float:
+        """SD (Eq. 2.23) of the truth against its own noisy data: the floor any model can reach.
+
+        mean |log10(H_true / H_noisy)|^2 over the complex values of the named
+        sensor channels (default all), all drives, lines within ``band_hz``
+        (default the synthesis band), pooled over ``articles`` (default all).
+        With ``signal_only`` the pairs without signal (:meth:`signal_pairs`) are
+        left out, as the campaign does. For noise of relative rms s it is about
+        s^2 / ln(10)^2.
+        """
+        z = self.truth()
+        idx, lo, hi, arts = self._selection(channels, band_hz, articles)
         eps2 = []
-        for i in range(len(self.articles)):
+        for i in arts:
             f = z[f"frequency_hz_{i}"]
             sel = (f >= lo) & (f <= hi)
             t, n = z[f"truth_{i}"][sel][:, idx], z[f"noisy_{i}"][sel][:, idx]
-            eps2.append((np.abs(np.log(t / n)) ** 2).ravel())
+            e = np.abs(np.log(t / n)) ** 2
+            if signal_only:
+                e = e[:, self.signal_pairs(i, [str(z["sensors"][k]) for k in idx], (lo, hi))]
+            eps2.append(e.ravel())
         eps2 = np.concatenate(eps2)
         if eps2.size == 0:
             raise SynthError(f"{self.truth_path}: no lines within {lo}-{hi} Hz")
         return float(np.mean(eps2) / np.log(10.0) ** 2)
+
+    def model_sd(self, p, article, channels=None, band_hz=None, signal_only: bool = True) -> float:
+        """SD of the deck at normalized ``p`` *with the article's true damping* against its noisy data.
+
+        The model is solved here exactly as the truth was (full-order modes,
+        the same per-mode damping by mode index, the exact higher-mode series),
+        so the only difference from :meth:`floor_sd` is p: this is the hold-out
+        error of a calibrated p with the damping question taken out.
+        """
+        import femodel
+
+        z = self.truth()
+        idx, lo, hi, (i,) = self._selection(channels, band_hz, [article])
+        if "pm" not in self._cache:
+            self._cache["pm"] = femodel.parametric_model(self.parameters, self.bdf, units=self.units)
+        pm = self._cache["pm"]
+        C = femodel.sensor_matrix(pm.assembly, [self.sensors[k].grid for k in idx],
+                                  [self.sensors[k].direction for k in idx])
+        B = femodel.sensor_matrix(pm.assembly, [c.grid for c in self.drives],
+                                  [c.direction for c in self.drives]).T.toarray()
+        zeta_true = z[f"zeta_{i}"][z[f"modes_hz_{i}"] > 0]
+        f_all = z[f"frequency_hz_{i}"]
+        top = float(np.max(z[f"modes_hz_{i}"]))
+
+        def zeta_of_mode(n):  # the truth's damping by mode index (and its last value beyond)
+            return np.concatenate([zeta_true, np.full(max(0, n - zeta_true.size), zeta_true[-1])])[:n]
+
+        p = np.asarray(p, float)
+        tr = article_truth(pm.stiffness(p), pm.mass(p), C, B, p, f_cut_hz=top, f_max_hz=float(f_all.max()),
+                           zeta_of_mode=zeta_of_mode, shift_hz=float(self.data_hz[0]), dofs=pm.aset)
+        sel = (f_all >= lo) & (f_all <= hi)
+        H = tr.frf(f_all[sel], "accelerance")
+        e = np.abs(np.log(H / z[f"noisy_{i}"][sel][:, idx])) ** 2
+        if signal_only:
+            e = e[:, self.signal_pairs(i, [str(z["sensors"][k]) for k in idx], (lo, hi))]
+        return float(np.mean(e) / np.log(10.0) ** 2)
 
     def write_campaign(self, path, *, bdf=None, parameters=None, units=None, calibrate, holdout=(),
                        band_hz=None, drives=None, **sections) -> Path:
