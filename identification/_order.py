@@ -30,10 +30,14 @@ class OrderSelection:
         ``n_consistent`` orders (the count a stabilization diagram shows).
     stable_eigenvalues : ndarray, complex (n_s,)
         The stable set [rad/s], ``Im > 0``, sorted by frequency: poles stable at
-        ``reference_order`` and labelled physical there.
+        ``reference_order`` (values there), less ``rejected_hz``.
+    rejected_hz : tuple of float
+        Stable poles [Hz] that the labels (``negligible`` etc.) rejected at
+        every evaluated order when no order matched the full stable set: the
+        data do not need them, they are left out of the set.
     reference_order : int
-        Order at which the stable set is read: ``n_consistent`` scanned
-        orders above the lowest order with the most stable poles.
+        Order at which the stable set is read: the end of the first window of
+        ``n_consistent`` orders holding the largest count of stable poles.
     order : int
         Chosen order.
     matched : bool
@@ -56,6 +60,7 @@ class OrderSelection:
     orders: tuple[int, ...]
     n_stable: tuple[int, ...]
     stable_eigenvalues: np.ndarray
+    rejected_hz: tuple[float, ...]
     reference_order: int
     order: int
     matched: bool
@@ -89,6 +94,7 @@ class OrderSelection:
                 for f, z in zip(self.stable_frequency_hz, self.stable_damping)
             ],
             "stable_eigenvalues_rad_s": [[float(v.real), float(v.imag)] for v in lam],
+            "rejected_hz": [float(x) for x in self.rejected_hz],
             "missing_hz": [list(m) for m in self.missing_hz],
             "evaluations": [dict(e) for e in self.evaluations],
             "criteria": dict(self.criteria),
@@ -103,6 +109,7 @@ class OrderSelection:
                 orders=tuple(int(o) for o in d["orders"]),
                 n_stable=tuple(int(k) for k in d["n_stable"]),
                 stable_eigenvalues=lam,
+                rejected_hz=tuple(float(x) for x in d["rejected_hz"]),
                 reference_order=int(d["reference_order"]),
                 order=int(d["order"]),
                 matched=bool(d["matched"]),
@@ -213,6 +220,20 @@ def _span(orders) -> str:
     return f"order {orders[0]}" if len(orders) == 1 else f"orders {orders[0]}-{orders[-1]}"
 
 
+def _reference_index(n_stable, n_consistent):
+    """Index of the order where the stable set is read.
+
+    The target is the largest count of stable poles held (at least) over
+    ``n_consistent`` consecutive orders (a count reached for one order only
+    is a transient); the stable set is read at the end of the first such
+    window: as low as possible, split poles of over-modelling come later.
+    """
+    n = np.asarray(n_stable)
+    w = min(int(n_consistent), n.size)
+    held = np.array([n[j : j + w].min() for j in range(n.size - w + 1)])
+    return int(np.argmax(held)) + w - 1
+
+
 def select_order(
     freq_hz,
     H,
@@ -233,7 +254,7 @@ def select_order(
     tol_damping: float = 0.05,
     min_mac: float = 0.95,
     n_consistent: int = 5,
-    max_candidates: int = 4,
+    max_candidates: int = 12,
 ) -> Identification:
     """Identify at the lowest order whose physical poles are the stable poles of the diagram.
 
@@ -244,10 +265,9 @@ def select_order(
        pole of the previous order; a link holds when frequency, damping and
        MAC agree within ``tol_frequency``, ``tol_damping`` and ``min_mac``.
        A pole is stable when its chain has held over ``n_consistent`` orders.
-    3. The stable set: the stable poles of the reference order
-       (``n_consistent`` scanned orders above the lowest order with the most
-       stable poles) that the full identification there labels
-       ``"physical"``.
+    3. The stable set: the stable poles of the reference order (the end of
+       the first window of ``n_consistent`` orders holding the largest count
+       of stable poles).
     4. Candidate orders, lowest first, are those whose poles contain the whole
        stable set; each is identified (``B, D`` fit, labels as in
        :func:`identify`) until one has exactly the stable set as physical
@@ -302,7 +322,7 @@ def select_order(
     }
     basis, sv = _basis(data, q)
 
-    def full(n, refine=refine):
+    def full(n):
         return _assemble(data, basis, sv, n, q, enforce_stability, zeta_max, min_contribution, min_importance, refine)
 
     # 1-2: poles of every order and their chains of agreement
@@ -329,29 +349,22 @@ def select_order(
     in_segment = [c + a >= n_consistent for c, a in zip(chain, ahead)]  # part of a stable run of orders
     n_stable = tuple(int(np.sum(c >= n_consistent)) for c in chain)
 
-    # 3: the stable set, read n_consistent orders above the lowest order with the most stable poles
-    # and confirmed by the labels there (no refinement: only the labels are used)
-    j_ref = min(len(ords) - 1, int(np.argmax(n_stable)) + int(n_consistent))
-    ref = full(ords[j_ref], refine=0)
-    lam_r, sh_r = scans[j_ref]
+    # 3: the stable set, read at the end of the first window of n_consistent orders holding the most
+    # stable poles
+    j_ref = _reference_index(n_stable, int(n_consistent))
     stable = chain[j_ref] >= n_consistent
-    phys_ref = ref.poles.eigenvalues[ref.poles.physical]
-    if phys_ref.size:
-        near = np.min(np.abs(lam_r[:, None] - phys_ref[None, :]), axis=1) <= 1e-6 * np.abs(lam_r)
-        stable &= near
-    else:
-        stable[:] = False
-    lam_s, sh_s = lam_r[stable], sh_r[:, stable]
+    lam_s, sh_s = scans[j_ref][0][stable], scans[j_ref][1][:, stable]
     if lam_s.size == 0:
         raise IdentificationError(
-            f"no pole is stable over {n_consistent} orders and physical at order {ords[j_ref]} in band "
-            f"{data.band_hz[0]:g}-{data.band_hz[1]:g} Hz; give the order explicitly"
+            f"no pole is stable over {n_consistent} orders in band "
+            f"{data.band_hz[0]:g}-{data.band_hz[1]:g} Hz (orders {ords[0]}-{ords[-1]}); give the order explicitly"
         )
 
     # 4: candidates, lowest first
     # an order is a candidate when every stable pole has a counterpart on a stable run of orders there
     missing = [_match(lam_s, sh_s, lam[seg], sh[:, seg], crit)[0] for (lam, sh), seg in zip(scans, in_segment)]
     evaluations: list[dict] = []
+    mismatch: list[tuple[set, int]] = []  # per evaluation: missing stable poles (indices), number spurious
     results: dict[int, Identification] = {}
     chosen = None
     for j, n in enumerate(ords):
@@ -362,28 +375,40 @@ def select_order(
         r = results[n] = full(n)
         phys = r.poles.physical
         lam_p = r.poles.eigenvalues[phys]
-        sh_p = _shapes(r, data.dual)
-        miss, spur = _match(lam_s, sh_s, lam_p, sh_p, crit)
+        miss, spur = _match(lam_s, sh_s, lam_p, _shapes(r, data.dual), crit)
         evaluations.append({
             "order": int(n),
             "n_physical": int(phys.sum()),
             "missing_hz": list(_hz(lam_s[miss])),
             "spurious_hz": list(_hz(lam_p[spur])),
         })
+        mismatch.append((set(miss.tolist()), int(spur.size)))
         if miss.size == 0 and spur.size == 0:
             chosen = n
             break
+    # stable poles that the labels reject at every evaluated order are not needed by the data: left out
+    rejected: set = set.intersection(*(m for m, _ in mismatch)) if chosen is None and mismatch else set()
+    if chosen is None and rejected:
+        for e, (m, n_spur) in zip(evaluations, mismatch):
+            if m == rejected and n_spur == 0:
+                chosen = e["order"]
+                break
     matched = chosen is not None
     if not matched:
         best = min(evaluations, key=lambda e: (len(e["missing_hz"]) + len(e["spurious_hz"]), e["order"]))
         chosen = best["order"]
+    keep = np.array([i not in rejected for i in range(lam_s.size)], dtype=bool)
+    rejected_hz = _hz(lam_s[~keep])
 
     # the reason, in words
     lo, hi = data.band_hz
-    ns = lam_s.size
+    ns = int(keep.sum())
     ev = {e["order"]: e for e in evaluations}
     if matched:
         head = f"order {chosen}: {ns} physical poles = {ns} stable poles in {lo:g}-{hi:g} Hz"
+        if rejected_hz:
+            head += (f" ({_list_hz(rejected_hz)} stable but labelled non-physical at every evaluated order "
+                     f"{', '.join(str(e['order']) for e in evaluations)}: left out)")
     else:
         e = ev[chosen]
         head = (
@@ -399,7 +424,7 @@ def select_order(
                 f"{len(sp)} spurious physical poles ({', '.join(f'{v:.1f}' for v in sp[:4])}{', ...' if len(sp) > 4 else ''} Hz)"
             )
             notes.append(f"order {e['order']} has {what}")
-        elif e["order"] < chosen and e["missing_hz"]:
+        elif e["order"] < chosen and len(e["missing_hz"]) > len(rejected_hz):
             notes.append(f"order {e['order']} labels {_list_hz(e['missing_hz'])} non-physical")
     below = [j for j, n in enumerate(ords) if n < chosen and missing[j].size]
     if below:
@@ -418,7 +443,8 @@ def select_order(
     selection = OrderSelection(
         orders=ords,
         n_stable=n_stable,
-        stable_eigenvalues=lam_s,
+        stable_eigenvalues=lam_s[keep],
+        rejected_hz=rejected_hz,
         reference_order=ords[j_ref],
         order=int(chosen),
         matched=matched,
