@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
@@ -453,10 +453,7 @@ def select_order(
         reason=reason,
         criteria=crit,
     )
-    r = results[chosen]
-    from dataclasses import replace
-
-    return replace(r, order_selection=selection)
+    return replace(results[chosen], order_selection=selection)
 
 
 def _shapes(r: Identification, dual: bool) -> np.ndarray:
