@@ -107,9 +107,15 @@ class CalibrationSection(_Strict):
 class IdentificationSection(_Strict):
     """Subspace identification of the test data (skipped when the run file holds one and use_stored)."""
 
-    order: int = Field(44, ge=2, description="state order (2 per mode)")
-    low_hz: float | None = Field(None, gt=0, description="identification band low (default: 0.8 x band low)")
-    high_hz: float | None = Field(None, gt=0, description="identification band high (default: 1.25 x band high)")
+    order: int | None = Field(
+        None, ge=2, description="state order (2 per mode); None = automatic (identification.select_order)"
+    )
+    low_hz: float | None = Field(
+        None, gt=0, description="identification band low [Hz] (default: 0.8 x band low; clipped to the data)"
+    )
+    high_hz: float | None = Field(
+        None, gt=0, description="identification band high [Hz] (default: 1.25 x band high; clipped to the data)"
+    )
     use_stored: bool = Field(True, description="use /analysis/identification of the run file when present")
 
 

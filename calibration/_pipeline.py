@@ -124,7 +124,8 @@ def identified_articles(camp: Campaign, articles, log=print) -> list[Article]:
     from dataclasses import replace
 
     from acquisition.runfile import read_analysis, read_run
-    from identification import Identification, identify
+    from calibration._identify_run import identify_run
+    from identification import Identification
 
     lo, hi = camp.band.low_hz, camp.band.high_hz
     ilo = camp.identification.low_hz or 0.8 * lo
@@ -142,14 +143,13 @@ def identified_articles(camp: Campaign, articles, log=print) -> list[Article]:
                 ident_channels = tuple(s.name for s in run.sensors)
                 log(f"{a.path.name}: using stored identification (order {cand.order})")
         if ident is None:
-            rows = _sensor_rows(run, a.channels, a.path)
-            cols = _drive_cols(run, list(a.drives), a.path)
-            H = np.asarray(run.frf)[:, rows][:, :, cols]
             t0 = time.perf_counter()
-            ident = identify(run.frequency_hz, H, camp.identification.order, band_hz=(ilo, ihi),
-                             valid=run.valid, quantity=run.quantity)
-            log(f"{a.path.name}: identified order {ident.order}, {ident.modal.n_modes} modes in "
-                f"{ilo:.0f}-{ihi:.0f} Hz ({time.perf_counter() - t0:.1f} s)")
+            ident = identify_run(run, (ilo, ihi), order=camp.identification.order, channels=a.channels,
+                                 drives=a.drives)
+            blo, bhi = ident.band_hz
+            how = "set" if ident.order_selection is None else f"automatic: {ident.order_selection.reason}"
+            log(f"{a.path.name}: identified order {ident.order} ({how}), {ident.modal.n_modes} modes in "
+                f"{blo:.0f}-{bhi:.0f} Hz, weights {ident.settings['weights']} ({time.perf_counter() - t0:.1f} s)")
         out.append(replace(a, identification=ident, ident_channels=ident_channels))
     return out
 

@@ -9,6 +9,7 @@ results out; imports only numpy and scipy (matplotlib lazily, for plots).
 from ._equalize import equalized
 from ._errors import IdentificationError
 from ._identify import Identification, default_block_rows, identify
+from ._order import DEFAULT_MAX_ORDER, OrderSelection, select_order
 from ._metrics import channel_deviation, log_ratio, square_deviation
 from ._plots import plot_fit, plot_stabilization
 from ._poles import LABELS, ModalParameters, Poles, mac
@@ -17,6 +18,9 @@ from ._statespace import StateSpace
 from ._subspace import bilinear_alpha, to_continuous, to_discrete
 
 __all__ = [
+    "DEFAULT_MAX_ORDER",
+    "OrderSelection",
+    "select_order",
     "LABELS",
     "Identification",
     "IdentificationError",

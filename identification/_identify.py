@@ -12,6 +12,7 @@ from ._metrics import channel_deviation
 from ._poles import LABELS, ModalParameters, Poles, label_poles, normalize_shapes
 from ._statespace import QUANTITIES, StateSpace, frequency_grid
 from ._subspace import (
+    _separable,
     bilinear_alpha,
     fit_bd,
     fit_cd,
@@ -46,6 +47,8 @@ class Identification:
         data, over the lines in band.
     settings : dict
         The numerical settings used (block_rows, alpha_rad_s, thresholds...).
+    order_selection : OrderSelection or None
+        How the order was chosen when it was not given (:func:`select_order`).
     """
 
     model: StateSpace
@@ -56,6 +59,7 @@ class Identification:
     order: int
     fit_deviation: np.ndarray
     settings: dict = field(default_factory=dict)
+    order_selection: object | None = None  # OrderSelection (identification._order)
 
     @property
     def quantity(self) -> str:
@@ -101,6 +105,8 @@ class Identification:
             "band_hi_hz": float(self.band_hz[1]),
             "settings_json": json.dumps(self.settings),
         }
+        if self.order_selection is not None:
+            attrs["order_selection_json"] = json.dumps(self.order_selection.to_dict())
         return arrays, attrs
 
     @classmethod
@@ -137,6 +143,12 @@ class Identification:
             )
             settings = attrs.get("settings_json", "{}")
             settings = json.loads(settings.decode() if isinstance(settings, bytes) else settings)
+            selection = attrs.get("order_selection_json")
+            if selection is not None:
+                from ._order import OrderSelection
+
+                selection = json.loads(selection.decode() if isinstance(selection, bytes) else selection)
+                selection = OrderSelection.from_dict(selection)
             return cls(
                 model=model,
                 singular_values=np.asarray(arrays["singular_values"]),
@@ -146,6 +158,7 @@ class Identification:
                 order=int(attrs["order"]),
                 fit_deviation=np.asarray(arrays["fit_deviation"]),
                 settings=settings,
+                order_selection=selection,
             )
         except KeyError as exc:
             raise IdentificationError(f"identification record lacks field {exc.args[0]!r}") from None
@@ -160,10 +173,11 @@ class _Data:
     H: np.ndarray  # (n_f, p, m) in identification orientation
     W: np.ndarray  # (n_f, p, m) weights 1/sigma
     out_scale: np.ndarray  # (p,) scale of each output for the subspace step
-    band_hz: tuple[float, float]
+    band_hz: tuple[float, float]  # effective band: requested band clipped to the valid lines
     dual: bool
     alpha: float
     quantity: str
+    requested_band_hz: tuple[float, float] | None  # as given (None: default = data range)
 
 
 def prepare_data(freq_hz, H, *, band_hz, weights, valid, quantity) -> _Data:
@@ -182,13 +196,24 @@ def prepare_data(freq_hz, H, *, band_hz, weights, valid, quantity) -> _Data:
         if v.shape != f.shape:
             raise IdentificationError(f"valid must be ({f.size},) booleans, got shape {v.shape}")
         keep &= v
+    if not keep.any():
+        raise IdentificationError("no valid line: `valid` is False everywhere")
+    data_lo, data_hi = float(f[keep].min()), float(f[keep].max())
     if band_hz is None:
-        band = (float(f[keep].min()) if keep.any() else 0.0, float(f[keep].max()) if keep.any() else 0.0)
+        requested = None
+        band = (data_lo, data_hi)
     else:
         b = np.asarray(band_hz, dtype=float).reshape(-1)
         if b.size != 2 or not np.all(np.isfinite(b)) or not (0 <= b[0] < b[1]):
             raise IdentificationError(f"band_hz must be (lo, hi) with 0 <= lo < hi, got {band_hz!r}")
-        band = (float(b[0]), float(b[1]))
+        requested = (float(b[0]), float(b[1]))
+        # never analyse (nor label poles as physical) beyond the measured lines
+        band = (max(requested[0], data_lo), min(requested[1], data_hi))
+        if band[0] >= band[1]:
+            raise IdentificationError(
+                f"band_hz {requested[0]:g}-{requested[1]:g} Hz does not overlap the valid data "
+                f"({data_lo:g}-{data_hi:g} Hz)"
+            )
         keep &= (f >= band[0]) & (f <= band[1])
     bad = ~np.all(np.isfinite(Ha.reshape(f.size, -1)), axis=1)
     if np.any(bad & keep):
@@ -226,7 +251,7 @@ def prepare_data(freq_hz, H, *, band_hz, weights, valid, quantity) -> _Data:
     out_scale = np.sqrt(np.mean(Wk**2, axis=(0, 2)))
     omega = 2 * np.pi * fk
     alpha = bilinear_alpha(2 * np.pi * band[0], 2 * np.pi * band[1])
-    return _Data(fk, omega, np.ascontiguousarray(Hk), Wk, out_scale, band, dual, alpha, quantity)
+    return _Data(fk, omega, np.ascontiguousarray(Hk), Wk, out_scale, band, dual, alpha, quantity, requested)
 
 
 def default_block_rows(order: int, n_out: int) -> int:
@@ -338,7 +363,7 @@ def contributions(data: _Data, A, B, C, blocks) -> np.ndarray:
 def identify(
     freq_hz,
     H,
-    order: int,
+    order: int | None = None,
     *,
     band_hz=None,
     weights=None,
@@ -367,11 +392,17 @@ def identify(
         Frequencies [Hz], any (non-uniform) grid.
     H : array_like, complex (n_f, n_out, n_in)
         Measured FRFs, e^{+i omega t} convention.
-    order : int
-        State dimension ``n`` (two per mode; e.g. 44 = 22 pole pairs).
+    order : int, optional
+        State dimension ``n`` (two per mode; e.g. 44 = 22 pole pairs). None:
+        automatic, the lowest order whose physical poles are the stable poles
+        of the stabilization diagram (:func:`select_order` with its default
+        criteria; the record is :attr:`Identification.order_selection`).
     band_hz : (lo, hi), optional
         Analysed band [Hz]; lines outside are ignored and poles outside are
-        labelled ``"out-of-band"``. Default: the data range.
+        labelled ``"out-of-band"``. The band is clipped to the range of the
+        valid lines (never beyond the data); the effective band is
+        :attr:`Identification.band_hz`, the request
+        ``settings["requested_band_hz"]``. Default: the data range.
     weights : array_like, optional
         ``(n_out,)`` noise standard deviation per output (FRF units) or
         ``(n_f, n_out, n_in)`` standard error per line. Residuals are divided
@@ -407,6 +438,14 @@ def identify(
     IdentificationError
         On inconsistent shapes, NaNs in band, too few lines for the order, etc.
     """
+    if order is None:
+        from ._order import select_order
+
+        return select_order(
+            freq_hz, H, band_hz=band_hz, weights=weights, quantity=quantity, valid=valid, block_rows=block_rows,
+            enforce_stability=enforce_stability, zeta_max=zeta_max, min_contribution=min_contribution,
+            min_importance=min_importance, refine=refine,
+        )
     n = int(order)
     if n < 1 or n != order:
         raise IdentificationError(f"order must be a positive integer, got {order!r}")
@@ -420,8 +459,9 @@ def identification_of_order(data, basis, sv, n, q, enforce_stability, zeta_max, 
     A, B, C, D, blocks, was_unstable = _fit(data, basis, sv, n, enforce_stability=enforce_stability, refine=refine)
     lam = block_poles(A, blocks)
     contrib = contributions(data, A, B, C, blocks)
-    a = np.sqrt(np.mean(data.W**2, axis=(0, 2)))  # per-output weights (exact unless per-line errors)
-    imp = importance(data.omega, data.H, a, A, C, blocks)
+    sep = _separable(data.W)
+    # the same weights as the B, D fit: per output when they factor, else per line
+    imp = importance(data.omega, data.H, sep[0] if sep is not None else data.W, A, C, blocks)
     labels = label_poles(lam, contrib, imp, was_unstable, data.band_hz, zeta_max, min_contribution, min_importance)
     model = StateSpace(A, B, C, D, data.quantity)
     H_data = data.H
@@ -449,6 +489,8 @@ def identification_of_order(data, basis, sv, n, q, enforce_stability, zeta_max, 
         "refine": int(refine),
         "n_lines": int(data.freq_hz.size),
         "n_reflected": int(np.sum(was_unstable)) if enforce_stability else 0,
+        "requested_band_hz": None if data.requested_band_hz is None else list(data.requested_band_hz),
+        "band_clipped": data.requested_band_hz is not None and tuple(data.requested_band_hz) != data.band_hz,
     }
     return Identification(
         model=model,

@@ -259,7 +259,8 @@ def importance(omega: np.ndarray, H: np.ndarray, a: np.ndarray, A: np.ndarray, C
 
     Parameters
     ----------
-    omega : (n_f,) rad/s; H : (n_f, p, m); a : (p,) output weights
+    omega : (n_f,) rad/s; H : (n_f, p, m)
+    a : (p,) output weights, or (n_f, p, m) per-line weights (1/standard error)
     A : (n, n) modal form; C : (p, n); blocks : list of slices of the states
 
     Returns
@@ -267,19 +268,24 @@ def importance(omega: np.ndarray, H: np.ndarray, a: np.ndarray, A: np.ndarray, C
     ndarray (n_blocks,)
         ``dSSR / SSR``; >> 1 for a pole the data need, << 1 for one fitting noise.
     """
-    ns = _NormalSystem(omega, A, C, a=a)
-    x = ns.solve(H)
-    res = (H - ns.model(x)) * a[None, :, None]
-    ssr = float(np.sum(np.abs(res) ** 2))
-    d = np.sqrt(np.abs(np.diag(ns.N)))
-    d[d == 0] = 1.0
-    Ninv = np.linalg.pinv(ns.N / np.outer(d, d), hermitian=True) / np.outer(d, d)
-    out = np.empty(len(blocks))
-    for i, b in enumerate(blocks):
-        xs = x[b, :]
-        S = Ninv[b, b]
-        out[i] = float(np.sum(xs * np.linalg.solve(S, xs))) / max(ssr, np.finfo(float).tiny)
-    return out
+    a = np.asarray(a, dtype=float)
+    if a.ndim == 1:
+        systems = [(_NormalSystem(omega, A, C, a=a), H, np.broadcast_to(a[None, :, None], H.shape))]
+    else:  # per-line weights (n_f, p, m): one normal system per input, as in fit_bd
+        systems = [(_NormalSystem(omega, A, C, w=a[:, :, j]), H[:, :, j : j + 1], a[:, :, j : j + 1])
+                   for j in range(H.shape[2])]
+    ssr = 0.0
+    dssr = np.zeros(len(blocks))
+    for ns, Hj, Wj in systems:
+        x = ns.solve(Hj)
+        ssr += float(np.sum(np.abs((Hj - ns.model(x)) * Wj) ** 2))
+        d = np.sqrt(np.abs(np.diag(ns.N)))
+        d[d == 0] = 1.0
+        Ninv = np.linalg.pinv(ns.N / np.outer(d, d), hermitian=True) / np.outer(d, d)
+        for i, b in enumerate(blocks):
+            xs = x[b, :]
+            dssr[i] += float(np.sum(xs * np.linalg.solve(Ninv[b, b], xs)))
+    return dssr / max(ssr, np.finfo(float).tiny)
 
 
 def fit_bd(omega: np.ndarray, H: np.ndarray, W: np.ndarray, A: np.ndarray, C: np.ndarray):

@@ -1,4 +1,9 @@
-"""``frfcal identify RUN.h5 --band LO HI --order N``: subspace identification of a run file."""
+"""``frfcal identify RUN.h5 --band LO HI [--order N]``: subspace identification of a run file.
+
+Without ``--order`` the order is chosen from the stabilization diagram
+(``identification.select_order``). The work is ``calibration._identify_run.identify_run``,
+the same function the campaign uses.
+"""
 
 from __future__ import annotations
 
@@ -10,26 +15,13 @@ HELP = "identify a state-space model and modes from a run file (frequency-domain
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("run", help="HDF5 run file written by 'frfcal acquire' or 'frfcal import-uff'")
     parser.add_argument("--band", nargs=2, type=float, metavar=("LO_HZ", "HI_HZ"), help="analysed band in Hz (default: all lines)")
-    parser.add_argument("--order", type=int, required=True, help="model order n = number of states (2 per mode)")
+    parser.add_argument("--order", type=int, help="model order n = number of states (2 per mode); default: automatic, from the stabilization diagram")
     parser.add_argument("--zeta0", type=float, help="also store the damping-equalized model with this damping ratio (e.g. 0.01)")
     parser.add_argument("--plot", metavar="DIR", help="write stabilization.png and fit.png into DIR")
     parser.add_argument("--no-weights", action="store_true", help="ignore the run's per-line standard errors")
     parser.add_argument("--block-rows", type=int, help="block rows q of the subspace data matrices (default: automatic)")
     parser.add_argument("--no-store", action="store_true", help="do not write the result into the run file")
     parser.add_argument("--json", action="store_true", help="print one JSON object (physical poles in Hz and zeta)")
-
-
-def _weights(run):
-    import numpy as np
-
-    se = np.asarray(run.std_error, dtype=float)
-    v = run.valid
-    if se.shape != run.frf.shape or not v.any():
-        return None
-    sev = se[v]
-    if np.all(np.isfinite(sev)) and np.all(sev > 0):
-        return np.where(np.isfinite(se) & (se > 0), se, 1.0)
-    return None
 
 
 def _stabilization_orders(order: int) -> list[int]:
@@ -47,21 +39,18 @@ def run(args: argparse.Namespace) -> int:
 
     import identification as idf
     from acquisition.runfile import read_run, write_analysis
+    from calibration._identify_run import identify_run, run_weights
 
     path = Path(args.run)
     run_ = read_run(path)
-    weights = None if args.no_weights else _weights(run_)
-    kw = dict(
-        band_hz=tuple(args.band) if args.band else None,
-        weights=weights,
-        quantity=run_.quantity,
-        valid=run_.valid,
-        block_rows=args.block_rows,
-    )
-    result = idf.identify(run_.frequency_hz, run_.frf, args.order, **kw)
+    band = tuple(args.band) if args.band else None
+    result = identify_run(run_, band, order=args.order, weights=None if args.no_weights else "std_error",
+                          block_rows=args.block_rows)
+    weights = run_weights(run_) if result.settings["weights"] == "std_error" else None
+    sel = result.order_selection
     arrays, attrs = result.to_arrays()
     attrs["run"] = str(path.name)
-    attrs["weights"] = "std_error" if weights is not None else "output_rms"
+    attrs["weights"] = result.settings["weights"]
     eq = None
     if args.zeta0 is not None:
         eq = idf.equalized(result, args.zeta0)
@@ -75,10 +64,12 @@ def run(args: argparse.Namespace) -> int:
     if args.plot:
         out = Path(args.plot)
         out.mkdir(parents=True, exist_ok=True)
-        orders = _stabilization_orders(args.order)
+        orders = _stabilization_orders(result.order)
+        kw = dict(band_hz=result.band_hz, weights=weights, quantity=run_.quantity, valid=run_.valid,
+                  block_rows=args.block_rows)
         stab = idf.stabilization(run_.frequency_hz, run_.frf, orders, **kw)
         plots.append(str(idf.plot_stabilization(stab, out / "stabilization.png", run_.frequency_hz, run_.frf, title=f"{path.name}: stabilization")))
-        plots.append(str(idf.plot_fit(result, run_.frequency_hz, run_.frf, out / "fit.png", equalized_model=eq, title=f"{path.name}: order {args.order}")))
+        plots.append(str(idf.plot_fit(result, run_.frequency_hz, run_.frf, out / "fit.png", equalized_model=eq, title=f"{path.name}: order {result.order}")))
     labels = {k: result.poles.count(k) for k in idf.LABELS if result.poles.count(k)}
     m = result.modal
     if args.json:
@@ -86,7 +77,13 @@ def run(args: argparse.Namespace) -> int:
             "run": str(path),
             "quantity": result.quantity,
             "band_hz": list(result.band_hz),
+            "requested_band_hz": list(band) if band else None,
+            "band_clipped": bool(result.settings["band_clipped"]),
             "order": result.order,
+            "order_mode": "automatic" if sel is not None else "set",
+            "order_reason": sel.reason if sel is not None else f"order {result.order} set with --order",
+            "order_selection": sel.to_dict() if sel is not None else None,
+            "weights": result.settings["weights"],
             "physical_poles": [
                 {"frequency_hz": float(f), "damping": float(z)} for f, z in zip(m.frequency_hz, m.damping)
             ],
@@ -98,7 +95,10 @@ def run(args: argparse.Namespace) -> int:
         }
         print(json.dumps(obj))
         return 0
-    print(f"{path.name}: {result.quantity}, {result.settings['n_lines']} lines in {result.band_hz[0]:g}-{result.band_hz[1]:g} Hz, order {result.order}")
+    clipped = f" (requested {band[0]:g}-{band[1]:g} Hz, clipped to the data)" if result.settings["band_clipped"] else ""
+    print(f"{path.name}: {result.quantity}, {result.settings['n_lines']} lines in {result.band_hz[0]:g}-{result.band_hz[1]:g} Hz{clipped}, order {result.order}")
+    if sel is not None:
+        print(f"order chosen automatically: {sel.reason}")
     print("poles: " + ", ".join(f"{v} {k}" for k, v in labels.items()))
     print(f"{'mode':>4} {'f_n [Hz]':>11} {'zeta [%]':>9} {'importance':>11}")
     phys = np.flatnonzero(result.poles.physical)

@@ -65,3 +65,50 @@ def ring(
     sigma = noise * np.abs(H) + 1e-3 * noise * np.sqrt(np.mean(np.abs(H) ** 2))
     Hn = H + sigma / np.sqrt(2) * (rng.standard_normal(H.shape) + 1j * rng.standard_normal(H.shape))
     return Truth(f, Hn, H, sigma, wn / (2 * np.pi), zetas, X, M, K)
+
+
+def free_free(
+    in_band_hz: tuple[float, ...] = (
+        104.0, 131.0, 158.0, 176.0, 203.0, 241.0, 262.0, 297.0, 318.0,
+        355.0, 383.0, 412.3, 447.0, 486.0, 521.0, 548.0, 583.0,
+    ),
+    out_of_band_hz: tuple[float, ...] = (62.0, 84.0, 618.0, 700.0, 850.0),
+    zeta_range: tuple[float, float] = (5e-4, 3e-3),
+    n_out: int = 20,
+    n_in: int = 2,
+    n_rigid: int = 6,
+    data_hz: tuple[float, float] = (90.0, 600.0),
+    n_lines: int = 2000,
+    noise: float = 0.01,
+    seed: int = 0,
+) -> Truth:
+    """Free-free structure in accelerance: rigid-body mass line, lightly damped modes in and out of band.
+
+    Modal model with random mass-normalized shapes at the ``n_out`` sensors
+    (the inputs act at the first ``n_in`` sensors, so the FRF is reciprocal).
+    ``n_rigid`` rigid-body modes at 0 Hz give the mass line: their accelerance
+    ``-omega^2 phi phi^T / (-omega^2) = phi phi^T`` is constant, as measured
+    above the suspension modes. Each elastic mode has its own damping ratio,
+    drawn log-uniformly in ``zeta_range``. Modes ``out_of_band_hz`` lie
+    outside the data (``data_hz``, geometric grid of ``n_lines``) but their
+    residual terms shape the data near the edges. Complex Gaussian noise of
+    relative level ``noise`` per element. ``f_n, zeta, shapes`` of the
+    returned truth are those of the in-band modes only (sorted by frequency).
+    """
+    rng = np.random.default_rng(seed)
+    f_el = np.array(sorted(in_band_hz) + sorted(out_of_band_hz), dtype=float)
+    n_el = f_el.size
+    zeta = np.exp(rng.uniform(np.log(zeta_range[0]), np.log(zeta_range[1]), n_el))
+    phi = rng.standard_normal((n_out, n_el)) * 0.3
+    phi_rb = rng.standard_normal((n_out, n_rigid)) * 0.3
+    f = np.geomspace(data_hz[0], data_hz[1], n_lines)
+    w = 2 * np.pi * f
+    wn = 2 * np.pi * f_el
+    den = wn[None, :] ** 2 - w[:, None] ** 2 + 2j * zeta[None, :] * wn[None, :] * w[:, None]
+    H = -(w**2)[:, None, None] * np.einsum("om,fm,im->foi", phi, 1.0 / den, phi[:n_in])
+    H = H + (phi_rb @ phi_rb[:n_in].T)[None, :, :]  # rigid-body mass line
+    sigma = noise * np.abs(H) + 1e-3 * noise * np.sqrt(np.mean(np.abs(H) ** 2))
+    Hn = H + sigma / np.sqrt(2) * (rng.standard_normal(H.shape) + 1j * rng.standard_normal(H.shape))
+    k = len(in_band_hz)
+    order = np.argsort(f_el[:k])
+    return Truth(f, Hn, H, sigma, f_el[:k][order], zeta[:k][order], phi[:, :k][:, order], np.eye(0), np.eye(0))

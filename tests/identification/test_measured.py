@@ -85,3 +85,21 @@ def test_bolted_beam_damping_rises_with_level(family):
     order = np.argsort(force)
     assert np.all(np.diff(np.asarray(zeta)[order]) > 0)  # strictly increasing with level
     assert zeta[order[-1]] / zeta[order[0]] > 2.5  # ~0.15 % -> 0.5-0.65 %
+
+
+def test_free_beam_automatic_order(beam):
+    """Automatic order on the measured free beam (zeta ~ 1e-4): the four modes, with a looser damping tolerance.
+
+    With the default criteria (tol_damping 5 %, max_order 120) this data set does not give a clean stable set:
+    damping estimates at zeta ~ 1e-4 move by 10-25 % between orders, and above order ~30 every mode splits into
+    two persistent poles. ``max_order=40, tol_damping=0.2`` recovers exactly the four modes.
+    """
+    from identification import select_order
+
+    f, H = beam
+    r = select_order(f, H, band_hz=(65, 1000), max_order=40, tol_damping=0.2)
+    sel = r.order_selection
+    assert sel.matched and r.poles.count("physical") == 4, sel.reason
+    np.testing.assert_allclose(r.modal.frequency_hz, BEAM_F_HZ, rtol=5e-4)
+    np.testing.assert_allclose(r.modal.damping, BEAM_ZETA, rtol=0.20)
+    assert sel.reason.startswith(f"order {r.order}: 4 physical poles = 4 stable poles in 65-1000 Hz")

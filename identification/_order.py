@@ -1,0 +1,461 @@
+"""Automatic model order: the lowest order whose physical poles are the stable poles of the diagram."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from ._errors import IdentificationError
+from ._identify import Identification, _assemble, _basis, _prepare, default_block_rows
+from ._poles import mac, pole_damping, pole_frequency_hz
+from ._subspace import realize
+
+#: Largest order scanned by default (state dimension; 60 pole pairs).
+DEFAULT_MAX_ORDER = 120
+
+
+@dataclass(frozen=True)
+class OrderSelection:
+    """Why :func:`select_order` chose its order.
+
+    Attributes
+    ----------
+    orders : tuple of int
+        Orders scanned (state dimensions), all from one subspace factorization.
+    n_stable : tuple of int
+        Per scanned order: in-band poles (``0 < zeta <= zeta_max``) whose chain
+        of nearest poles has agreed in frequency, damping and MAC over the last
+        ``n_consistent`` orders (the count a stabilization diagram shows).
+    stable_eigenvalues : ndarray, complex (n_s,)
+        The stable set [rad/s], ``Im > 0``, sorted by frequency: poles stable at
+        ``reference_order`` (values there), less ``rejected_hz``.
+    rejected_hz : tuple of float
+        Stable poles [Hz] that the labels (``negligible`` etc.) rejected at
+        every evaluated order when no order matched the full stable set: the
+        data do not need them, they are left out of the set.
+    reference_order : int
+        Order at which the stable set is read: the end of the first window of
+        ``n_consistent`` orders holding the largest count of stable poles.
+    order : int
+        Chosen order.
+    matched : bool
+        True when the physical poles at ``order`` are exactly the stable set;
+        False when no evaluated order matched and the one with the fewest
+        mismatches was taken.
+    missing_hz : tuple of tuple of float
+        Per scanned order: frequencies [Hz] of stable-set poles with no
+        matching in-band pole at that order (poles only, before labelling).
+    evaluations : tuple of dict
+        Orders fully identified and labelled: ``{"order", "n_physical",
+        "missing_hz", "spurious_hz"}`` (physical poles without a stable
+        counterpart are spurious).
+    reason : str
+        The choice in words.
+    criteria : dict
+        ``tol_frequency``, ``tol_damping``, ``min_mac``, ``n_consistent``, ``band_hz``.
+    """
+
+    orders: tuple[int, ...]
+    n_stable: tuple[int, ...]
+    stable_eigenvalues: np.ndarray
+    rejected_hz: tuple[float, ...]
+    reference_order: int
+    order: int
+    matched: bool
+    missing_hz: tuple[tuple[float, ...], ...]
+    evaluations: tuple[dict, ...]
+    reason: str
+    criteria: dict = field(default_factory=dict)
+
+    @property
+    def stable_frequency_hz(self) -> np.ndarray:
+        """Undamped natural frequencies of the stable set [Hz]."""
+        return pole_frequency_hz(np.asarray(self.stable_eigenvalues))
+
+    @property
+    def stable_damping(self) -> np.ndarray:
+        """Damping ratios of the stable set [-]."""
+        return pole_damping(np.asarray(self.stable_eigenvalues))
+
+    def to_dict(self) -> dict:
+        """JSON-serializable summary (eigenvalues as ``[re, im]`` pairs in rad/s)."""
+        lam = np.asarray(self.stable_eigenvalues)
+        return {
+            "order": int(self.order),
+            "matched": bool(self.matched),
+            "reason": self.reason,
+            "orders": [int(o) for o in self.orders],
+            "n_stable": [int(k) for k in self.n_stable],
+            "reference_order": int(self.reference_order),
+            "stable_poles": [
+                {"frequency_hz": float(f), "damping": float(z)}
+                for f, z in zip(self.stable_frequency_hz, self.stable_damping)
+            ],
+            "stable_eigenvalues_rad_s": [[float(v.real), float(v.imag)] for v in lam],
+            "rejected_hz": [float(x) for x in self.rejected_hz],
+            "missing_hz": [list(m) for m in self.missing_hz],
+            "evaluations": [dict(e) for e in self.evaluations],
+            "criteria": dict(self.criteria),
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> OrderSelection:
+        """Inverse of :meth:`to_dict`."""
+        try:
+            lam = np.array([complex(re, im) for re, im in d["stable_eigenvalues_rad_s"]], dtype=complex)
+            return cls(
+                orders=tuple(int(o) for o in d["orders"]),
+                n_stable=tuple(int(k) for k in d["n_stable"]),
+                stable_eigenvalues=lam,
+                rejected_hz=tuple(float(x) for x in d["rejected_hz"]),
+                reference_order=int(d["reference_order"]),
+                order=int(d["order"]),
+                matched=bool(d["matched"]),
+                missing_hz=tuple(tuple(float(x) for x in m) for m in d["missing_hz"]),
+                evaluations=tuple(dict(e) for e in d["evaluations"]),
+                reason=str(d["reason"]),
+                criteria=dict(d.get("criteria", {})),
+            )
+        except KeyError as exc:
+            raise IdentificationError(f"order-selection record lacks field {exc.args[0]!r}") from None
+
+
+def _scan_orders(data, orders, max_order, block_rows):
+    """Orders to scan and the block rows of the shared factorization."""
+    nf, p, m = data.H.shape
+    if orders is not None:
+        ords = tuple(int(o) for o in orders)
+        if not ords or any(o < 1 for o in ords) or any(b <= a for a, b in zip(ords, ords[1:])):
+            raise IdentificationError(f"orders must be increasing positive integers, got {list(orders)!r}")
+    else:
+        top = DEFAULT_MAX_ORDER if max_order is None else int(max_order)
+        if top < 2:
+            raise IdentificationError(f"max_order must be >= 2, got {max_order!r}")
+        q_cap = (2 * nf * m) // (m + p) if block_rows is None else int(block_rows)
+        top = min(top, (q_cap - 1) * p)  # shift invariance needs (q - 1) n_out >= n
+        top -= top % 2
+        if top < 2:
+            raise IdentificationError(
+                f"too few lines ({nf}) in band {data.band_hz[0]:g}-{data.band_hz[1]:g} Hz for an automatic order"
+            )
+        ords = tuple(range(2, top + 1, 2))
+    if block_rows is None:
+        q_cap = (2 * nf * m) // (m + p)
+        q = max(min(default_block_rows(ords[-1], p), q_cap), ords[-1] // p + 1)
+    else:
+        q = int(block_rows)
+    if q * p <= ords[-1]:
+        raise IdentificationError(
+            f"block_rows={q} too small for order {ords[-1]} with {p} outputs: need block_rows * {p} > {ords[-1]}"
+        )
+    return ords, q
+
+
+def _candidate_poles(data, basis, sv, n, zeta_max):
+    """In-band, stable, not overdamped poles of order ``n`` and their shapes ``C x`` (no B, D fit)."""
+    p = data.H.shape[1]
+    Ad, Cd = realize(basis, sv, n, p)
+    eye = np.eye(n)
+    try:
+        Pi = np.linalg.inv(Ad + eye)
+    except np.linalg.LinAlgError:
+        return np.zeros(0, complex), np.zeros((p, 0), complex)
+    A = data.alpha * (Ad - eye) @ Pi
+    C = (Cd @ Pi) / data.out_scale[:, None]
+    lam, X = np.linalg.eig(A)
+    up = lam.imag > 0
+    lam, sh = lam[up], C @ X[:, up]
+    f, z = pole_frequency_hz(lam), pole_damping(lam)
+    keep = (f >= data.band_hz[0]) & (f <= data.band_hz[1]) & (z > 0) & (z <= zeta_max)
+    idx = np.flatnonzero(keep)
+    idx = idx[np.argsort(f[idx])]
+    return lam[idx], sh[:, idx]
+
+
+def _agree(lam_a, sh_a, lam_b, sh_b, tol_frequency, tol_damping, min_mac):
+    """Pairwise agreement matrix (frequency, damping, MAC) and relative eigenvalue distance."""
+    fa, fb = pole_frequency_hz(lam_a), pole_frequency_hz(lam_b)
+    za, zb = pole_damping(lam_a), pole_damping(lam_b)
+    ok = np.abs(fa[:, None] - fb[None, :]) <= tol_frequency * fa[:, None]
+    ok &= np.abs(za[:, None] - zb[None, :]) <= tol_damping * np.abs(za[:, None])
+    if lam_a.size and lam_b.size:
+        ok &= mac(sh_a, sh_b) >= min_mac
+    dist = np.abs(lam_a[:, None] - lam_b[None, :]) / np.abs(lam_a[:, None])
+    return ok, dist
+
+
+def _match(lam_s, sh_s, lam, sh, crit):
+    """One-to-one match of the stable set to poles; returns (missing index in s, spurious index in lam).
+
+    Frequency and MAC decide whether two poles can be the same mode; the
+    assignment minimizes the relative eigenvalue distance (which includes
+    damping), so close modes pair up correctly. Damping is not a criterion
+    here: its estimate drifts over many orders more than between neighbours.
+    """
+    if lam_s.size == 0 or lam.size == 0:
+        return np.arange(lam_s.size), np.arange(lam.size)
+    ok, dist = _agree(lam_s, sh_s, lam, sh, crit["tol_frequency"], np.inf, crit["min_mac"])
+    cost = np.where(ok, dist, 1e6 + dist)
+    rows, cols = linear_sum_assignment(cost)
+    good = ok[rows, cols]
+    return (
+        np.setdiff1d(np.arange(lam_s.size), rows[good]),
+        np.setdiff1d(np.arange(lam.size), cols[good]),
+    )
+
+
+def _hz(lam) -> tuple[float, ...]:
+    return tuple(round(float(x), 4) for x in pole_frequency_hz(np.asarray(lam)))
+
+
+def _list_hz(values) -> str:
+    values = list(values)
+    s = ", ".join(f"{v:.1f}" for v in values[:4]) + (", ..." if len(values) > 4 else "")
+    return f"the pole at {s} Hz" if len(values) == 1 else f"{len(values)} poles ({s} Hz)"
+
+
+def _span(orders) -> str:
+    return f"order {orders[0]}" if len(orders) == 1 else f"orders {orders[0]}-{orders[-1]}"
+
+
+def _reference_index(n_stable, n_consistent):
+    """Index of the order where the stable set is read.
+
+    The target is the largest count of stable poles held (at least) over
+    ``n_consistent`` consecutive orders (a count reached for one order only
+    is a transient); the stable set is read at the end of the first such
+    window: as low as possible, split poles of over-modelling come later.
+    """
+    n = np.asarray(n_stable)
+    w = min(int(n_consistent), n.size)
+    held = np.array([n[j : j + w].min() for j in range(n.size - w + 1)])
+    return int(np.argmax(held)) + w - 1
+
+
+def select_order(
+    freq_hz,
+    H,
+    *,
+    band_hz=None,
+    weights=None,
+    quantity: str = "accelerance",
+    valid=None,
+    orders=None,
+    max_order: int | None = None,
+    block_rows: int | None = None,
+    enforce_stability: bool = True,
+    zeta_max: float = 0.2,
+    min_contribution: float = 0.05,
+    min_importance: float = 1.0,
+    refine: int = 1,
+    tol_frequency: float = 0.005,
+    tol_damping: float = 0.05,
+    min_mac: float = 0.95,
+    n_consistent: int = 5,
+    max_candidates: int = 12,
+) -> Identification:
+    """Identify at the lowest order whose physical poles are the stable poles of the diagram.
+
+    1. One subspace factorization (``block_rows`` sized for the largest
+       order) gives the poles of every scanned order cheaply (shift
+       invariance and an eigenvalue problem, no least squares).
+    2. Each in-band pole (``0 < zeta <= zeta_max``) is linked to the nearest
+       pole of the previous order; a link holds when frequency, damping and
+       MAC agree within ``tol_frequency``, ``tol_damping`` and ``min_mac``.
+       A pole is stable when its chain has held over ``n_consistent`` orders.
+    3. The stable set: the stable poles of the reference order (the end of
+       the first window of ``n_consistent`` orders holding the largest count
+       of stable poles).
+    4. Candidate orders, lowest first, are those whose poles contain the whole
+       stable set; each is identified (``B, D`` fit, labels as in
+       :func:`identify`) until one has exactly the stable set as physical
+       poles (one-to-one, same criteria): no stable pole missing, no
+       spurious physical pole. That order is returned.
+
+    Parameters
+    ----------
+    orders : sequence of int, optional
+        Increasing orders to scan. Default ``2, 4, ..., max_order``.
+    max_order : int, optional
+        Largest order scanned by default (``DEFAULT_MAX_ORDER`` = 120), capped
+        by what the lines allow. It should exceed about 1.5 x the order the
+        band needs (two states per mode plus residual poles).
+    tol_frequency, tol_damping : float
+        Relative frequency and damping change allowed between orders [-].
+    min_mac : float
+        Smallest MAC between the shapes (``C x``) of linked poles.
+    n_consistent : int
+        Number of consecutive scanned orders a stable pole's chain spans.
+    max_candidates : int
+        Candidate orders identified in full before giving up; then the
+        evaluated order with the fewest mismatches is returned with
+        ``matched=False``.
+    Other parameters as in :func:`identify`.
+
+    Returns
+    -------
+    Identification
+        At the chosen order, with :attr:`Identification.order_selection` set.
+
+    Raises
+    ------
+    IdentificationError
+        On bad input (as :func:`identify`), too few lines, or when no pole is
+        stable in band (give the order explicitly then).
+    """
+    data = _prepare(freq_hz, H, band_hz=band_hz, weights=weights, valid=valid, quantity=quantity)
+    ords, q = _scan_orders(data, orders, max_order, block_rows)
+    if int(max_candidates) < 1:
+        raise IdentificationError(f"max_candidates must be >= 1, got {max_candidates!r}")
+    if int(n_consistent) < 2 or len(ords) < int(n_consistent):
+        raise IdentificationError(
+            f"n_consistent={n_consistent} needs >= 2 and at most the {len(ords)} scanned orders {list(ords)}"
+        )
+    crit = {
+        "tol_frequency": float(tol_frequency),
+        "tol_damping": float(tol_damping),
+        "min_mac": float(min_mac),
+        "n_consistent": int(n_consistent),
+        "band_hz": list(data.band_hz),
+    }
+    basis, sv = _basis(data, q)
+
+    def full(n):
+        return _assemble(data, basis, sv, n, q, enforce_stability, zeta_max, min_contribution, min_importance, refine)
+
+    # 1-2: poles of every order and their chains of agreement
+    scans = [_candidate_poles(data, basis, sv, n, zeta_max) for n in ords]
+    chain = [np.ones(scans[0][0].size, int)]  # orders the chain has held, up to and including this one
+    links = [np.full(scans[0][0].size, -1)]  # index of the linked pole of the previous order, -1 if none
+    for j in range(1, len(ords)):
+        (lam, sh), (lp, shp) = scans[j], scans[j - 1]
+        length = np.ones(lam.size, int)
+        back = np.full(lam.size, -1)
+        if lam.size and lp.size:
+            ok, dist = _agree(lam, sh, lp, shp, tol_frequency, tol_damping, min_mac)
+            k = np.argmin(dist, axis=1)
+            link = ok[np.arange(lam.size), k]
+            length[link] = chain[j - 1][k[link]] + 1
+            back[link] = k[link]
+        chain.append(length)
+        links.append(back)
+    ahead = [np.zeros(s_[0].size, int) for s_ in scans]  # orders the chain still holds above this one
+    for j in range(len(ords) - 1, 0, -1):
+        for i, k in enumerate(links[j]):
+            if k >= 0:
+                ahead[j - 1][k] = max(ahead[j - 1][k], ahead[j][i] + 1)
+    in_segment = [c + a >= n_consistent for c, a in zip(chain, ahead)]  # part of a stable run of orders
+    n_stable = tuple(int(np.sum(c >= n_consistent)) for c in chain)
+
+    # 3: the stable set, read at the end of the first window of n_consistent orders holding the most
+    # stable poles
+    j_ref = _reference_index(n_stable, int(n_consistent))
+    stable = chain[j_ref] >= n_consistent
+    lam_s, sh_s = scans[j_ref][0][stable], scans[j_ref][1][:, stable]
+    if lam_s.size == 0:
+        raise IdentificationError(
+            f"no pole is stable over {n_consistent} orders in band "
+            f"{data.band_hz[0]:g}-{data.band_hz[1]:g} Hz (orders {ords[0]}-{ords[-1]}); give the order explicitly"
+        )
+
+    # 4: candidates, lowest first
+    # an order is a candidate when every stable pole has a counterpart on a stable run of orders there
+    missing = [_match(lam_s, sh_s, lam[seg], sh[:, seg], crit)[0] for (lam, sh), seg in zip(scans, in_segment)]
+    evaluations: list[dict] = []
+    mismatch: list[tuple[set, int]] = []  # per evaluation: missing stable poles (indices), number spurious
+    results: dict[int, Identification] = {}
+    chosen = None
+    for j, n in enumerate(ords):
+        if missing[j].size:
+            continue
+        if len(evaluations) >= max_candidates:
+            break
+        r = results[n] = full(n)
+        phys = r.poles.physical
+        lam_p = r.poles.eigenvalues[phys]
+        miss, spur = _match(lam_s, sh_s, lam_p, _shapes(r, data.dual), crit)
+        evaluations.append({
+            "order": int(n),
+            "n_physical": int(phys.sum()),
+            "missing_hz": list(_hz(lam_s[miss])),
+            "spurious_hz": list(_hz(lam_p[spur])),
+        })
+        mismatch.append((set(miss.tolist()), int(spur.size)))
+        if miss.size == 0 and spur.size == 0:
+            chosen = n
+            break
+    # stable poles that the labels reject at every evaluated order are not needed by the data: left out
+    rejected: set = set.intersection(*(m for m, _ in mismatch)) if chosen is None and mismatch else set()
+    if chosen is None and rejected:
+        for e, (m, n_spur) in zip(evaluations, mismatch):
+            if m == rejected and n_spur == 0:
+                chosen = e["order"]
+                break
+    matched = chosen is not None
+    if not matched:
+        best = min(evaluations, key=lambda e: (len(e["missing_hz"]) + len(e["spurious_hz"]), e["order"]))
+        chosen = best["order"]
+    keep = np.array([i not in rejected for i in range(lam_s.size)], dtype=bool)
+    rejected_hz = _hz(lam_s[~keep])
+
+    # the reason, in words
+    lo, hi = data.band_hz
+    ns = int(keep.sum())
+    ev = {e["order"]: e for e in evaluations}
+    if matched:
+        head = f"order {chosen}: {ns} physical poles = {ns} stable poles in {lo:g}-{hi:g} Hz"
+        if rejected_hz:
+            head += (f" ({_list_hz(rejected_hz)} stable but labelled non-physical at every evaluated order "
+                     f"{', '.join(str(e['order']) for e in evaluations)}: left out)")
+    else:
+        e = ev[chosen]
+        head = (
+            f"order {chosen}: no scanned order has exactly the {ns} stable poles in {lo:g}-{hi:g} Hz as physical "
+            f"poles; this one has the fewest mismatches ({len(e['missing_hz'])} missing, "
+            f"{len(e['spurious_hz'])} spurious)"
+        )
+    notes = []
+    for e in evaluations:
+        if e["order"] < chosen and e["spurious_hz"]:
+            sp = e["spurious_hz"]
+            what = f"a spurious physical pole at {sp[0]:.1f} Hz" if len(sp) == 1 else (
+                f"{len(sp)} spurious physical poles ({', '.join(f'{v:.1f}' for v in sp[:4])}{', ...' if len(sp) > 4 else ''} Hz)"
+            )
+            notes.append(f"order {e['order']} has {what}")
+        elif e["order"] < chosen and len(e["missing_hz"]) > len(rejected_hz):
+            notes.append(f"order {e['order']} labels {_list_hz(e['missing_hz'])} non-physical")
+    below = [j for j, n in enumerate(ords) if n < chosen and missing[j].size]
+    if below:
+        j_top = below[-1]
+        same = [j_top]
+        key = tuple(missing[j_top])
+        while same[0] - 1 in below and tuple(missing[same[0] - 1]) == key:
+            same.insert(0, same[0] - 1)
+        run = [ords[j] for j in same]
+        verb = "misses" if len(run) == 1 else "miss"
+        notes.append(f"{_span(run)} {verb} {_list_hz(_hz(lam_s[missing[j_top]]))}")
+        if same[0] > 0:
+            notes.append(f"orders {ords[0]}-{ords[same[0] - 1]} miss more")
+    reason = head + ("; " + "; ".join(notes) if notes else "")
+
+    selection = OrderSelection(
+        orders=ords,
+        n_stable=n_stable,
+        stable_eigenvalues=lam_s[keep],
+        rejected_hz=rejected_hz,
+        reference_order=ords[j_ref],
+        order=int(chosen),
+        matched=matched,
+        missing_hz=tuple(_hz(lam_s[m]) for m in missing),
+        evaluations=tuple(evaluations),
+        reason=reason,
+        criteria=crit,
+    )
+    return replace(results[chosen], order_selection=selection)
+
+
+def _shapes(r: Identification, dual: bool) -> np.ndarray:
+    """Shapes of the physical poles in identification orientation (as scanned): ``C x`` or ``(y B)^T``."""
+    return r.modal.participation.T if dual else r.modal.shapes

@@ -1,0 +1,173 @@
+"""Automatic model order, band clipping, and the one run-file entry point (CLI and campaign)."""
+
+from __future__ import annotations
+
+import json
+import time
+
+import numpy as np
+import pytest
+
+from acquisition._driver import ChannelSpec
+from acquisition.runfile import LineQuality, create_run, read_analysis, read_run
+from frfcal.cli import main
+from identification import Identification, IdentificationError, OrderSelection, identify, mac, select_order
+from tests.identification.synthetic import free_free, ring
+
+
+def _check(r, t, f_tol=1e-4, z_tol=0.10):
+    fm = r.modal.frequency_hz
+    assert fm.size == t.f_n.size, (fm.round(2), t.f_n)
+    assert np.max(np.abs(fm - t.f_n) / t.f_n) < f_tol
+    assert np.max(np.abs(r.modal.damping - t.zeta) / t.zeta) < z_tol
+    assert np.min(np.diag(mac(r.modal.shapes, t.shapes))) > 0.98  # 0.986 at 583 Hz, next to the 618 Hz mode
+
+
+@pytest.fixture(scope="module")
+def freefree():
+    # 17 modes in 90-600 Hz, zeta 0.05-0.3 % per mode, modes at 62, 84 Hz (below the data) and
+    # 618, 700, 850 Hz (above), rigid-body mass line, 20 x 2, 2000 lines, 0.5 % noise
+    return free_free(seed=0, noise=0.005)
+
+
+@pytest.fixture(scope="module")
+def auto(freefree):
+    t0 = time.process_time()
+    r = identify(freefree.freq_hz, freefree.H, band_hz=(80, 688), weights=freefree.sigma)
+    return r, time.process_time() - t0
+
+
+def test_auto_order_recovers_exactly_the_in_band_modes(freefree, auto):
+    r, cpu = auto
+    t = freefree
+    assert t.zeta.min() < 7e-4 and t.zeta.max() > 2.5e-3  # really mode-dependent light damping
+    sel = r.order_selection
+    assert isinstance(sel, OrderSelection) and sel.matched and sel.order == r.order
+    _check(r, t)
+    assert r.poles.count("physical") == 17  # no spurious physical pole, none missing
+    # 17 modes need at least 34 states; the choice is the lowest order with the stable set
+    assert 34 <= r.order <= 44
+    j = sel.orders.index(r.order)
+    assert not sel.missing_hz[j] and all(sel.missing_hz[k] for k in range(j - 1))  # lower orders lack poles
+    np.testing.assert_allclose(np.sort(sel.stable_frequency_hz), t.f_n, rtol=1e-3)
+    assert sel.reason.startswith(f"order {r.order}: 17 physical poles = 17 stable poles in 90-600 Hz")
+    # lower orders were rejected for a stated reason
+    assert "miss" in sel.reason
+    # out-of-band modes (84 Hz, 618 Hz) just outside the data are never physical
+    f_phys = r.modal.frequency_hz
+    assert f_phys.min() > 100 and f_phys.max() < 590
+    assert cpu < 15.0, f"automatic order took {cpu:.1f} s CPU"
+
+
+def test_auto_order_at_one_percent_noise(freefree):
+    t = free_free(seed=2, noise=0.01)
+    r = identify(t.freq_hz, t.H, band_hz=(80, 688), weights=t.sigma)
+    assert r.order_selection.matched
+    # at 1 % noise the subspace poles scatter more: 3e-4 in frequency (measured 1.6e-4)
+    _check(r, t, f_tol=3e-4)
+
+
+def test_auto_order_on_close_modes_with_output_scaling():
+    t = ring(n_lines=1000, seed=7)
+    r = identify(t.freq_hz, t.H, band_hz=(100, 550))
+    _check(r, t, z_tol=0.05)
+    assert r.order == 40 and r.poles.count("physical") == 20
+
+
+def test_band_is_clipped_to_the_valid_lines(freefree, auto):
+    r, _ = auto
+    assert r.band_hz == (90.0, 600.0)
+    assert r.settings["requested_band_hz"] == [80.0, 688.0] and r.settings["band_clipped"] is True
+    # a mode at 618 Hz lies in the requested band but beyond the data: it must not be physical
+    assert not np.any(np.abs(r.modal.frequency_hz - 618.0) < 5.0)
+    t = freefree
+    valid = (t.freq_hz > 100.0) & (t.freq_hz < 590.0)
+    r2 = identify(t.freq_hz, t.H, 40, band_hz=(80, 688), valid=valid)
+    assert r2.band_hz[0] > 100.0 and r2.band_hz[1] < 590.0  # valid lines, not all lines
+    r3 = identify(t.freq_hz, t.H, 40, band_hz=(150, 400))  # inside the data: unchanged
+    assert r3.band_hz == (150.0, 400.0) and r3.settings["band_clipped"] is False
+    with pytest.raises(IdentificationError, match="does not overlap the valid data"):
+        identify(t.freq_hz, t.H, 40, band_hz=(700, 900))
+
+
+def test_order_selection_round_trip_and_errors(freefree, auto):
+    r, _ = auto
+    back = Identification.from_arrays(*r.to_arrays())
+    assert back.order_selection.order == r.order and back.order_selection.reason == r.order_selection.reason
+    np.testing.assert_allclose(back.order_selection.stable_eigenvalues, r.order_selection.stable_eigenvalues)
+    json.dumps(r.order_selection.to_dict())
+    t = freefree
+    with pytest.raises(IdentificationError, match="n_consistent"):
+        select_order(t.freq_hz, t.H, orders=[10, 20], n_consistent=5)
+    with pytest.raises(IdentificationError, match="orders must be increasing"):
+        select_order(t.freq_hz, t.H, orders=[20, 10])
+    noise = np.random.default_rng(1).standard_normal(t.H.shape) * (1 + 1j)
+    with pytest.raises(IdentificationError, match="no pole is stable"):
+        select_order(t.freq_hz, noise, max_order=30)
+
+
+def _write_run(path, t, names_out, names_in):
+    sensors = [ChannelSpec(n, "response", "acceleration", "m/s^2", grid=i + 1) for i, n in enumerate(names_out)]
+    drives = [ChannelSpec(n, "force", "force", "N", grid=j + 1) for j, n in enumerate(names_in)]
+    n_ch = len(names_out) + len(names_in)
+    with create_run(path, article="ff", sensors=sensors, drives=drives, quantity="accelerance") as w:
+        for k, f in enumerate(t.freq_hz):
+            q = LineQuality(force_n=np.ones(len(names_in)), std_error=t.sigma[k], thd=np.zeros(n_ch), n_blocks=4)
+            w.append_line(f, t.H[k], q)
+    return path
+
+
+@pytest.fixture(scope="module")
+def run_file(tmp_path_factory):
+    t = free_free(seed=0, noise=0.005, n_lines=1200)
+    path = tmp_path_factory.mktemp("order") / "ff.h5"
+    return _write_run(path, t, [f"acc{i}" for i in range(20)], ["force0", "force1"]), t
+
+
+def test_cli_automatic_order_json(run_file, capsys):
+    path, t = run_file
+    assert main(["identify", str(path), "--band", "80", "688", "--json", "--no-store"]) == 0
+    obj = json.loads(capsys.readouterr().out)
+    for key in ("run", "quantity", "band_hz", "order", "physical_poles", "labels", "fit_deviation", "zeta0",
+                "stored", "plots"):
+        assert key in obj
+    assert obj["order_mode"] == "automatic" and obj["weights"] == "std_error"
+    assert obj["band_hz"] == [90.0, 600.0] and obj["requested_band_hz"] == [80.0, 688.0] and obj["band_clipped"]
+    assert obj["order_reason"].startswith(f"order {obj['order']}: 17 physical poles = 17 stable poles")
+    assert obj["order_selection"]["order"] == obj["order"] and obj["order_selection"]["matched"]
+    f = np.array([p["frequency_hz"] for p in obj["physical_poles"]])
+    np.testing.assert_allclose(f, t.f_n, rtol=1e-4)
+    assert main(["identify", str(path), "--band", "80", "688", "--order", "40", "--json", "--no-store"]) == 0
+    obj = json.loads(capsys.readouterr().out)
+    assert obj["order"] == 40 and obj["order_mode"] == "set" and obj["order_selection"] is None
+
+
+def test_campaign_identifies_like_the_cli_with_automatic_order(run_file, capsys):
+    from calibration import campaign_from_dict
+    from calibration._identify_run import identify_run
+    from calibration._pipeline import identified_articles, load_articles
+
+    path, t = run_file
+    names = [f"acc{i}" for i in range(20)]
+    camp = campaign_from_dict({
+        "model": {"parameters": "unused.toml"},
+        "run": [{"path": str(path)}],
+        "channels": {"calibrate": names[:12], "holdout": names[12:]},
+        "band": {"low_hz": 100.0, "high_hz": 550.0},  # identification band 80-687.5 Hz by default
+        "identification": {"use_stored": False},
+    })
+    assert camp.identification.order is None
+    logged = []
+    arts = identified_articles(camp, load_articles(camp, logged.append, identify_data=False), logged.append)
+    ident = arts[0].identification
+    assert ident.order_selection is not None and ident.settings["weights"] == "std_error"
+    assert ident.band_hz == (90.0, 600.0)
+    assert any("automatic" in m and "90-600 Hz" in m for m in logged)
+    # the same entry point as the CLI: same channels, same weights, same result
+    same = identify_run(read_run(path), (80.0, 687.5), channels=names, drives=["force0", "force1"])
+    np.testing.assert_allclose(ident.modal.frequency_hz, same.modal.frequency_hz, rtol=1e-12)
+    assert ident.order == same.order and ident.modal.n_modes == 17
+    fixed = campaign_from_dict({**camp.model_dump(exclude={"base_dir"}, mode="json"),
+                                "identification": {"use_stored": False, "order": 40}})
+    arts = identified_articles(fixed, load_articles(fixed, print, identify_data=False), lambda m: None)
+    assert arts[0].identification.order == 40 and arts[0].identification.order_selection is None
