@@ -8,7 +8,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from ._errors import IdentificationError
-from ._identify import Identification, _assemble, _basis, _prepare, default_block_rows
+from ._identify import Identification, data_basis, default_block_rows, identification_of_order, prepare_data
 from ._poles import mac, pole_damping, pole_frequency_hz
 from ._subspace import realize
 
@@ -305,7 +305,7 @@ def select_order(
         On bad input (as :func:`identify`), too few lines, or when no pole is
         stable in band (give the order explicitly then).
     """
-    data = _prepare(freq_hz, H, band_hz=band_hz, weights=weights, valid=valid, quantity=quantity)
+    data = prepare_data(freq_hz, H, band_hz=band_hz, weights=weights, valid=valid, quantity=quantity)
     ords, q = _scan_orders(data, orders, max_order, block_rows)
     if int(max_candidates) < 1:
         raise IdentificationError(f"max_candidates must be >= 1, got {max_candidates!r}")
@@ -320,10 +320,10 @@ def select_order(
         "n_consistent": int(n_consistent),
         "band_hz": list(data.band_hz),
     }
-    basis, sv = _basis(data, q)
+    basis, sv = data_basis(data, q)
 
     def full(n):
-        return _assemble(data, basis, sv, n, q, enforce_stability, zeta_max, min_contribution, min_importance, refine)
+        return identification_of_order(data, basis, sv, n, q, enforce_stability, zeta_max, min_contribution, min_importance, refine)
 
     # 1-2: poles of every order and their chains of agreement
     scans = [_candidate_poles(data, basis, sv, n, zeta_max) for n in ords]
