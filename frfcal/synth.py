@@ -32,9 +32,9 @@ parameter file, independently of the calibration path it is meant to test
    half-power bandwidth 2 zeta_k f_k over +-3 bandwidths around each of its
    modes in range.
 7. **Noise.** Complex circular Gaussian noise with standard deviation
-   sigma = sqrt((s_c |H|)^2 + (floor_c)^2): s_c drawn per article and sensor
-   from ``noise_range``, floor_c = ``noise_floor`` x the sensor's median |H|
-   over the band. sigma is written as the run file's per-line standard error.
+   sigma = sqrt((s_c |H|)^2 + floor_cd^2): s_c drawn per article and sensor
+   from ``noise_range``, floor_cd = ``noise_floor`` x the median |H| of that
+   FRF (sensor, drive) over the band. sigma is written as the run file's per-line standard error.
 
 Outputs per article: an HDF5 run file (``acquisition.runfile``), a binary
 UFF58 file (``acquisition.export_uff``), and one ``truth.npz`` with the
@@ -311,7 +311,7 @@ class SynthCampaign:
         ``sigma_i`` (n_f, n_out, n_in), ``modes_hz_i``, ``zeta_i``; and
         ``p_true``, ``p_population``, ``articles``, ``parameter_names``,
         ``sensors``, ``drives``, ``band_hz``, ``data_hz``, ``noise_rel``
-        (n_articles, n_out), ``noise_floor_abs`` (n_articles, n_out).
+        (n_articles, n_out), ``noise_floor_abs`` (n_articles, n_out, n_in).
     articles : tuple of str
     p_true : (n_articles, n_params) float
         Normalized parameters of each article.
@@ -508,7 +508,7 @@ def synthesize(bdf, parameters, out_dir, *, sensors, drives, band_hz, units=None
     noise_range : (float, float)
         Range of the per-article, per-sensor relative noise rms.
     noise_floor : float
-        Absolute noise floor as a fraction of the sensor's median |H| in the band.
+        Absolute noise floor as a fraction of each FRF's (sensor, drive) median |H| in the band.
     mode_factor : float
         Modes up to mode_factor x band top are kept as modes; higher ones enter
         through the exact residual series.
@@ -562,6 +562,11 @@ def synthesize(bdf, parameters, out_dir, *, sensors, drives, band_hz, units=None
                          "noise_floor >= 0 are required")
 
     pm = parametric if parametric is not None else femodel.parametric_model(parameters, bdf, units=units)
+    known = set(np.asarray(pm.assembly.model.grid_ids).tolist())
+    for what, chans in (("sensor", sensors), ("drive", drives)):
+        for c in chans:
+            if c.grid not in known:
+                raise SynthError(f"{what} {c.name!r}: grid {c.grid} is not in {pm.bdf}")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     asm = pm.assembly
@@ -610,15 +615,15 @@ def synthesize(bdf, parameters, out_dir, *, sensors, drives, band_hz, units=None
     npz: dict[str, np.ndarray] = {}
     runs, uffs = [], []
     noise_rel = np.zeros((n_articles, n_out))
-    floor_abs = np.zeros((n_articles, n_out))
+    floor_abs = np.zeros((n_articles, n_out, n_in))
     for a, (name, tr, r) in enumerate(zip(articles, truths, art_rng)):
         elastic = tr.frequencies_hz > 0
         f = line_grid((d_lo, d_hi), base_lines, tr.frequencies_hz[elastic], tr.zeta[elastic], lines_per_bandwidth)
         H = tr.frf(f, "accelerance")
         band = (f >= lo) & (f <= hi)
         noise_rel[a] = r.uniform(noise_range[0], noise_range[1], n_out)
-        floor_abs[a] = noise_floor * np.median(np.abs(H[band]).transpose(1, 0, 2).reshape(n_out, -1), axis=1)
-        sigma = np.sqrt((noise_rel[a][None, :, None] * np.abs(H)) ** 2 + floor_abs[a][None, :, None] ** 2)
+        floor_abs[a] = noise_floor * np.median(np.abs(H[band]), axis=0)
+        sigma = np.sqrt((noise_rel[a][None, :, None] * np.abs(H)) ** 2 + floor_abs[a][None] ** 2)
         noise = sigma * (r.standard_normal(H.shape) + 1j * r.standard_normal(H.shape)) / np.sqrt(2.0)
         Hn = H + noise
         plan = {"generator": "frfcal.synth", "seed": int(seed), "article_index": a, "band_hz": [lo, hi],
