@@ -190,7 +190,9 @@ def modes_up_to(K, M, f_cut_hz: float, *, dofs=None, n_start: int = 24):
         exhausted = modes.n_modes < n or n >= n_dof
         if f[-1] > f_cut_hz or exhausted:
             break
-        n = min(2 * n, n_dof)
+        # the mode count grows about linearly with frequency for shells, slower for beams: overshoot a little
+        grow = f_cut_hz / f[-1] if f[-1] > 0 else 2.0
+        n = min(max(int(math.ceil(1.3 * n * grow)) + 4, 2 * n if f[-1] <= 0 else n + 8), n_dof)
     keep = f <= f_cut_hz
     above = f[~keep]
     next_hz = float(above[0]) if above.size else math.inf
@@ -460,20 +462,20 @@ def _toml_table(name: str, table: dict, array: bool = False) -> str:
 
 
 def _population(rng, pm, offsets) -> np.ndarray:
+    """Population offsets: given by name (others 0), or random 5-15 % with random signs."""
     lower, upper = pm.lower, pm.upper
     names = pm.parameters.names
     if offsets is None:
         p = rng.uniform(0.05, 0.15, len(names)) * rng.choice([-1.0, 1.0], len(names))
-    else:
-        unknown = sorted(set(offsets) - set(names))
-        if unknown:
-            raise SynthError(f"offsets: unknown parameter(s) {unknown}; parameters are {list(names)}")
-        p = np.array([float(offsets.get(n, 0.0)) for n in names])
-        bad = [n for n, x, lo, hi in zip(names, p, lower, upper) if not lo < x < hi]
-        if bad:
-            raise SynthError(f"offsets: {bad} outside the parameter bounds")
-    # random offsets stay inside 90 % of the bounds
-    return np.clip(p, 0.9 * lower, 0.9 * upper)
+        return np.clip(p, 0.9 * lower, 0.9 * upper)  # random offsets stay inside 90 % of the bounds
+    unknown = sorted(set(offsets) - set(names))
+    if unknown:
+        raise SynthError(f"offsets: unknown parameter(s) {unknown}; parameters are {list(names)}")
+    p = np.array([float(offsets.get(n, 0.0)) for n in names])
+    bad = [n for n, x, lo, hi in zip(names, p, lower, upper) if not lo < x < hi]
+    if bad:
+        raise SynthError(f"offsets: {bad} outside the parameter bounds")
+    return p
 
 
 def synthesize(bdf, parameters, out_dir, *, sensors, drives, band_hz, units=None, n_articles: int = 3,
