@@ -11,7 +11,7 @@ from acquisition.runfile import read_run
 from frfcal.cli import main
 from frfcal.synth import SynthChannel, SynthError, line_grid, modes_up_to, synthesize
 
-BAND = (40.0, 150.0)
+BAND = (40.0, 110.0)
 
 
 def frame_channels(pm):
@@ -95,6 +95,23 @@ def test_subframe_truth_equals_direct_solve(tmp_path):
     assert pm.aset.grid.size > 600  # not the dense eigensolver path
     err = check_against_direct(camp, pm, 0, n_lines_each=3)
     assert err.max() < 1e-7, err
+
+    # conventions shared with the calibration layer (units, e^{+iwt}, directions, rigid modes): its own
+    # reduced model at p_true with the true damping reproduces the truth to its basis error
+    from calibration import FRFModel, build_surrogate, modal_frf, reduced_modes
+
+    z = camp.truth()
+    C = femodel.sensor_matrix(pm.assembly, [s.grid for s in sensors], [s.direction for s in sensors])
+    B = femodel.sensor_matrix(pm.assembly, [d.grid for d in drives], [d.direction for d in drives]).T.toarray()
+    f = z["frequency_hz_0"]
+    sur, _ = build_surrogate(FRFModel(pm.K, pm.M, B, C, parametric=pm), camp.p_true[0], (f[0], f[-1]),
+                             basis_factor=4.0, enrich=False)
+    lam, X = reduced_modes(sur, camp.p_true[0])
+    f_red = np.sqrt(np.clip(lam, 0, None)) / (2 * np.pi)
+    zeta = np.interp(f_red, z["modes_hz_0"], z["zeta_0"])
+    H = modal_frf(lam, sur.outputs @ X, X.T @ sur.inputs, f, zeta, "accelerance", sur.rigid_hz)
+    sd = np.mean(np.abs(np.log10(H / z["truth_0"])) ** 2)
+    assert sd < 1e-7, sd  # 1.3e-9 measured on the 3000-DOF subframe; the noise floor is ~1e-4
 
 
 def test_floor_sd_matches_noise_level(tmp_path, frame_campaign):
@@ -181,17 +198,20 @@ def test_line_grid_is_denser_at_resonances(frame_campaign):
 
 def test_seed_reproducibility(frame_campaign, tmp_path):
     camp, pm = frame_campaign
-    kw = dict(sensors=camp.sensors, drives=camp.drives, band_hz=BAND, n_articles=2, base_lines=60,
-              write_uff=False, parametric=pm)
-    again = synthesize(pm.bdf, camp.parameters, tmp_path / "a", seed=7, **kw)
-    z0, z1 = camp.truth(), again.truth()
+    kw = dict(sensors=camp.sensors[:3], drives=camp.drives[:1], band_hz=(40.0, 80.0), n_articles=1, base_lines=30,
+              lines_per_bandwidth=2, write_uff=False, parametric=pm)
+    one = synthesize(pm.bdf, camp.parameters, tmp_path / "a", seed=7, **kw)
+    again = synthesize(pm.bdf, camp.parameters, tmp_path / "b", seed=7, **kw)
+    z0, z1 = one.truth(), again.truth()
     for k in z0:
         np.testing.assert_array_equal(z0[k], z1[k], err_msg=k)
-    other = synthesize(pm.bdf, camp.parameters, tmp_path / "b", seed=8, **kw)
-    assert not np.allclose(other.p_true, camp.p_true)
-    # population offsets: 5-15 % magnitude, articles scattered about them by ~0.003
-    assert np.all((np.abs(camp.p_population) >= 0.05 - 1e-12) | (np.abs(camp.p_population) >= 0.9 * 0.2))
-    assert np.all(np.abs(camp.p_population) <= 0.15)
+    other = synthesize(pm.bdf, camp.parameters, tmp_path / "c", seed=8, **kw)
+    assert not np.allclose(other.p_true, one.p_true)
+    assert not np.allclose(other.truth()["noisy_0"][:5], z0["noisy_0"][:5])
+    # population offsets: 5-15 % magnitude (inside 90 % of the bounds), articles scattered about them by ~0.003
+    mag = np.abs(camp.p_population)
+    assert np.all((mag >= 0.05 - 1e-12) | np.isclose(mag, 0.9 * np.minimum(-pm.lower, pm.upper)))
+    assert np.all(mag <= 0.15)
     assert 0.0005 < np.std(camp.p_true - camp.p_population) < 0.01
 
 
