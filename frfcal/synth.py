@@ -47,6 +47,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -121,6 +122,8 @@ class ArticleTruth:
     next_hz : float
     series_ratio : float
         r = (s + w_max^2)/(lambda_next + s) at the top of the data range.
+    modes_time_s, residual_time_s : float
+        Wall time of the eigensolution(s) and of the factorization + series solves.
     """
 
     p: np.ndarray
@@ -134,6 +137,8 @@ class ArticleTruth:
     cut_hz: float
     next_hz: float
     series_ratio: float
+    modes_time_s: float = 0.0
+    residual_time_s: float = 0.0
 
     def frf(self, f_hz, quantity: str = "accelerance", *, include_residual: bool = True) -> np.ndarray:
         """FRF at ``f_hz`` (n_f,), Hz -> (n_f, n_out, n_in) complex, SI, e^{+i w t}."""
@@ -228,7 +233,9 @@ def article_truth(K, M, C, B, p, *, f_cut_hz: float, f_max_hz: float, zeta_of_mo
     -------
     ArticleTruth
     """
+    t0 = time.perf_counter()
     modes, next_hz = modes_up_to(K, M, f_cut_hz, dofs=dofs)
+    t1 = time.perf_counter()
     if next_hz <= f_max_hz * 1.2:
         raise SynthError(
             f"the first mode above the cut ({next_hz:.4g} Hz) is within 1.2 x the top of the data range "
@@ -265,6 +272,7 @@ def article_truth(K, M, C, B, p, *, f_cut_hz: float, f_max_hz: float, zeta_of_mo
         p=np.asarray(p, dtype=float), frequencies_hz=f, zeta=zeta, n_rigid=int(rigid.sum()),
         out_modal=np.asarray(C @ Phi), in_modal=Phi.T @ B, shift=s, residual=res,
         cut_hz=float(f_cut_hz), next_hz=next_hz, series_ratio=float(ratio),
+        modes_time_s=t1 - t0, residual_time_s=time.perf_counter() - t1,
     )
 
 
@@ -326,6 +334,10 @@ class SynthCampaign:
         The deck and parameter file used (``parameters`` None if a ParameterSet
         without a source file was given).
     units : str
+    timings : dict
+        Wall times, s: ``model`` (parametric model, 0 when one was passed),
+        ``modes`` and ``residual`` (lists, per article), ``files`` (run, UFF and
+        truth files). Load-dependent; for benchmarks.
     """
 
     run_paths: tuple[Path, ...]
@@ -342,6 +354,7 @@ class SynthCampaign:
     bdf: Path | None = None
     parameters: Path | None = None
     units: str = "si"
+    timings: dict = field(default_factory=dict, compare=False)
     _cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     def truth(self) -> dict:
@@ -563,7 +576,9 @@ def synthesize(bdf, parameters, out_dir, *, sensors, drives, band_hz, units=None
         raise SynthError("n_articles >= 1, base_lines >= 2, lines_per_bandwidth > 0, scatter >= 0 and "
                          "noise_floor >= 0 are required")
 
+    t_start = time.perf_counter()
     pm = parametric if parametric is not None else femodel.parametric_model(parameters, bdf, units=units)
+    t_model = time.perf_counter() - t_start
     known = set(np.asarray(pm.assembly.model.grid_ids).tolist())
     for what, chans in (("sensor", sensors), ("drive", drives)):
         for c in chans:
@@ -614,6 +629,7 @@ def synthesize(bdf, parameters, out_dir, *, sensors, drives, band_hz, units=None
                               physical=f"synth/{len(sensors) + i}", grid=c.grid, direction=c.direction)
                   for i, c in enumerate(drives)]
     n_out, n_in = len(sensors), len(drives)
+    t_files = time.perf_counter()
     npz: dict[str, np.ndarray] = {}
     runs, uffs = [], []
     noise_rel = np.zeros((n_articles, n_out))
@@ -653,6 +669,8 @@ def synthesize(bdf, parameters, out_dir, *, sensors, drives, band_hz, units=None
     })
     truth_path = out / "truth.npz"
     np.savez_compressed(truth_path, **npz)
+    timings = {"model": t_model if parametric is None else 0.0, "modes": [t.modes_time_s for t in truths],
+               "residual": [t.residual_time_s for t in truths], "files": time.perf_counter() - t_files}
     params_path = getattr(pm.parameters, "source", None)
     if params_path is None and not isinstance(parameters, femodel.ParameterSet):
         params_path = parameters
@@ -660,5 +678,5 @@ def synthesize(bdf, parameters, out_dir, *, sensors, drives, band_hz, units=None
         run_paths=tuple(runs), uff_paths=tuple(uffs), truth_path=truth_path, articles=articles, p_true=p_true,
         p_population=p_pop, parameter_names=tuple(pm.parameters.names), sensors=sensors, drives=drives,
         band_hz=(lo, hi), data_hz=(d_lo, d_hi), bdf=Path(pm.bdf),
-        parameters=Path(params_path) if params_path is not None else None, units=pm.units,
+        parameters=Path(params_path) if params_path is not None else None, units=pm.units, timings=timings,
     )
