@@ -250,24 +250,22 @@ def article_truth(K, M, C, B, p, *, f_cut_hz: float, f_max_hz: float, zeta_of_mo
     s = (2 * np.pi * shift_hz) ** 2
     w_max2 = (2 * np.pi * f_max_hz) ** 2
     M = sp.csr_matrix(M)
-    residual = []
-    ratio = 0.0
-    if np.isfinite(next_hz):
-        lam_next = (2 * np.pi * next_hz) ** 2
-        ratio = (s + w_max2) / (lam_next + s)
-        n_terms = max(1, int(math.ceil(math.log(_SERIES_TOL * (1 - ratio)) / math.log(ratio))))
-        solve = _factorize(sp.csc_matrix(K) + s * sp.csc_matrix(M))
+    # With every finite mode kept (a small model), R_1 still holds the frequency-independent flexibility of
+    # the massless DOF (infinite eigenvalues; nothing when sensors and drives see only DOF with mass).
+    ratio = (s + w_max2) / ((2 * np.pi * next_hz) ** 2 + s) if np.isfinite(next_hz) else 0.0
+    n_terms = max(1, int(math.ceil(math.log(_SERIES_TOL * (1 - ratio)) / math.log(ratio)))) if ratio > 0 else 1
+    solve = _factorize(sp.csc_matrix(K) + s * sp.csc_matrix(M))
 
-        def project(x):  # remove the kept modes: x - Phi Phi^T M x
-            return x - Phi @ (Phi.T @ (M @ x))
+    def project(x):  # remove the kept modes: x - Phi Phi^T M x
+        return x - Phi @ (Phi.T @ (M @ x))
 
-        # load without its kept-mode content (B - M Phi Phi^T B), so nothing cancels
-        R = project(solve(B - M @ (Phi @ (Phi.T @ B))))
+    # load without its kept-mode content (B - M Phi Phi^T B), so nothing cancels
+    R = project(solve(B - M @ (Phi @ (Phi.T @ B))))
+    residual = [C @ R]
+    for _ in range(n_terms - 1):
+        R = project(solve(M @ R))
         residual.append(C @ R)
-        for _ in range(n_terms - 1):
-            R = project(solve(M @ R))
-            residual.append(C @ R)
-    res = np.array(residual) if residual else np.zeros((0, C.shape[0], B.shape[1]))
+    res = np.array(residual)
     return ArticleTruth(
         p=np.asarray(p, dtype=float), frequencies_hz=f, zeta=zeta, n_rigid=int(rigid.sum()),
         out_modal=np.asarray(C @ Phi), in_modal=Phi.T @ B, shift=s, residual=res,

@@ -215,6 +215,41 @@ def test_seed_reproducibility(frame_campaign, tmp_path):
     assert 0.0005 < np.std(camp.p_true - camp.p_population) < 0.01
 
 
+def test_mm_t_s_and_si_decks_give_the_same_truth(frame_campaign, tmp_path):
+    """The deck's unit system is a boundary matter: the SI truth is the same from either deck."""
+    camp, pm = frame_campaign  # mm-t-s
+    bdf, params = femodel.example_frame(tmp_path / "si", units="si")
+    kw = dict(sensors=camp.sensors[:3], drives=camp.drives[:1], band_hz=(40.0, 80.0), n_articles=1, base_lines=30,
+              lines_per_bandwidth=2, write_uff=False, seed=5)
+    mm = synthesize(pm.bdf, camp.parameters, tmp_path / "mm", parametric=pm, **kw).truth()
+    si = synthesize(bdf, params, tmp_path / "si_out", **kw).truth()
+    np.testing.assert_allclose(si["frequency_hz_0"], mm["frequency_hz_0"], rtol=1e-10)
+    np.testing.assert_allclose(si["modes_hz_0"], mm["modes_hz_0"], rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(si["truth_0"], mm["truth_0"], rtol=1e-7)
+    np.testing.assert_allclose(si["noisy_0"], mm["noisy_0"], rtol=1e-7)
+
+
+def test_all_modes_kept_small_model():
+    """A 2-mass spring chain with every finite mode below the cut: modes only, exact."""
+    from frfcal.synth import article_truth
+
+    K = sp.csr_matrix(np.array([[2e4, -1e4], [-1e4, 1e4]]))
+    M = sp.csr_matrix(np.diag([1.0, 2.0]))
+    C = sp.csr_matrix(np.eye(2))
+    B = np.array([[0.0], [1.0]])
+    tr = article_truth(K, M, C, B, np.zeros(0), f_cut_hz=100.0, f_max_hz=30.0,
+                       zeta_of_mode=lambda n: np.full(n, 0.01), shift_hz=1.0)
+    assert np.isinf(tr.next_hz) and tr.series_ratio == 0.0 and tr.frequencies_hz.size == 2
+    np.testing.assert_allclose(tr.residual, 0.0, atol=1e-18)
+    f = np.array([3.0, 11.0, 25.0])
+    w = 2 * np.pi * f
+    lam, Phi = np.linalg.eigh(np.linalg.solve(np.sqrt(M.toarray()), np.linalg.solve(np.sqrt(M.toarray()), K.toarray()).T))
+    Phi = np.linalg.solve(np.sqrt(M.toarray()), Phi)
+    Cd = M @ Phi @ np.diag(2 * 0.01 * np.sqrt(lam)) @ Phi.T @ M
+    want = np.array([-wk**2 * np.linalg.solve(K.toarray() + 1j * wk * Cd - wk**2 * M.toarray(), B) for wk in w])
+    np.testing.assert_allclose(tr.frf(f), want, rtol=1e-10)
+
+
 def test_offsets_and_campaign_file(frame_campaign, tmp_path):
     camp, pm = frame_campaign
     from calibration import load_campaign
