@@ -17,14 +17,18 @@ Geometry (millimetres; x forward, y to the left, z up)
 * **mounts**: each cradle corner is joined to the rail grid above it by three
   translational CELAS2 springs (x, y along the ladder plane; z vertical), so
   the mounts carry every load between the parts;
-* **lumped masses** (CONM2): an engine (two 20 kg masses at the cradle
-  cross-member midpoints) and a fuel tank (6 kg at the midpoint of the rear
-  ladder cross member, x = 1800).
+* **lumped masses** (CONM2): an engine (two 20 kg masses on the cradle
+  cross-member midpoints, centre of gravity 200 mm above the cradle, 0.3 kg m^2
+  about each axis) and a fuel tank (6 kg on the midpoint of the rear ladder
+  cross member, x = 1800, hanging 150 mm below it, 0.05 kg m^2). The offsets
+  couple the in-plane and out-of-plane motions of the two flat parts (without
+  them the scalar mounts and the planar beams would decouple them exactly).
 
 Every member is split into ``elements_per_member`` CBARs of equal length
 (the rails into that many per bay between cross members), so the geometry
-is the same at every density. Mass is lumped (half of rho A L per end,
-translations only), as Nastran does without ``PARAM,COUPMASS``.
+is the same at every density. Bar mass is lumped (half of rho A L per end,
+translations only), as Nastran does without ``PARAM,COUPMASS``: only the
+three CONM2 grids carry rotary inertia, every other rotation is massless.
 """
 
 from __future__ import annotations
@@ -47,6 +51,11 @@ NU_STEEL = 0.3
 NU_ALU = 0.33
 ENGINE_MASS_KG = 20.0
 TANK_MASS_KG = 6.0
+#: centre-of-gravity offsets of the CONM2s along z (mm) and their rotary inertia (kg m^2, each axis)
+ENGINE_OFFSET_MM = 200.0
+TANK_OFFSET_MM = -150.0
+ENGINE_INERTIA_KG_M2 = 0.3
+TANK_INERTIA_KG_M2 = 0.05
 #: mount spring rates, N/m: along the ladder plane (x, y) and vertical (z)
 K_MOUNT_XY_N_M = 5.0e6
 K_MOUNT_Z_N_M = 3.0e6
@@ -98,8 +107,8 @@ FRAME_PARAMETERS: tuple[tuple[str, str, tuple[int, ...], str, float, float, str,
 )
 
 _SHIFT = {  # decimal-exponent shift from the mm-t-s numbers to the deck's units
-    "mm-t-s": {"length": 0, "area": 0, "inertia": 0, "stress": 0, "density": 0, "mass": 0, "spring": 0},
-    "si": {"length": -3, "area": -6, "inertia": -12, "stress": 6, "density": 12, "mass": 3, "spring": 3},
+    "mm-t-s": {"length": 0, "area": 0, "inertia": 0, "stress": 0, "density": 0, "mass": 0, "spring": 0, "rotary": 0},
+    "si": {"length": -3, "area": -6, "inertia": -12, "stress": 6, "density": 12, "mass": 3, "spring": 3, "rotary": -3},
 }
 
 
@@ -247,10 +256,20 @@ def example_frame(out_dir, *, units: str = "si", elements_per_member: int = 6) -
             parts.append(_large_card("CELAS2", [f"{eid:16d}", ks, f"{g_rail + 1:16d}", f"{c:16d}",
                                                 f"{g_cradle + 1:16d}", f"{c:16d}"]))
     parts.append("$ lumped masses: engine (two) on the cradle, fuel tank on the rear cross member\n")
-    for eid, g, m in ((ENGINE_CONM2[0], named["engine"][0], ENGINE_MASS_KG),
-                      (ENGINE_CONM2[1], named["engine"][1], ENGINE_MASS_KG),
-                      (TANK_CONM2, named["tank"], TANK_MASS_KG)):
-        parts.append(_large_card("CONM2", [f"{eid:16d}", f"{g + 1:16d}", f"{0:16d}", _f16([m * 1e-3], sh["mass"])[0]]))
+    for eid, g, m, dz, inertia in (
+        (ENGINE_CONM2[0], named["engine"][0], ENGINE_MASS_KG, ENGINE_OFFSET_MM, ENGINE_INERTIA_KG_M2),
+        (ENGINE_CONM2[1], named["engine"][1], ENGINE_MASS_KG, ENGINE_OFFSET_MM, ENGINE_INERTIA_KG_M2),
+        (TANK_CONM2, named["tank"], TANK_MASS_KG, TANK_OFFSET_MM, TANK_INERTIA_KG_M2),
+    ):
+        # offset centre of gravity (X3) and rotary inertia I11, I22, I33 (kg m^2 = 1e3 t mm^2)
+        i_s = _f16([inertia * 1e3], sh["rotary"])[0]
+        zero = f"{0.0:16.1f}"
+        parts.append(_large_card("CONM2", [
+            f"{eid:16d}", f"{g + 1:16d}", f"{0:16d}", _f16([m * 1e-3], sh["mass"])[0],
+            zero, zero, _f16([dz], sh["length"])[0], "",
+            i_s, zero, i_s, zero,
+            zero, i_s,
+        ]))
     parts.append("ENDDATA\n")
     bdf = out / "frame.bdf"
     bdf.write_text("".join(parts))

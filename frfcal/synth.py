@@ -32,9 +32,9 @@ parameter file, independently of the calibration path it is meant to test
    half-power bandwidth 2 zeta_k f_k over +-3 bandwidths around each of its
    modes in range.
 7. **Noise.** Complex circular Gaussian noise with standard deviation
-   sigma = sqrt((s_c |H|)^2 + (floor_c)^2): s_c drawn per article and sensor
-   from ``noise_range``, floor_c = ``noise_floor`` x the sensor's median |H|
-   over the band. sigma is written as the run file's per-line standard error.
+   sigma = sqrt((s_c |H|)^2 + floor_cd^2): s_c drawn per article and sensor
+   from ``noise_range``, floor_cd = ``noise_floor`` x the median |H| of that
+   FRF (sensor, drive) over the band. sigma is written as the run file's per-line standard error.
 
 Outputs per article: an HDF5 run file (``acquisition.runfile``), a binary
 UFF58 file (``acquisition.export_uff``), and one ``truth.npz`` with the
@@ -47,6 +47,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -121,6 +122,8 @@ class ArticleTruth:
     next_hz : float
     series_ratio : float
         r = (s + w_max^2)/(lambda_next + s) at the top of the data range.
+    modes_time_s, residual_time_s : float
+        Wall time of the eigensolution(s) and of the factorization + series solves.
     """
 
     p: np.ndarray
@@ -134,6 +137,8 @@ class ArticleTruth:
     cut_hz: float
     next_hz: float
     series_ratio: float
+    modes_time_s: float = 0.0
+    residual_time_s: float = 0.0
 
     def frf(self, f_hz, quantity: str = "accelerance", *, include_residual: bool = True) -> np.ndarray:
         """FRF at ``f_hz`` (n_f,), Hz -> (n_f, n_out, n_in) complex, SI, e^{+i w t}."""
@@ -190,7 +195,9 @@ def modes_up_to(K, M, f_cut_hz: float, *, dofs=None, n_start: int = 24):
         exhausted = modes.n_modes < n or n >= n_dof
         if f[-1] > f_cut_hz or exhausted:
             break
-        n = min(2 * n, n_dof)
+        # the mode count grows about linearly with frequency for shells, slower for beams: overshoot a little
+        grow = f_cut_hz / f[-1] if f[-1] > 0 else 2.0
+        n = min(max(int(math.ceil(1.3 * n * grow)) + 4, 2 * n if f[-1] <= 0 else n + 8), n_dof)
     keep = f <= f_cut_hz
     above = f[~keep]
     next_hz = float(above[0]) if above.size else math.inf
@@ -226,7 +233,9 @@ def article_truth(K, M, C, B, p, *, f_cut_hz: float, f_max_hz: float, zeta_of_mo
     -------
     ArticleTruth
     """
+    t0 = time.perf_counter()
     modes, next_hz = modes_up_to(K, M, f_cut_hz, dofs=dofs)
+    t1 = time.perf_counter()
     if next_hz <= f_max_hz * 1.2:
         raise SynthError(
             f"the first mode above the cut ({next_hz:.4g} Hz) is within 1.2 x the top of the data range "
@@ -241,28 +250,27 @@ def article_truth(K, M, C, B, p, *, f_cut_hz: float, f_max_hz: float, zeta_of_mo
     s = (2 * np.pi * shift_hz) ** 2
     w_max2 = (2 * np.pi * f_max_hz) ** 2
     M = sp.csr_matrix(M)
-    residual = []
-    ratio = 0.0
-    if np.isfinite(next_hz):
-        lam_next = (2 * np.pi * next_hz) ** 2
-        ratio = (s + w_max2) / (lam_next + s)
-        n_terms = max(1, int(math.ceil(math.log(_SERIES_TOL * (1 - ratio)) / math.log(ratio))))
-        solve = _factorize(sp.csc_matrix(K) + s * sp.csc_matrix(M))
+    # With every finite mode kept (a small model), R_1 still holds the frequency-independent flexibility of
+    # the massless DOF (infinite eigenvalues; nothing when sensors and drives see only DOF with mass).
+    ratio = (s + w_max2) / ((2 * np.pi * next_hz) ** 2 + s) if np.isfinite(next_hz) else 0.0
+    n_terms = max(1, int(math.ceil(math.log(_SERIES_TOL * (1 - ratio)) / math.log(ratio)))) if ratio > 0 else 1
+    solve = _factorize(sp.csc_matrix(K) + s * sp.csc_matrix(M))
 
-        def project(x):  # remove the kept modes: x - Phi Phi^T M x
-            return x - Phi @ (Phi.T @ (M @ x))
+    def project(x):  # remove the kept modes: x - Phi Phi^T M x
+        return x - Phi @ (Phi.T @ (M @ x))
 
-        # load without its kept-mode content (B - M Phi Phi^T B), so nothing cancels
-        R = project(solve(B - M @ (Phi @ (Phi.T @ B))))
+    # load without its kept-mode content (B - M Phi Phi^T B), so nothing cancels
+    R = project(solve(B - M @ (Phi @ (Phi.T @ B))))
+    residual = [C @ R]
+    for _ in range(n_terms - 1):
+        R = project(solve(M @ R))
         residual.append(C @ R)
-        for _ in range(n_terms - 1):
-            R = project(solve(M @ R))
-            residual.append(C @ R)
-    res = np.array(residual) if residual else np.zeros((0, C.shape[0], B.shape[1]))
+    res = np.array(residual)
     return ArticleTruth(
         p=np.asarray(p, dtype=float), frequencies_hz=f, zeta=zeta, n_rigid=int(rigid.sum()),
         out_modal=np.asarray(C @ Phi), in_modal=Phi.T @ B, shift=s, residual=res,
         cut_hz=float(f_cut_hz), next_hz=next_hz, series_ratio=float(ratio),
+        modes_time_s=t1 - t0, residual_time_s=time.perf_counter() - t1,
     )
 
 
@@ -311,7 +319,7 @@ class SynthCampaign:
         ``sigma_i`` (n_f, n_out, n_in), ``modes_hz_i``, ``zeta_i``; and
         ``p_true``, ``p_population``, ``articles``, ``parameter_names``,
         ``sensors``, ``drives``, ``band_hz``, ``data_hz``, ``noise_rel``
-        (n_articles, n_out), ``noise_floor_abs`` (n_articles, n_out).
+        (n_articles, n_out), ``noise_floor_abs`` (n_articles, n_out, n_in).
     articles : tuple of str
     p_true : (n_articles, n_params) float
         Normalized parameters of each article.
@@ -324,6 +332,10 @@ class SynthCampaign:
         The deck and parameter file used (``parameters`` None if a ParameterSet
         without a source file was given).
     units : str
+    timings : dict
+        Wall times, s: ``model`` (parametric model, 0 when one was passed),
+        ``modes`` and ``residual`` (lists, per article), ``files`` (run, UFF and
+        truth files). Load-dependent; for benchmarks.
     """
 
     run_paths: tuple[Path, ...]
@@ -340,6 +352,7 @@ class SynthCampaign:
     bdf: Path | None = None
     parameters: Path | None = None
     units: str = "si"
+    timings: dict = field(default_factory=dict, compare=False)
     _cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     def truth(self) -> dict:
@@ -521,20 +534,20 @@ def _toml_table(name: str, table: dict, array: bool = False) -> str:
 
 
 def _population(rng, pm, offsets) -> np.ndarray:
+    """Population offsets: given by name (others 0), or random 5-15 % with random signs."""
     lower, upper = pm.lower, pm.upper
     names = pm.parameters.names
     if offsets is None:
         p = rng.uniform(0.05, 0.15, len(names)) * rng.choice([-1.0, 1.0], len(names))
-    else:
-        unknown = sorted(set(offsets) - set(names))
-        if unknown:
-            raise SynthError(f"offsets: unknown parameter(s) {unknown}; parameters are {list(names)}")
-        p = np.array([float(offsets.get(n, 0.0)) for n in names])
-        bad = [n for n, x, lo, hi in zip(names, p, lower, upper) if not lo < x < hi]
-        if bad:
-            raise SynthError(f"offsets: {bad} outside the parameter bounds")
-    # random offsets stay inside 90 % of the bounds
-    return np.clip(p, 0.9 * lower, 0.9 * upper)
+        return np.clip(p, 0.9 * lower, 0.9 * upper)  # random offsets stay inside 90 % of the bounds
+    unknown = sorted(set(offsets) - set(names))
+    if unknown:
+        raise SynthError(f"offsets: unknown parameter(s) {unknown}; parameters are {list(names)}")
+    p = np.array([float(offsets.get(n, 0.0)) for n in names])
+    bad = [n for n, x, lo, hi in zip(names, p, lower, upper) if not lo < x < hi]
+    if bad:
+        raise SynthError(f"offsets: {bad} outside the parameter bounds")
+    return p
 
 
 def synthesize(bdf, parameters, out_dir, *, sensors, drives, band_hz, units=None, n_articles: int = 3,
@@ -569,7 +582,7 @@ def synthesize(bdf, parameters, out_dir, *, sensors, drives, band_hz, units=None
     noise_range : (float, float)
         Range of the per-article, per-sensor relative noise rms.
     noise_floor : float
-        Absolute noise floor as a fraction of the sensor's median |H| in the band.
+        Absolute noise floor as a fraction of each FRF's (sensor, drive) median |H| in the band.
     mode_factor : float
         Modes up to mode_factor x band top are kept as modes; higher ones enter
         through the exact residual series.
@@ -622,7 +635,14 @@ def synthesize(bdf, parameters, out_dir, *, sensors, drives, band_hz, units=None
         raise SynthError("n_articles >= 1, base_lines >= 2, lines_per_bandwidth > 0, scatter >= 0 and "
                          "noise_floor >= 0 are required")
 
+    t_start = time.perf_counter()
     pm = parametric if parametric is not None else femodel.parametric_model(parameters, bdf, units=units)
+    t_model = time.perf_counter() - t_start
+    known = set(np.asarray(pm.assembly.model.grid_ids).tolist())
+    for what, chans in (("sensor", sensors), ("drive", drives)):
+        for c in chans:
+            if c.grid not in known:
+                raise SynthError(f"{what} {c.name!r}: grid {c.grid} is not in {pm.bdf}")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     asm = pm.assembly
@@ -668,18 +688,19 @@ def synthesize(bdf, parameters, out_dir, *, sensors, drives, band_hz, units=None
                               physical=f"synth/{len(sensors) + i}", grid=c.grid, direction=c.direction)
                   for i, c in enumerate(drives)]
     n_out, n_in = len(sensors), len(drives)
+    t_files = time.perf_counter()
     npz: dict[str, np.ndarray] = {}
     runs, uffs = [], []
     noise_rel = np.zeros((n_articles, n_out))
-    floor_abs = np.zeros((n_articles, n_out))
+    floor_abs = np.zeros((n_articles, n_out, n_in))
     for a, (name, tr, r) in enumerate(zip(articles, truths, art_rng)):
         elastic = tr.frequencies_hz > 0
         f = line_grid((d_lo, d_hi), base_lines, tr.frequencies_hz[elastic], tr.zeta[elastic], lines_per_bandwidth)
         H = tr.frf(f, "accelerance")
         band = (f >= lo) & (f <= hi)
         noise_rel[a] = r.uniform(noise_range[0], noise_range[1], n_out)
-        floor_abs[a] = noise_floor * np.median(np.abs(H[band]).transpose(1, 0, 2).reshape(n_out, -1), axis=1)
-        sigma = np.sqrt((noise_rel[a][None, :, None] * np.abs(H)) ** 2 + floor_abs[a][None, :, None] ** 2)
+        floor_abs[a] = noise_floor * np.median(np.abs(H[band]), axis=0)
+        sigma = np.sqrt((noise_rel[a][None, :, None] * np.abs(H)) ** 2 + floor_abs[a][None] ** 2)
         noise = sigma * (r.standard_normal(H.shape) + 1j * r.standard_normal(H.shape)) / np.sqrt(2.0)
         Hn = H + noise
         plan = {"generator": "frfcal.synth", "seed": int(seed), "article_index": a, "band_hz": [lo, hi],
@@ -707,6 +728,8 @@ def synthesize(bdf, parameters, out_dir, *, sensors, drives, band_hz, units=None
     })
     truth_path = out / "truth.npz"
     np.savez_compressed(truth_path, **npz)
+    timings = {"model": t_model if parametric is None else 0.0, "modes": [t.modes_time_s for t in truths],
+               "residual": [t.residual_time_s for t in truths], "files": time.perf_counter() - t_files}
     params_path = getattr(pm.parameters, "source", None)
     if params_path is None and not isinstance(parameters, femodel.ParameterSet):
         params_path = parameters
@@ -714,5 +737,5 @@ def synthesize(bdf, parameters, out_dir, *, sensors, drives, band_hz, units=None
         run_paths=tuple(runs), uff_paths=tuple(uffs), truth_path=truth_path, articles=articles, p_true=p_true,
         p_population=p_pop, parameter_names=tuple(pm.parameters.names), sensors=sensors, drives=drives,
         band_hz=(lo, hi), data_hz=(d_lo, d_hi), bdf=Path(pm.bdf),
-        parameters=Path(params_path) if params_path is not None else None, units=pm.units,
+        parameters=Path(params_path) if params_path is not None else None, units=pm.units, timings=timings,
     )
