@@ -399,7 +399,8 @@ def run_campaign(camp: Campaign, log=print) -> dict:
                         a.std_error[:, [a.channels.index(n) for n in camp.channels.holdout]] for a in arts]
                 val = validate(sur0, sur_final, p_final, raw, [identified_modes(a) for a in arts], c.zeta0,
                                camp.validation.target_sd, camp.validation.mac_min, arts[0].quantity, band,
-                               std_error=None if any(e is None for e in errs) else errs)
+                               std_error=None if any(e is None for e in errs) else errs,
+                               damping=None if ref is None else (ref.zeta, ref.p_zeta))
                 log(f"[{label}] {val.summary()}")
             if ref is not None and len(arts) > 1:
                 ref = replace(ref, articles=_per_article(camp, sur0, sur_final, arts, p_final, band, lower, upper,

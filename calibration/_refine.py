@@ -359,7 +359,9 @@ class Refinement:
 
 
 def article_damping(sur: Surrogate, p, modes: IdentifiedModes, mac_min: float = 0.6, band_hz=None):
-    """Per-reduced-mode damping at p from one article's identified modes (MAC-paired), and the pairs.
+    """Per-reduced-mode damping at p from one article's identified modes (MAC-paired), the pairs, and
+    the reduced modes whose damping the raw stage estimates (the paired ones and every FE mode within
+    the band +- 5 %).
 
     Unpaired FE modes take the median identified damping: an unobserved or
     out-of-band mode's damping barely shows in the band, and the median is a
@@ -369,8 +371,12 @@ def article_damping(sur: Surrogate, p, modes: IdentifiedModes, mac_min: float = 
     zeta, pairs, _, _ = mapped_damping(sur, p, modes, fallback, mac_min, band_hz)
     lam, _ = reduced_modes(sur, p)
     fe_hz = np.sqrt(np.clip(lam, 0, None)) / (2 * np.pi)
-    paired = np.array([int(np.argmin(np.abs(fe_hz - q["fe_hz"]))) for q in pairs], int)
-    return zeta, pairs, paired
+    paired = [int(np.argmin(np.abs(fe_hz - q["fe_hz"]))) for q in pairs]
+    if band_hz is not None:  # FE modes in the band the identification missed: their damping is unknown too
+        lo, hi = band_hz
+        near = np.flatnonzero((fe_hz > sur.rigid_hz) & (fe_hz >= 0.95 * lo) & (fe_hz <= 1.05 * hi))
+        paired = sorted(set(paired) | set(near.tolist()))
+    return zeta, pairs, np.array(paired, int)
 
 
 def refine(
@@ -416,8 +422,8 @@ def refine(
         from ``modes`` by MAC).
     fit_damping : bool
         In the last (raw) stage, estimate the damping of the MAC-paired modes
-        together with p (nuisance unknowns within a factor 4 of the identified
-        value). The identified damping is a noisy estimate; held fixed, its
+        and of every FE mode in the band together with p (nuisance unknowns
+        within a factor 4 of the identified, or median identified, value). The identified damping is a noisy estimate; held fixed, its
         error leaves a systematic misfit at every resonance that p would
         partly absorb.
 
@@ -479,8 +485,10 @@ def refine(
                                       int(res.nfev), time.perf_counter() - t0, str(res.message)))
             p = x[:obj.n_p].copy()
     plain = ModalDampingObjective(surrogate, [replace(d, weights=None) for d in raw], zeta, p0, 0.0, quantity)
-    for pairs, z, idx in zip(pairs_all, zeta, paired):  # report the damping the model ends with
-        for q, k in zip(pairs, idx):
-            q["zeta_fitted"] = float(z[k])
+    lam0, _ = reduced_modes(surrogate, p0)
+    fe0 = np.sqrt(np.clip(lam0, 0, None)) / (2 * np.pi)
+    for pairs, z in zip(pairs_all, zeta):  # report the damping the model ends with
+        for q in pairs:
+            q["zeta_fitted"] = float(z[int(np.argmin(np.abs(fe0 - q["fe_hz"])))])
     return Refinement(p=p, sd_raw=plain.sd_unweighted(p), sd_raw_start=sd_raw_start, stages=tuple(stages),
                       damping=tuple(pairs_all), zeta=tuple(zeta), p_zeta=p0)
