@@ -7,6 +7,8 @@ files are refused (see docs/runfile.md, "UFF58").
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import argparse
 
 HELP = "convert UFF58 frequency response functions into an HDF5 run file"
@@ -25,6 +27,7 @@ def run(args) -> int:
 
     from acquisition._uff import import_uff
 
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)  # like every other --out of frfcal
     r = import_uff(args.uff, args.out, article=args.article, overwrite=args.force)
     info = {"path": args.out, "article": r.article, "quantity": r.quantity, "n_lines": r.n_lines,
             "sensors": [c.name for c in r.sensors], "drives": [c.name for c in r.drives],
