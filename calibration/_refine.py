@@ -459,7 +459,7 @@ def refine(
     plain = ModalDampingObjective(surrogate, [replace(d, weights=None) for d in raw], zeta, p, 0.0, quantity)
     sd_raw_start = plain.sd_unweighted(p)
     stages = []
-    with blas_threads(2):
+    with blas_threads(1):  # small dense problems: extra BLAS threads only spin
         for fl in floors:
             t0 = time.perf_counter()
             zf = fl * zeta0
