@@ -198,10 +198,10 @@ def _cholmod(A: sp.csc_matrix, cache: dict | None):
     if hit is not None and np.array_equal(hit[0], A.indptr) and np.array_equal(hit[1], A.indices):
         symbolic, reused = hit[2], True
     if symbolic is None:
-        try:  # CHOLMOD's default tries AMD, then METIS, and picks METIS on shell models: go straight there
-            symbolic = analyze(A, ordering_method="metis")
-        except Exception:  # noqa: BLE001 - a CHOLMOD built without METIS raises its own error type
-            symbolic = analyze(A)
+        # supernodal LL^T always: CHOLMOD's "auto" mode takes a simplicial LDL^T for small
+        # matrices, which factorizes indefinite ones without complaint (negative D).
+        # Ordering: CHOLMOD's default (AMD and METIS tried, the lesser fill kept).
+        symbolic = analyze(A, mode="supernodal")
         if cache is not None:
             cache["cholmod"] = (A.indptr.copy(), A.indices.copy(), symbolic)
     try:
