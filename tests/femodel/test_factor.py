@@ -106,3 +106,21 @@ def test_cholmod_reuses_the_symbolic_analysis_for_the_same_pattern():
     assert not first.symbolic_reused and second.symbolic_reused
     b = np.ones(A.shape[0])
     np.testing.assert_allclose(second(b), 0.5 * first(b), rtol=1e-12)
+
+
+def test_frfcal_info_names_the_backend_in_use(capsys, monkeypatch):
+    import json
+
+    from frfcal.cli import main
+
+    monkeypatch.delenv(ENV_VAR, raising=False)
+    assert main(["info", "--no-scan", "--json"]) == 0
+    sparse = json.loads(capsys.readouterr().out)["sparse"]
+    assert sparse["in_use"] == BACKENDS[0] and sparse["forced_by"] is None
+    assert list(sparse["backends"]) == list(PREFERENCE)
+    monkeypatch.setenv(ENV_VAR, "superlu")
+    assert main(["info", "--no-scan"]) == 0
+    assert f"sparse factorization: superlu ({ENV_VAR}=superlu)" in capsys.readouterr().out
+    monkeypatch.setenv(ENV_VAR, "umfpack")
+    assert main(["info", "--no-scan"]) == 0
+    assert "sparse factorization: unusable setting: unknown sparse backend 'umfpack'" in capsys.readouterr().out
