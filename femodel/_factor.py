@@ -11,10 +11,10 @@ calibration surrogate's basis) factorizes K - sigma M (or K + s M) through
     of the same pattern (``cache``).
 ``pardiso``
     Intel MKL PARDISO through pypardiso (pip wheels for Linux/x86-64 and
-    Windows: ``pip install 'frfcal[fast]'``); real symmetric positive definite
+    Windows: ``pip install 'frfcal[pardiso]'``, ~1 GB with MKL); real symmetric positive definite
     mode on the upper triangle.
 ``cholespy``
-    CHOLMOD bundled in the cholespy wheel (Linux, macOS, Windows); its wheel
+    CHOLMOD bundled in the cholespy wheel (Linux x86-64, macOS, Windows); its wheel
     links the reference BLAS, so it is slower than the two above.
 ``superlu``
     SciPy's SuperLU, always present: LU with MMD on A^T + A and diagonal
@@ -127,13 +127,13 @@ def _probe(name: str) -> BackendInfo:
         try:
             _pardiso_solver_class()
         except ImportError as exc:
-            return BackendInfo("pardiso", False, f"pypardiso/MKL not usable ({exc}): pip install 'frfcal[fast]'")
+            return BackendInfo("pardiso", False, f"pypardiso/MKL not usable ({exc}): pip install 'frfcal[pardiso]'")
         return BackendInfo("pardiso", True, f"pypardiso {_version('pypardiso')} (MKL {_version('mkl')} PARDISO)")
     if name == "cholespy":
         try:
             import cholespy  # noqa: F401
         except ImportError as exc:
-            return BackendInfo("cholespy", False, f"cholespy not importable ({exc}): pip install 'frfcal[cholespy]'")
+            return BackendInfo("cholespy", False, f"cholespy not importable ({exc}): pip install 'frfcal[fast]'")
         return BackendInfo("cholespy", True, f"cholespy {_version('cholespy')} (bundled CHOLMOD, reference BLAS)")
     raise FactorizationError(f"unknown sparse backend {name!r}; choose one of {', '.join(('auto',) + PREFERENCE)}")
 
