@@ -3,6 +3,8 @@ PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
 EXTRAS ?= dev,visa,ni,dask,fast
+# scikit-sparse is built only when this header exists (make SUITESPARSE_INCLUDE= to skip it)
+SUITESPARSE_INCLUDE ?= /usr/include/suitesparse
 STAMP  := $(VENV)/.installed-$(shell echo $(EXTRAS) | tr ',' '-')
 
 .PHONY: test test-all test-fallback demo bench lint clean venv
@@ -16,7 +18,7 @@ $(STAMP): pyproject.toml
 	@# The 'fast' extra (cholespy: CHOLMOD in a pip wheel) needs nothing from the system.
 	@# scikit-sparse (CHOLMOD on the system BLAS, fastest) builds only against SuiteSparse
 	@# headers (Debian libsuitesparse-dev): tried only where they are installed.
-	@if [ -f /usr/include/suitesparse/cholmod.h ]; then \
+	@if [ -f "$(SUITESPARSE_INCLUDE)/cholmod.h" ]; then \
 	  $(PY) -m pip install --quiet "scikit-sparse>=0.4.12,<0.5" || echo "note: scikit-sparse did not build; using the 'fast' backend"; fi
 	touch $@
 
