@@ -64,8 +64,8 @@ print(json.dumps({
 
 
 def _env(backend: str) -> dict:
-    return dict(os.environ, PYTHONPATH=str(REPO), FRFCAL_SPARSE_BACKEND=backend, OMP_NUM_THREADS="2", OPENBLAS_NUM_THREADS="2",
-                MKL_NUM_THREADS="2")
+    return dict(os.environ, PYTHONPATH=str(REPO), FRFCAL_SPARSE_BACKEND=backend, OMP_NUM_THREADS="2",
+                OPENBLAS_NUM_THREADS="2", MKL_NUM_THREADS="2")
 
 
 def run_backend(backend: str, folder: str, n_modes: int) -> dict:
@@ -142,7 +142,8 @@ def main(argv=None):
         if "error" in r:
             print(f"{r['backend']:9} error: {r['error']}")
             continue
-        df = "" if ref is None else f"{max(abs(a / b - 1) for a, b in zip(r['frequencies_hz'][6:], ref['frequencies_hz'][6:])):.1e}"
+        pairs = [] if ref is None else list(zip(r["frequencies_hz"][6:], ref["frequencies_hz"][6:]))
+        df = f"{max(abs(a / b - 1) for a, b in pairs):.1e}" if pairs else ""
         cal = (f"{r['calibration_total_s']:7.1f} {r['calibration_cpu_s']:6.1f}" if "calibration_total_s" in r
                else f"{'-':>7} {'-':>6}")
         print(f"{r['backend']:9} {r['factor_s']:8.2f} {r['factor_cpu_s']:6.2f} {1e3 * r['solve_s']:8.1f} "

@@ -215,7 +215,8 @@ def run(args) -> int:
         print(f"  {name:5s} {'available' if d['available'] else 'unavailable':11s} {d['detail']}")
     sparse = report["sparse"]
     if sparse["in_use"]:
-        print(f"sparse factorization: {sparse['in_use']}" + (f" ({sparse['forced_by']})" if sparse["forced_by"] else ""))
+        forced = f" ({sparse['forced_by']})" if sparse["forced_by"] else ""
+        print(f"sparse factorization: {sparse['in_use']}{forced}")
     else:
         print(f"sparse factorization: unusable setting: {sparse['problem']}")
     for name, d in sparse["backends"].items():
