@@ -70,7 +70,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--dof", type=int, default=200000, help="target DOF of the example subframe (0: skip)")
     ap.add_argument("--modes", type=int, default=30)
-    ap.add_argument("--solver", default="auto", choices=["auto", "cholmod", "superlu"])
+    ap.add_argument("--solver", default="auto", choices=["auto", "cholmod", "cholespy", "pardiso", "superlu"])
     ap.add_argument("--deck", help="an extra deck to benchmark")
     ap.add_argument("--units", default="si")
     ap.add_argument("--out", default=str(HERE / "results" / "femodel.json"))

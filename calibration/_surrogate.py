@@ -49,7 +49,7 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from femodel import AffineMatrix
+from femodel import AffineMatrix, FactorizationError, factorize
 
 from calibration._errors import CalibrationError
 from calibration._threads import blas_threads as _blas_threads  # module-local name as before; shared with _fit.single_thread
@@ -200,45 +200,23 @@ class Surrogate:
 
 
 def _factor(A, cache: dict | None = None):
-    """solve(F) for symmetric positive definite A: CHOLMOD when scikit-sparse is present, else SuperLU.
+    """solve(F) for symmetric positive definite A through :func:`femodel.factorize` (backend "auto").
 
     ``cache`` (a dict kept by the caller, e.g. on the :class:`FRFModel`) holds
-    the CHOLMOD symbolic analysis (fill-reducing ordering and supernodes) of
-    the last pattern seen. K(p) + s M(p) keeps its sparsity pattern for every p,
-    so later factorizations at new parameter points are numeric only: at
-    200k DOF the analysis is about 3.5 s of a 6 s factorization.
+    the symbolic analysis (fill-reducing ordering and supernodes) of the last
+    pattern seen, for the backend that can reuse it (scikit-sparse's CHOLMOD).
+    K(p) + s M(p) keeps its sparsity pattern for every p, so later
+    factorizations at new parameter points are numeric only: at 200k DOF the
+    analysis is about 3.5 s of a 6 s factorization.  A matrix that a
+    Cholesky backend finds indefinite in floating point is LU-factorized.
     """
-    t0 = time.perf_counter()
-    A = sp.csc_matrix(A)
     try:
-        from sksparse.cholmod import analyze
-    except ImportError:
-        analyze = None
-    if analyze is not None:
-        try:
-            symbolic = None
-            hit = None if cache is None else cache.get("cholmod")
-            if hit is not None and np.array_equal(hit[0], A.indptr) and np.array_equal(hit[1], A.indices):
-                symbolic = hit[2]
-            if symbolic is None:
-                try:  # CHOLMOD's default tries AMD, then METIS, and picks METIS here: go straight
-                    symbolic = analyze(A, ordering_method="metis")  # there (same ordering, 0.3 s less)
-                except Exception:  # a CHOLMOD built without METIS
-                    symbolic = analyze(A)
-                if cache is not None:
-                    cache["cholmod"] = (A.indptr.copy(), A.indices.copy(), symbolic)
-            f = symbolic.cholesky(A)  # a new numeric factor on the stored analysis
-            if cache is not None:
-                cache["factor_s"] = time.perf_counter() - t0
-            # C order: the results meet CSR @ dense products, which would copy F-ordered operands each time
-            return lambda F: np.ascontiguousarray(f(np.asfortranarray(F, dtype=float)))
-        except Exception:  # not positive definite in floating point: fall back to LU
-            pass
-    try:
-        lu = spla.splu(A, permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True})
-    except RuntimeError as exc:  # singular factor
-        raise CalibrationError(f"stiffness (+ shift) is singular: {exc}") from exc
-    return lambda F: np.ascontiguousarray(lu.solve(np.asarray(F, dtype=float)))
+        fac = factorize(A, cache=cache)
+    except FactorizationError as exc:
+        raise CalibrationError(f"stiffness (+ shift) cannot be factorized: {exc}") from exc
+    if cache is not None:
+        cache["factor_s"] = fac.factor_time_s
+    return fac.solve
 
 
 def _canonical_csr(A) -> sp.csr_matrix:

@@ -8,6 +8,8 @@ from femodel._assembly import Assembly, MatrixTerm, assemble
 from femodel._dofs import DofMap
 from femodel._matrices import ImportedMatrices, read_dmig, read_matrices, read_op2_matrices, read_op4
 from femodel._model import CoordSystem, FEModel, ModelError, RBE2, RBE3, Table
+from femodel._factor import (BackendInfo, Factorization, FactorizationError, NotPositiveDefiniteError,
+                             available_backends, default_backend, factorize)
 from femodel._modes import Modes, normal_modes, solve_modes
 from femodel._reader import read_bdf
 from femodel._sensors import MassProperties, mass_properties, rigid_body_vectors, sensor_matrix
@@ -29,4 +31,5 @@ __all__ = [
     "AffineMatrix", "ElementGeometryError", "shell_stiffness", "shell_mass", "solid_stiffness", "solid_mass", "laminate_abd", "orthotropic_q",
     "Parameter", "ParameterError", "ParameterSet", "read_parameters", "ParametricModel", "SeriesAffineMatrix", "parametric_model",
     "write_bdf", "fixed_field_card", "SubframeExample", "example_subframe", "FrameExample", "example_frame",
-    "AddedMass", "AddedSpring", "ElementFactor", "ExtendedAffineMatrix"]
+    "AddedMass", "AddedSpring", "ElementFactor", "ExtendedAffineMatrix", "BackendInfo", "Factorization",
+    "FactorizationError", "NotPositiveDefiniteError", "available_backends", "default_backend", "factorize"]

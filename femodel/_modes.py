@@ -1,4 +1,4 @@
-"""Lowest normal modes by shift-invert Lanczos with a sparse Cholesky (or LU) factorization."""
+"""Lowest normal modes by shift-invert Lanczos on a sparse Cholesky (or LU) factorization (femodel._factor)."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from femodel._dofs import DofMap
+from femodel._factor import PREFERENCE, FactorizationError, NotPositiveDefiniteError, factorize
 from femodel._model import ModelError
 
 #: Below this frequency a mode counts as a rigid-body mode (Hz).
@@ -82,38 +83,26 @@ def _limit_threads(n):
         yield int(n)
 
 
-def _cholmod():
-    try:
-        from sksparse.cholmod import cholesky  # noqa: F401
-    except ImportError:
-        return None
-    return cholesky
+_SOLVER_LABEL = {
+    "cholmod": "CHOLMOD Cholesky (scikit-sparse)",
+    "pardiso": "MKL PARDISO Cholesky (pypardiso)",
+    "cholespy": "CHOLMOD Cholesky (cholespy)",
+    "superlu": "SuperLU MMD_AT_PLUS_A",
+}
 
 
 def _factorize(A: sp.csc_matrix, solver: str):
-    """Return (solve(b), name)."""
-    import scipy.sparse.linalg as spla
-
-    if solver in ("auto", "cholmod"):
-        cholesky = _cholmod()
-        if cholesky is None and solver == "cholmod":
-            raise ModelError("solver='cholmod' needs scikit-sparse (pip install 'frfcal[fast]')")
-        if cholesky is not None:
-            from sksparse.cholmod import CholmodNotPositiveDefiniteError
-
-            try:
-                f = cholesky(A)
-                return f, "cholmod"
-            except CholmodNotPositiveDefiniteError:
-                if solver == "cholmod":
-                    raise ModelError("K - shift*M is not positive definite: choose a shift below the lowest eigenvalue") from None
-    if solver not in ("auto", "cholmod", "superlu"):
-        raise ModelError(f"unknown solver {solver!r}; choose 'auto', 'cholmod' or 'superlu'")
+    """Return (solve(b), backend name) for K - sigma M; see :func:`femodel._factor.factorize`."""
+    if solver not in ("auto",) + PREFERENCE:
+        raise ModelError(f"unknown solver {solver!r}; choose 'auto', 'dense' or one of {', '.join(PREFERENCE)}")
     try:
-        lu = spla.splu(A, permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True})
-    except RuntimeError as exc:
-        raise ModelError(f"K - shift*M is singular ({exc}); a DOF has neither stiffness nor mass, or the shift is an eigenvalue") from None
-    return lu.solve, "superlu"
+        fac = factorize(A, backend=solver)
+    except NotPositiveDefiniteError:
+        raise ModelError("K - shift*M is not positive definite: choose a shift below the lowest eigenvalue") from None
+    except FactorizationError as exc:
+        raise ModelError(f"K - shift*M cannot be factorized: {exc}; a DOF has neither stiffness nor mass, "
+                         "or the shift is an eigenvalue") from None
+    return fac.solve, fac.backend
 
 
 def normal_modes(K, M, n_modes: int, *, shift_hz=None, solver: str = "auto", n_threads: int | None = 2,
@@ -121,8 +110,9 @@ def normal_modes(K, M, n_modes: int, *, shift_hz=None, solver: str = "auto", n_t
     """Lowest ``n_modes`` of K phi = w^2 M phi.
 
     Shift-invert Lanczos (ARPACK through scipy's ``eigsh`` in mode "normal")
-    with our own factorization of K - sigma M: CHOLMOD when scikit-sparse is
-    importable, else SuperLU with MMD_AT_PLUS_A ordering.  Small problems
+    with our own factorization of K - sigma M (:func:`femodel._factor.factorize`:
+    CHOLMOD, PARDISO or cholespy when installed, else SuperLU; environment
+    variable ``FRFCAL_SPARSE_BACKEND`` overrides "auto").  Small problems
     (<= 600 DOF) use a dense generalized eigensolver.
 
     Parameters
@@ -135,7 +125,10 @@ def normal_modes(K, M, n_modes: int, *, shift_hz=None, solver: str = "auto", n_t
         Shift frequency f; sigma = sign(f) (2 pi f)^2, so a negative value
         shifts below zero.  Default -1 Hz: slightly below zero so that
         free-free models factorize (the Cholesky path needs sigma < 0).
-    solver : {"auto", "cholmod", "superlu", "dense"}
+    solver : {"auto", "cholmod", "pardiso", "cholespy", "superlu", "dense"}
+        Factorization backend; "auto" is the first available (or the one
+        ``FRFCAL_SPARSE_BACKEND`` names) and falls back to SuperLU when K -
+        sigma M is not positive definite.
     n_threads : int or None
         BLAS/OpenMP thread limit for the factorization (threadpoolctl); the
         Lanczos iteration itself runs on one thread.  None leaves the
@@ -210,7 +203,7 @@ def normal_modes(K, M, n_modes: int, *, shift_hz=None, solver: str = "auto", n_t
             with _limit_threads(1 if n_threads is not None else None):
                 lam, vec = spla.eigsh(K, k=k, M=M, sigma=sigma, which="LM", OPinv=op, mode="normal", ncv=ncv, tol=tol)
             t2 = time.perf_counter()
-            name = f"shift-invert Lanczos (ARPACK) with {'CHOLMOD Cholesky' if fname == 'cholmod' else 'SuperLU MMD_AT_PLUS_A'}"
+            name = f"shift-invert Lanczos (ARPACK) with {_SOLVER_LABEL[fname]}"
     order = np.argsort(lam)
     lam, vec = lam[order], vec[:, order]
     gm = np.einsum("ij,ij->j", vec, M @ vec)

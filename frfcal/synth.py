@@ -159,22 +159,6 @@ class ArticleTruth:
         raise SynthError(f"quantity must be accelerance, mobility or receptance, got {quantity!r}")
 
 
-def _factorize(A: sp.spmatrix):
-    """Solve function of the symmetric positive definite A (CHOLMOD if present, else SuperLU)."""
-    A = sp.csc_matrix(A)
-    try:
-        from sksparse.cholmod import cholesky
-    except ImportError:
-        cholesky = None
-    if cholesky is not None:
-        f = cholesky(A)
-        return lambda b: f(b)
-    import scipy.sparse.linalg as spla
-
-    lu = spla.splu(A, permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True})
-    return lu.solve
-
-
 def modes_up_to(K, M, f_cut_hz: float, *, dofs=None, n_start: int = 24):
     """All normal modes of (K, M) up to ``f_cut_hz`` and the first mode above it.
 
@@ -254,7 +238,9 @@ def article_truth(K, M, C, B, p, *, f_cut_hz: float, f_max_hz: float, zeta_of_mo
     # the massless DOF (infinite eigenvalues; nothing when sensors and drives see only DOF with mass).
     ratio = (s + w_max2) / ((2 * np.pi * next_hz) ** 2 + s) if np.isfinite(next_hz) else 0.0
     n_terms = max(1, int(math.ceil(math.log(_SERIES_TOL * (1 - ratio)) / math.log(ratio)))) if ratio > 0 else 1
-    solve = _factorize(sp.csc_matrix(K) + s * sp.csc_matrix(M))
+    import femodel
+
+    solve = femodel.factorize(sp.csc_matrix(K) + s * sp.csc_matrix(M))  # the project's sparse backend
 
     def project(x):  # remove the kept modes: x - Phi Phi^T M x
         return x - Phi @ (Phi.T @ (M @ x))

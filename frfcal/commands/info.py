@@ -9,10 +9,10 @@ from __future__ import annotations
 
 import argparse
 
-HELP = "list installed drivers (sim, visa, ni), VISA resources and NI-DAQmx devices"
+HELP = "list installed drivers (sim, visa, ni), sparse factorization backends, VISA resources and NI-DAQmx devices"
 
 PACKAGES = ("numpy", "scipy", "pyNastran", "h5py", "pyuff", "matplotlib", "pydantic",
-            "pyvisa", "pyvisa-py", "nidaqmx", "dask", "distributed")
+            "pyvisa", "pyvisa-py", "nidaqmx", "dask", "distributed", "cholespy", "pypardiso", "scikit-sparse")
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -55,6 +55,22 @@ def _drivers() -> dict:
         runtime = _ni_runtime()
         out["ni"] = {"available": runtime["found"], "detail": f"nidaqmx {nv}; " + runtime["detail"]}
     return out
+
+
+def _sparse_backends() -> dict:
+    """The sparse factorization backends (femodel.factorize) and the one in use."""
+    import os
+
+    from femodel import FactorizationError, available_backends, default_backend
+    from femodel._factor import ENV_VAR
+
+    backends = {b.name: {"available": b.available, "detail": b.detail} for b in available_backends()}
+    try:
+        in_use, problem = default_backend(), None
+    except FactorizationError as exc:  # the env var names a missing or unknown backend
+        in_use, problem = None, str(exc)
+    return {"in_use": in_use, "forced_by": f"{ENV_VAR}={os.environ[ENV_VAR]}" if os.environ.get(ENV_VAR) else None,
+            "problem": problem, "backends": backends}
 
 
 def _ni_runtime() -> dict:
@@ -181,6 +197,7 @@ def run(args) -> int:
         "python": platform.python_version(),
         "packages": {p: _version(p) for p in PACKAGES},
         "drivers": _drivers(),
+        "sparse": _sparse_backends(),
         "visa": {"ok": False, "detail": "scan skipped (--no-scan)", "resources": []}
         if args.no_scan else _visa_resources(args.visa_backend),
         "ni": ni,
@@ -196,6 +213,14 @@ def run(args) -> int:
     print("drivers:")
     for name, d in report["drivers"].items():
         print(f"  {name:5s} {'available' if d['available'] else 'unavailable':11s} {d['detail']}")
+    sparse = report["sparse"]
+    if sparse["in_use"]:
+        forced = f" ({sparse['forced_by']})" if sparse["forced_by"] else ""
+        print(f"sparse factorization: {sparse['in_use']}{forced}")
+    else:
+        print(f"sparse factorization: unusable setting: {sparse['problem']}")
+    for name, d in sparse["backends"].items():
+        print(f"  {name:8s} {'available' if d['available'] else 'unavailable':11s} {d['detail']}")
     v = report["visa"]
     print(f"VISA resources: {v['detail']}")
     for r in v["resources"]:

@@ -31,7 +31,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "(the fixed-interface problem of Craig-Bampton matrices)",
     )
     parser.add_argument("--shift-hz", type=float, default=None, help="Lanczos shift in Hz (negative: below zero; default -1)")
-    parser.add_argument("--solver", choices=["auto", "cholmod", "superlu", "dense"], default="auto", help="factorization")
+    parser.add_argument("--solver", choices=["auto", "cholmod", "pardiso", "cholespy", "superlu", "dense"], default="auto", help="factorization")
     parser.add_argument("--threads", type=int, default=None, help="BLAS/OpenMP thread limit (default: cores, at most 4)")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of text")
 
