@@ -383,7 +383,7 @@ def run_campaign(camp: Campaign, log=print) -> dict:
                                    arts[0].quantity, c.max_cycles, c.cycle_tol, c.basis_factor, surrogate=sur0,
                                    log=log, continuation=cont, enrich=c.enrich, max_nfev=c.max_evaluations,
                                    basis=T0)
-            log(f"[{label}] calibration SD (equalized test model, zeta0 = {100 * c.zeta0:g} %) "
+            log(f"[{label}] calibration SD (equalized test model, zeta0={100 * c.zeta0:g} %) "
                 f"{cyc.calibration.sd_nominal:.4g} -> {cyc.sd:.4g} ({time.perf_counter() - t:.1f} s)")
             ref, p_final, sur_final = None, cyc.p, cyc.surrogate
             if c.refine:

@@ -220,9 +220,9 @@ class Validation:
 
     def summary(self) -> str:
         """One line: ``hold-out SD (raw lines, identified damping) a -> b, floor ~c (r x) (verdict)``."""
-        how = "identified damping" if self.damping_source == "identified" else \
-            "identified damping -> damping estimated on the calibration channels"
-        txt = f"hold-out SD (raw lines, {how}) {self.sd_nominal:.4g} -> {self.sd_calibrated:.4g}"
+        txt = f"hold-out SD (raw lines, identified damping) {self.sd_nominal:.4g} -> {self.sd_calibrated:.4g}"
+        if self.damping_source != "identified":
+            txt += " (calibrated model: damping estimated on the calibration channels)"
         if self.sd_floor:
             txt += f", floor ~{self.sd_floor:.2g} ({self.floor_ratio:.1f}x)"
         return f"{txt} ({self.verdict})"
