@@ -51,11 +51,11 @@ def layout_dict(result, *, model_path=None, units=None, relative_to=None) -> dic
     """
     s, d = result.sensors, result.drives
     channels = [
-        LayoutChannel(n, "response", "acceleration", "m/s^2", int(g), tuple(v), tuple(x))
+        LayoutChannel(n, "response", "acceleration", "m/s^2", int(g), tuple(map(float, v)), tuple(map(float, x)))
         for n, g, v, x in zip(result.channel_names, s.grids, s.directions, s.xyz_m)
     ]
     drives = [
-        LayoutChannel(n, "force", "force", "N", int(g), tuple(v), tuple(x))
+        LayoutChannel(n, "force", "force", "N", int(g), tuple(map(float, v)), tuple(map(float, x)))
         for n, g, v, x in zip(result.drive_names, d.grids, d.directions, d.xyz_m)
     ]
     m = result.metrics.as_dict()
