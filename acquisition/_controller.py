@@ -44,8 +44,9 @@ from acquisition.runfile import (
     read_run,
     resume_run,
 )
+from labdata import CHANNEL_UNITS, RESPONSE_QUANTITY, frf_quantity_of
 
-_QUANTITY = {"acceleration": "accelerance", "velocity": "mobility", "displacement": "receptance"}
+_MOTION = tuple(RESPONSE_QUANTITY.values())
 
 
 class AcquisitionAbort(RuntimeError):
@@ -84,9 +85,9 @@ class _LineResult:
 def quantity_of(sensors: Sequence[ChannelSpec]) -> str:
     """FRF quantity implied by the response sensors (all must measure the same quantity)."""
     qs = {c.quantity for c in sensors}
-    if len(qs) != 1 or next(iter(qs)) not in _QUANTITY:
-        raise ValueError(f"response sensors must all measure one of {list(_QUANTITY)}, got {sorted(qs)}")
-    return _QUANTITY[qs.pop()]
+    if len(qs) != 1 or next(iter(qs)) not in _MOTION:
+        raise ValueError(f"response sensors must all measure one of {list(_MOTION)}, got {sorted(qs)}")
+    return frf_quantity_of(qs.pop())
 
 
 def settle_metric(history: Sequence[np.ndarray], q_bound: float) -> float:
@@ -566,14 +567,13 @@ def plan_channels(plan: Plan) -> tuple[tuple[ChannelSpec, ...], tuple[ChannelSpe
         lay = read_layout(plan.resolve(plan.layout))
         sensors = tuple(c for c in lay.sensors if c.role == "response")
         return sensors, lay.drives
-    units = {"acceleration": "m/s^2", "velocity": "m/s", "displacement": "m", "force": "N", "voltage": "V"}
     specs = []
     for c in plan.channels:
         d = np.asarray(c.direction, dtype=float)
         n = np.linalg.norm(d)
         if n == 0:
             raise ValueError(f"plan channel {c.name!r}: direction is the zero vector")
-        specs.append(ChannelSpec(name=c.name, role=c.role, quantity=c.quantity, unit=c.unit or units[c.quantity],
+        specs.append(ChannelSpec(name=c.name, role=c.role, quantity=c.quantity, unit=c.unit or CHANNEL_UNITS[c.quantity],
                                  sensitivity=c.sensitivity_v_per_unit, physical=c.physical, range_v=c.range_v,
                                  grid=c.grid, direction=tuple(float(x) for x in d / n), serial=c.serial,
                                  iepe_current_a=c.iepe_current_a))

@@ -15,7 +15,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-QUANTITIES = ("receptance", "mobility", "accelerance")
+from labdata import FRF_QUANTITIES, quantity_power
+
+QUANTITIES = FRF_QUANTITIES
 
 
 class PlantError(ValueError):
@@ -102,7 +104,7 @@ class ModalPlant:
         res = np.concatenate([a, a.conj()])
         # displacement of pole j: res_j * z_j ; velocity: lam_j res_j z_j ;
         # acceleration: lam_j^2 res_j z_j + phi_o phi_i^T u (feedthrough).
-        power = {"receptance": 0, "mobility": 1, "accelerance": 2}[self.quantity]
+        power = quantity_power(self.quantity)
         cz = np.concatenate([po, po], axis=1) * (res * poles**power)[None, :]
         if power == 2:
             d = po @ pi.T

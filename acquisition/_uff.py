@@ -31,10 +31,11 @@ import numpy as np
 
 from acquisition._driver import ChannelSpec
 from acquisition.runfile import LineQuality, Run, RunFileError, create_run, read_run
+from labdata import CHANNEL_UNITS, RESPONSE_QUANTITY
 
 _SPEC = {"accelerance": 12, "mobility": 11, "receptance": 8}
 _SPEC_INV = {v: k for k, v in _SPEC.items()}
-_QTY = {"accelerance": ("acceleration", "m/s^2"), "mobility": ("velocity", "m/s"), "receptance": ("displacement", "m")}
+_QTY = {q: (r, CHANNEL_UNITS[r]) for q, r in RESPONSE_QUANTITY.items()}
 _SCALE_NUM = {"m/s^2": 1.0, "m/s2": 1.0, "g": 9.80665, "mm/s^2": 1e-3, "mm/s2": 1e-3, "m/s": 1.0, "mm/s": 1e-3,
               "m": 1.0, "mm": 1e-3, "none": 1.0, "": 1.0}
 _SCALE_DEN = {"n": 1.0, "kn": 1e3, "none": 1.0, "": 1.0}

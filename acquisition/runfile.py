@@ -22,10 +22,11 @@ import h5py
 import numpy as np
 
 from acquisition._driver import ChannelSpec
+from labdata import FRF_QUANTITIES
 
 FORMAT = "frfcal-run"
 VERSION = 1
-QUANTITIES = ("accelerance", "mobility", "receptance")
+QUANTITIES = FRF_QUANTITIES
 STATUSES = ("running", "completed", "aborted")
 
 #: Line flag bits (``Run.flags``); a line is *valid* when no bit is set.

@@ -40,8 +40,8 @@ import numpy as np
 
 from calibration._errors import CalibrationError
 from calibration._metric import LN10, log_deviation, square_deviation
+from labdata import FRF_QUANTITIES, quantity_factor, quantity_power
 
-_POWER = {"receptance": 0, "mobility": 1, "accelerance": 2}
 
 
 def _z_of_p(p: float) -> float:
@@ -118,8 +118,8 @@ class FRFLevel:
             raise CalibrationError(f"{name}: frf has NaN/inf lines: drop invalid lines first")
         if not (np.isfinite(self.level) and self.level > 0):
             raise CalibrationError(f"{name}: level must be finite and > 0, got {self.level}")
-        if self.quantity not in _POWER:
-            raise CalibrationError(f"{name}: quantity {self.quantity!r} not in {sorted(_POWER)}")
+        if self.quantity not in FRF_QUANTITIES:
+            raise CalibrationError(f"{name}: quantity {self.quantity!r} not in {sorted(FRF_QUANTITIES)}")
         if self.sweep not in ("up", "down", "unknown"):
             raise CalibrationError(f"{name}: sweep {self.sweep!r} not in ('up', 'down', 'unknown')")
         order = np.argsort(f, kind="stable")
@@ -199,8 +199,7 @@ class ModeFit:
 
 def _receptance(level: FRFLevel) -> tuple[np.ndarray, np.ndarray | None]:
     w = 2 * np.pi * level.frequency_hz
-    p = _POWER[level.quantity]
-    fac = (1j * w) ** p
+    fac = quantity_factor(level.quantity, w)
     H = level.frf / fac[:, None, None]
     se = None if level.std_error is None else level.std_error / np.abs(fac)[:, None, None]
     return H, se
@@ -775,7 +774,7 @@ def _noise_of(d: FRFLevel, fits: tuple[ModeFit, ...], idx: np.ndarray) -> np.nda
     relative = np.sqrt(np.mean([f.residual_rel_rms**2 for f in fits], axis=0)).reshape(shape)
     w = 2 * np.pi * d.frequency_hz[idx]
     return np.maximum(
-        absolute[None] * (w ** _POWER[d.quantity])[:, None, None], relative[None] * np.abs(d.frf[idx])
+        absolute[None] * (w ** quantity_power(d.quantity))[:, None, None], relative[None] * np.abs(d.frf[idx])
     )
 
 

@@ -53,8 +53,10 @@ from femodel import AffineMatrix, FactorizationError, factorize
 
 from calibration._errors import CalibrationError
 from calibration._threads import blas_threads as _blas_threads  # module-local name as before; shared with _fit.single_thread
+from labdata import FRF_QUANTITIES
+from labdata import quantity_factor as _quantity_factor
 
-_QUANTITIES = ("accelerance", "mobility", "receptance")
+_QUANTITIES = FRF_QUANTITIES
 
 
 @dataclass(frozen=True)
@@ -739,12 +741,9 @@ def reduced_term_stack(A: AffineMatrix) -> np.ndarray:
 
 
 def quantity_factor(w: np.ndarray, quantity: str) -> np.ndarray:
-    if quantity == "accelerance":
-        return -(w**2) + 0j
-    if quantity == "mobility":
-        return 1j * w
-    if quantity == "receptance":
-        return np.ones_like(w) + 0j
+    """q(w) with H_quantity = q H_receptance (:func:`labdata.quantity_factor`); w in rad/s."""
+    if quantity in _QUANTITIES:
+        return _quantity_factor(quantity, w)
     raise CalibrationError(f"FRF quantity must be one of {_QUANTITIES}, got {quantity!r}")
 
 

@@ -34,28 +34,7 @@ from calibration._errors import CalibrationError
 from calibration._fit import FitData
 from calibration._metric import LN10, log_deviation, square_deviation
 from calibration._surrogate import Surrogate, modal_frf, reduced_modes
-
-
-def mac(phi_a: np.ndarray, phi_b: np.ndarray) -> np.ndarray:
-    """Modal assurance criterion between the columns of two shape matrices.
-
-    Parameters
-    ----------
-    phi_a : (n_dof, m_a), phi_b : (n_dof, m_b) real or complex
-
-    Returns
-    -------
-    (m_a, m_b) ndarray in [0, 1].
-    """
-    a = np.asarray(phi_a)
-    b = np.asarray(phi_b)
-    if a.shape[0] != b.shape[0]:
-        raise CalibrationError(f"MAC: shapes have {a.shape[0]} and {b.shape[0]} rows")
-    num = np.abs(a.conj().T @ b) ** 2
-    den = np.outer(np.sum(np.abs(a) ** 2, axis=0), np.sum(np.abs(b) ** 2, axis=0))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        out = np.where(den > 0, num / den, 0.0)
-    return out
+from labdata import mac
 
 
 def pair_modes(mac_matrix: np.ndarray, mac_min: float = 0.6) -> list[tuple[int, int, float]]:

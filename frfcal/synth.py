@@ -54,6 +54,8 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 
+from labdata import FRF_QUANTITIES, quantity_factor
+
 #: rigid-body threshold (Hz), as femodel's
 _RIGID_HZ = 1e-2
 #: relative truncation of the higher-mode series
@@ -150,13 +152,11 @@ class ArticleTruth:
         if include_residual and self.residual.size:
             powers = (self.shift + w[:, None] ** 2) ** np.arange(self.residual.shape[0])[None, :]
             H = H + np.einsum("fj,joi->foi", powers, self.residual)
+        if quantity not in FRF_QUANTITIES:
+            raise SynthError(f"quantity must be one of {FRF_QUANTITIES}, got {quantity!r}")
         if quantity == "receptance":
             return H
-        if quantity == "mobility":
-            return 1j * w[:, None, None] * H
-        if quantity == "accelerance":
-            return -(w**2)[:, None, None] * H
-        raise SynthError(f"quantity must be accelerance, mobility or receptance, got {quantity!r}")
+        return quantity_factor(quantity, w)[:, None, None] * H
 
 
 def modes_up_to(K, M, f_cut_hz: float, *, dofs=None, n_start: int = 24):

@@ -6,6 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from labdata import mac
+
 from ._errors import IdentificationError
 
 #: Labels a pole can carry; only "physical" poles are modes of the structure.
@@ -148,31 +150,6 @@ class ModalParameters:
     @property
     def n_modes(self) -> int:
         return self.eigenvalues.size
-
-
-def mac(phi_a: np.ndarray, phi_b: np.ndarray) -> np.ndarray:
-    """Modal assurance criterion between the columns of two (complex) shape matrices.
-
-    Parameters
-    ----------
-    phi_a : (n_dof, n_a), phi_b : (n_dof, n_b)
-
-    Returns
-    -------
-    ndarray (n_a, n_b) in [0, 1]
-    """
-    a = np.asarray(phi_a)
-    b = np.asarray(phi_b)
-    if a.ndim == 1:
-        a = a[:, None]
-    if b.ndim == 1:
-        b = b[:, None]
-    if a.shape[0] != b.shape[0]:
-        raise IdentificationError(f"mac: shapes have {a.shape[0]} and {b.shape[0]} rows")
-    num = np.abs(a.conj().T @ b) ** 2
-    den = np.outer(np.sum(np.abs(a) ** 2, axis=0), np.sum(np.abs(b) ** 2, axis=0))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
 
 
 def normalize_shapes(shapes: np.ndarray, participation: np.ndarray):

@@ -6,9 +6,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from labdata import FRF_QUANTITIES
+
 from ._errors import IdentificationError
 
-QUANTITIES = ("accelerance", "mobility", "receptance")
+QUANTITIES = FRF_QUANTITIES
 
 
 def _as_real_matrix(name: str, value, shape: tuple[int | None, int | None]) -> np.ndarray:

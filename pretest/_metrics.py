@@ -6,36 +6,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from labdata import mac
 from pretest._errors import PretestError
 
 __all__ = ["LayoutMetrics", "mac", "automac", "layout_metrics"]
-
-
-def mac(phi_a: np.ndarray, phi_b: np.ndarray) -> np.ndarray:
-    """Modal Assurance Criterion between the columns of two shape matrices.
-
-    Parameters
-    ----------
-    phi_a : array_like, shape (n_dof, n_a)
-    phi_b : array_like, shape (n_dof, n_b)
-        Real or complex shapes at the same DOF.
-
-    Returns
-    -------
-    ndarray, shape (n_a, n_b)
-        ``|a_i^H b_j|^2 / ((a_i^H a_i)(b_j^H b_j))`` in [0, 1]; 0 where a column is zero.
-    """
-    a = np.asarray(phi_a)
-    b = np.asarray(phi_b)
-    if a.ndim != 2 or b.ndim != 2 or a.shape[0] != b.shape[0]:
-        raise PretestError(f"MAC needs two (n_dof, n) matrices with equal n_dof, got {a.shape} and {b.shape}")
-    cross = np.abs(a.conj().T @ b) ** 2
-    na = np.real(np.einsum("ij,ij->j", a.conj(), a))
-    nb = np.real(np.einsum("ij,ij->j", b.conj(), b))
-    denom = np.outer(na, nb)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        out = np.where(denom > 0, cross / np.where(denom > 0, denom, 1.0), 0.0)
-    return out
 
 
 def automac(phi: np.ndarray) -> np.ndarray:

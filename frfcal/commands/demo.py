@@ -84,16 +84,14 @@ def write_plant(pm, p_true, layout_path, out_path, *, zeta: float, f_max_hz: flo
     bungee cords); elastic modes up to ``f_max_hz`` are kept.
     Shapes are mass-normalized (m/sqrt(kg)) along each sensor's direction.
     """
-    import json
-
     import numpy as np
 
     from femodel import sensor_matrix
+    from labdata import read_layout_file
 
-    layout = json.loads(layout_path.read_text())
-    chans, drives = layout["channels"], layout["drives"]
-    c_out = sensor_matrix(pm.assembly, [c["grid"] for c in chans], [c["direction"] for c in chans])
-    c_in = sensor_matrix(pm.assembly, [d["grid"] for d in drives], [d["direction"] for d in drives])
+    layout = read_layout_file(layout_path)
+    c_out = sensor_matrix(pm.assembly, layout.grids("channels"), layout.directions("channels"))
+    c_in = sensor_matrix(pm.assembly, layout.grids("drives"), layout.directions("drives"))
     n_modes = 6 + 60
     modes = pm.modes(p_true, n_modes)
     keep = modes.frequencies_hz <= f_max_hz
@@ -114,6 +112,7 @@ def run(args) -> int:
 
     import femodel
     from frfcal._modeplot import plot_mode_shapes
+    from labdata import read_layout_file
 
     t_start = time.perf_counter()
     out = Path(args.out)
@@ -172,7 +171,7 @@ def run(args) -> int:
                "--zeta0", "0.01", "--plot", str(out / "identification")])
 
     _stage(6, "calibration, hold-out validation and cross-validation")
-    names = [c["name"] for c in json.loads(layout.read_text())["channels"]]
+    names = list(read_layout_file(layout).names("channels"))
     calibrate, holdout = names[::2] + names[1:2], [n for n in names[1::2] if n != names[1]]
     campaign = out / "campaign.toml"
     run_entries = "\n".join(f'[[run]]\npath = "{r.relative_to(out)}"\n' for r in runs)
