@@ -424,6 +424,10 @@ class MemberCalibration:
     surrogate : Surrogate at ``p``'s basis point
     identifiability : Identifiability at ``p``
     time_s : float, wall time of this member's calibration
+    basis : (n, r) ndarray or None
+        The full-order basis of ``surrogate`` (for diagnosis and model
+        extension, :func:`calibration.extended_surrogate`). Not stored: None
+        after a resume.
     """
 
     label: str
@@ -434,6 +438,7 @@ class MemberCalibration:
     surrogate: Surrogate
     identifiability: Identifiability
     time_s: float = 0.0
+    basis: np.ndarray | None = field(default=None, repr=False, compare=False)
 
 
 @dataclass(frozen=True)
@@ -448,7 +453,7 @@ class CalibrateResult:
 def _refined(camp: Campaign, model, arts, cyc, band, lower, upper, log, label):
     """Refine the equalized optimum on the raw lines, then re-basis the raw-line stage until p settles.
 
-    Returns (Refinement of the last cycle with every stage of all cycles, p, surrogate).
+    Returns (Refinement of the last cycle with every stage of all cycles, p, surrogate, its basis).
     """
     c = camp.calibration
     raw = [raw_data(a, camp.channels.calibrate) for a in arts]
@@ -474,7 +479,7 @@ def _refined(camp: Campaign, model, arts, cyc, band, lower, upper, log, label):
             f"({time.perf_counter() - t0:.1f} s)")
         if dp < c.cycle_tol:
             break
-    return replace(ref, stages=tuple(stages)), ref.p, sur
+    return replace(ref, stages=tuple(stages)), ref.p, sur, basis
 
 
 def _identifiability(camp: Campaign, cyc, data, ref, p, sur, arts, lower, upper, names):
@@ -525,13 +530,13 @@ def calibrate_stage(camp: Campaign, model, articles, equalize: EqualizeResult, g
                                executor=executor, surrogate=sur0, basis=T0, continuation=cont, log=log)
         log(f"[{label}] calibration SD (equalized test model, zeta0={100 * c.zeta0:g} %) "
             f"{cyc.calibration.sd_nominal:.4g} -> {cyc.sd:.4g} ({time.perf_counter() - t:.1f} s)")
-        ref, p_final, sur_final = None, cyc.p, cyc.surrogate
+        ref, p_final, sur_final, basis_final = None, cyc.p, cyc.surrogate, cyc.basis
         if c.refine:
-            ref, p_final, sur_final = _refined(camp, model, arts, cyc, band, lower, upper, log, label)
+            ref, p_final, sur_final, basis_final = _refined(camp, model, arts, cyc, band, lower, upper, log, label)
         t_cal = time.perf_counter() - t
         idf = _identifiability(camp, cyc, data, ref, p_final, sur_final, arts, lower, upper, pm.parameters.names)
         log(f"[{label}] identifiability at the calibrated point:\n{idf.table()}")
-        members.append(MemberCalibration(label, tuple(idx), cyc, ref, p_final, sur_final, idf, t_cal))
+        members.append(MemberCalibration(label, tuple(idx), cyc, ref, p_final, sur_final, idf, t_cal, basis_final))
     return CalibrateResult(sur0, tuple(members), basis_s)
 
 

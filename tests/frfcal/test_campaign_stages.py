@@ -113,6 +113,8 @@ def test_interrupted_campaign_resumes_without_recalibrating(staged, tmp_path, mo
     np.testing.assert_allclose([r["p"] for r in m1["parameters"]], [r["p"] for r in m0["parameters"]],
                                rtol=5e-3, atol=1e-5)
     assert m1["validation"]["sd_calibrated"] == pytest.approx(m0["validation"]["sd_calibrated"], rel=0.05)
+    # the n x r basis is not stored: None after the resume
+    assert stored_cal.members[0].basis is None and stored_cal.members[0].cycle.basis is None
 
 
 def test_store_rebuilds_only_frfcal_types(tmp_path):
@@ -129,3 +131,37 @@ def test_store_rebuilds_only_frfcal_types(tmp_path):
     (tmp_path / "load.json").write_text(json.dumps({"format": "frfcal.stage/1", "fingerprint": "k1",
                                                    "result": {"__dc__": "os:system", "fields": {}}}))
     assert store.load("load", "k1") is None
+
+
+def test_stages_compose_and_keep_the_final_basis(staged):
+    """The stage functions by hand (as run_campaign wires them): typed results, the final basis kept."""
+    from calibration import SerialExecutor
+    from frfcal.campaign import (
+        build_model,
+        calibrate_stage,
+        equalize_stage,
+        group_stage,
+        identify_stage,
+        load_stage,
+    )
+
+    camp, first = staged
+    camp = camp.model_copy(update={"calibration": camp.calibration.model_copy(
+        update={"max_cycles": 1, "refine_cycles": 1, "continuation_zeta": [0.03]})})
+    quiet = lambda m: None  # noqa: E731
+    load = load_stage(camp, quiet)
+    pm, model = build_model(camp, load, quiet)
+    assert [t.name for t in load.channels] == list(camp.channels.calibrate) + list(camp.channels.holdout)
+    arts = identify_stage(camp, load.articles, quiet).attached(load.articles)
+    eq = equalize_stage(camp, arts)
+    assert eq.data[0].frf.shape == (eq.freq_hz.size, len(camp.channels.calibrate), 1)
+    assert [z for z, _ in eq.continuation] == [0.03]
+    groups = group_stage(camp, arts, eq, quiet)
+    assert groups.members == (("all", (0,)),)
+    cal = calibrate_stage(camp, model, arts, eq, groups, SerialExecutor(), quiet)
+    m = cal.members[0]
+    assert m.basis is not None and m.basis.shape == (model.K.shape[0], m.surrogate.size)
+    # M-orthonormal basis of the reported surrogate at its basis point
+    Mr = m.basis.T @ (model.M.at(m.surrogate.p_basis) @ m.basis)
+    np.testing.assert_allclose(Mr, np.eye(m.surrogate.size), atol=1e-8)
+    np.testing.assert_allclose(m.p, [r["p"] for r in first["members"][0]["parameters"]], rtol=0.02, atol=2e-3)
