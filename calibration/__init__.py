@@ -1,15 +1,17 @@
 """calibration layer (see ARCHITECTURE.md)."""
 
-from calibration._campaign import Campaign, campaign_from_dict, load_campaign
 from calibration._crossval import CrossValidation, cross_validate, split_halves
 from calibration._ensemble import Grouping, group_articles, grouping, pairwise_sd
 from calibration._errors import CalibrationError
 from calibration._extend import extended_surrogate
+from calibration._figures import crossvalidation_figure, frf_figure, mac_figure, model_frf, parameter_figure
 from calibration._executor import DaskExecutor, Executor, ProcessExecutor, SerialExecutor, make_executor
 from calibration._identifiability import Identifiability, identifiability
 from calibration._fit import (
     Calibration,
+    CycleOptions,
     CycleResult,
+    FitOptions,
     FitData,
     Objective,
     StartOutcome,
@@ -34,7 +36,6 @@ from calibration._nonlinearity import (
     sweep_direction,
 )
 from calibration._sampling import half_bandwidth_frequencies
-from calibration._pipeline import build_model, load_articles, run_campaign
 from calibration._validation import (
     IdentifiedModes,
     Validation,
@@ -58,12 +59,6 @@ from calibration._surrogate import (
 )
 
 __all__ = [
-    "Campaign",
-    "build_model",
-    "campaign_from_dict",
-    "load_articles",
-    "load_campaign",
-    "run_campaign",
     "CrossValidation",
     "Identifiability",
     "IdentifiedModes",
@@ -82,7 +77,9 @@ __all__ = [
     "split_halves",
     "validate",
     "Calibration",
+    "CycleOptions",
     "CycleResult",
+    "FitOptions",
     "DaskExecutor",
     "Executor",
     "FitData",
@@ -112,6 +109,11 @@ __all__ = [
     "Surrogate",
     "build_surrogate",
     "extended_surrogate",
+    "crossvalidation_figure",
+    "frf_figure",
+    "mac_figure",
+    "model_frf",
+    "parameter_figure",
     "full_modes",
     "full_order_frf",
     "half_bandwidth_frequencies",

@@ -12,7 +12,7 @@ the executor; every outcome is kept.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
@@ -407,20 +407,91 @@ def _run_start(args) -> StartOutcome:
     )
 
 
+@dataclass(frozen=True)
+class FitOptions:
+    """Settings of the multi-start Levenberg-Marquardt (:func:`calibrate`).
+
+    Attributes
+    ----------
+    n_starts : int
+        Number of Latin-hypercube starts besides the first (paper: 20).
+    seed : int or None
+        Seed of the Latin hypercube.
+    quantity : str
+        FRF quantity of the data ("accelerance", "mobility", "receptance").
+    max_nfev : int
+        Residual evaluations allowed per start (per continuation stage).
+    xtol : float
+        Relative parameter-step tolerance of the minimizer.
+    """
+
+    n_starts: int = 20
+    seed: int | None = 0
+    quantity: str = "accelerance"
+    max_nfev: int = 100
+    xtol: float = 1e-10
+
+    def __post_init__(self):
+        if self.n_starts < 0:
+            raise CalibrationError(f"FitOptions.n_starts must be >= 0, got {self.n_starts}")
+        if self.max_nfev < 1:
+            raise CalibrationError(f"FitOptions.max_nfev must be >= 1, got {self.max_nfev}")
+
+
+@dataclass(frozen=True)
+class CycleOptions(FitOptions):
+    """Settings of :func:`calibrate_cycles`: the multi-start's (:class:`FitOptions`) plus re-basis cycles.
+
+    Attributes
+    ----------
+    max_cycles : int
+        Cycles at most (1 = keep the first basis).
+    tol : float
+        Stop when max |dp| between cycles is below this (normalized p).
+    basis_factor : float
+        Modes up to ``basis_factor`` x band top enter the basis.
+    enrich : bool
+        Parameter-derivative enrichment of the basis.
+    refresh : bool
+        A new basis starts from the previous one by one block inverse
+        iteration instead of a fresh Lanczos solution.
+    """
+
+    max_cycles: int = 4
+    tol: float = 1e-4
+    basis_factor: float = 2.0
+    enrich: bool = True
+    refresh: bool = True
+
+    def fit(self) -> FitOptions:
+        """The multi-start part."""
+        return FitOptions(self.n_starts, self.seed, self.quantity, self.max_nfev, self.xtol)
+
+
+def _options(cls, options, legacy: dict, where: str):
+    """``options`` updated with the legacy keyword arguments (the former long argument lists)."""
+    names = {f.name for f in fields(cls)}
+    unknown = sorted(set(legacy) - names)
+    if unknown:
+        raise TypeError(f"{where}() got unexpected keyword argument(s) {unknown}")
+    base = cls() if options is None else options
+    if not isinstance(base, cls):
+        raise TypeError(f"{where}(): options must be a {cls.__name__}, got {type(base).__name__}")
+    return replace(base, **legacy) if legacy else base
+
+
 def calibrate(
     surrogate: Surrogate,
     data,
     lower,
     upper,
     zeta0: float = 0.01,
-    n_starts: int = 20,
-    seed: int | None = 0,
+    options: FitOptions | None = None,
+    *,
     executor=None,
-    quantity: str = "accelerance",
     p_start=None,
-    max_nfev: int = 100,
-    xtol: float = 1e-10,
     continuation=(),
+    **legacy,
 ) -> Calibration:
     """Multi-start bounded Levenberg-Marquardt on the surrogate.
 
@@ -433,16 +504,14 @@ def calibrate(
     lower, upper : (n_p,) normalized bounds
     zeta0 : float
         Model modal damping (= the equalization damping).
-    n_starts : int
-        Number of Latin-hypercube starts besides ``p_start`` (paper: 20).
-    seed : int
-        Seed of the Latin hypercube.
+    options : FitOptions, optional
+        Starts, seed, quantity, evaluations, tolerance (default
+        ``FitOptions()``). Their names are also accepted as keyword
+        arguments (``n_starts=0``), which update ``options``.
     executor : Executor, optional
         Default: serial.
     p_start : (n_p,), optional
         The deterministic first start (default zeros, the nominal point).
-    max_nfev : int
-        Residual evaluations allowed per start (per stage).
     continuation : sequence of (zeta, data)
         Damping continuation: stages with larger damping run first from every
         start (model damping ``zeta``, test data equalized to the same
@@ -455,14 +524,15 @@ def calibrate(
     -------
     Calibration
     """
+    o = _options(FitOptions, options, legacy, "calibrate")
     n_p = surrogate.n_params
     lower, upper = check_bounds(lower, upper, n_p)
-    objs = [Objective(surrogate, d, z, quantity) for z, d in continuation]
-    objs.append(Objective(surrogate, data, zeta0, quantity))
+    objs = [Objective(surrogate, d, z, o.quantity) for z, d in continuation]
+    objs.append(Objective(surrogate, data, zeta0, o.quantity))
     first = np.zeros(n_p) if p_start is None else np.asarray(p_start, float)
-    starts = np.vstack([first[None, :], latin_hypercube_starts(lower, upper, n_starts, seed)])
+    starts = np.vstack([first[None, :], latin_hypercube_starts(lower, upper, o.n_starts, o.seed)])
     executor = executor or SerialExecutor()
-    outcomes = executor.map(run_start, [(objs, x0, lower, upper, max_nfev, xtol) for x0 in starts])
+    outcomes = executor.map(run_start, [(objs, x0, lower, upper, o.max_nfev, o.xtol) for x0 in starts])
     sds = np.array([o.sd for o in outcomes])
     best = int(np.nanargmin(sds))
     return Calibration(
@@ -511,6 +581,10 @@ class CycleResult:
         return out
 
 
+_CYCLE_POSITIONAL = ("n_starts", "seed", "executor", "quantity", "max_cycles", "tol", "basis_factor", "surrogate",
+                     "log", "continuation", "enrich", "max_nfev", "basis", "refresh")
+
+
 def calibrate_cycles(
     model,
     data,
@@ -518,58 +592,93 @@ def calibrate_cycles(
     lower,
     upper,
     zeta0: float = 0.01,
-    n_starts: int = 20,
-    seed: int | None = 0,
+    *positional,
+    options: CycleOptions | None = None,
     executor=None,
-    quantity: str = "accelerance",
-    max_cycles: int = 4,
-    tol: float = 1e-4,
-    basis_factor: float = 2.0,
     surrogate: Surrogate | None = None,
-    log=None,
-    continuation=(),
-    enrich: bool = True,
-    max_nfev: int = 100,
     basis=None,
-    refresh: bool = True,
+    continuation=(),
+    log=None,
+    **legacy,
 ) -> CycleResult:
     """Calibrate; re-build the basis at the calibrated point and refine until p stops moving.
 
     Cycle 1 is the full multi-start on a basis at the nominal point (or the
     given ``surrogate``). Each further cycle recomputes the basis at the
     current p and runs one start from it; cycles stop when
-    ``max |dp| < tol`` or after ``max_cycles``. ``continuation`` applies to
-    cycle 1 (see :func:`calibrate`). With ``refresh`` (default) a new basis
-    starts from the previous one (``basis``, the (n, r) basis of ``surrogate``
-    when that is given) by one block inverse iteration instead of a fresh
-    Lanczos solution (see :func:`build_surrogate`).
+    ``max |dp| < options.tol`` or after ``options.max_cycles``.
+    ``continuation`` applies to cycle 1 (see :func:`calibrate`). With
+    ``options.refresh`` a new basis starts from the previous one (``basis``,
+    the (n, r) basis of ``surrogate`` when that is given) by one block inverse
+    iteration instead of a fresh Lanczos solution (see :func:`build_surrogate`).
+
+    Parameters
+    ----------
+    model : FRFModel
+    data : sequence of FitData
+    band_hz : (lo, hi) Hz
+    lower, upper : (n_p,) normalized bounds
+    zeta0 : float
+        Model modal damping (= the equalization damping).
+    options : CycleOptions, optional
+        Multi-start and cycle settings (default ``CycleOptions()``); their
+        names are also accepted as keyword arguments, which update it.
+    executor : Executor, optional
+        Runs the multi-start of cycle 1 (default serial).
+    surrogate, basis : Surrogate and its (n, r) basis, optional
+        The cycle-1 surrogate (default: built at the nominal point).
+    continuation : sequence of (zeta, data)
+    log : callable, optional
+        Progress messages.
+    *positional
+        The former positional arguments after ``zeta0`` (n_starts, seed,
+        executor, quantity, max_cycles, tol, ...), still accepted; prefer
+        ``options``.
+
+    Returns
+    -------
+    CycleResult
+        Keeps the final surrogate and its basis.
     """
     from calibration._surrogate import build_surrogate
 
+    if len(positional) > len(_CYCLE_POSITIONAL):
+        raise TypeError(f"calibrate_cycles() takes at most {6 + len(_CYCLE_POSITIONAL)} positional arguments")
+    named = dict(executor=executor, surrogate=surrogate, basis=basis, continuation=continuation, log=log)
+    for name, value in zip(_CYCLE_POSITIONAL, positional):
+        if name in named:
+            named[name] = value
+        else:
+            if name in legacy:
+                raise TypeError(f"calibrate_cycles() got multiple values for argument {name!r}")
+            legacy[name] = value
+    o = _options(CycleOptions, options, legacy, "calibrate_cycles")
+    executor, surrogate, basis, continuation, log = (named[k] for k in
+                                                     ("executor", "surrogate", "basis", "continuation", "log"))
+    fit = o.fit()
     say = log or (lambda msg: None)
     t0 = time.perf_counter()
     if surrogate is None:
-        surrogate, basis = build_surrogate(model, np.zeros(model.n_params), band_hz, basis_factor, enrich=enrich)
+        surrogate, basis = build_surrogate(model, np.zeros(model.n_params), band_hz, o.basis_factor, enrich=o.enrich)
     t1 = time.perf_counter()
-    say(f"cycle 1: basis {surrogate.size} ({len(surrogate.basis_frequencies_hz)} modes), {n_starts + 1} starts")
-    cal = calibrate(surrogate, data, lower, upper, zeta0, n_starts, seed, executor, quantity,
-                    continuation=continuation, max_nfev=max_nfev)
+    say(f"cycle 1: basis {surrogate.size} ({len(surrogate.basis_frequencies_hz)} modes), {o.n_starts + 1} starts")
+    cal = calibrate(surrogate, data, lower, upper, zeta0, fit, executor=executor, continuation=continuation)
     t2 = time.perf_counter()
     cycles = [{"cycle": 1, "p": cal.p.tolist(), "sd": cal.sd, "basis_size": surrogate.size,
                "basis_s": t1 - t0, "fit_s": t2 - t1, "max_dp": float(np.max(np.abs(cal.p)))}]
     p, sd = cal.p, cal.sd
-    for k in range(2, max_cycles + 1):
+    for k in range(2, o.max_cycles + 1):
         ta = time.perf_counter()
-        surrogate, basis = build_surrogate(model, p, band_hz, basis_factor, enrich=enrich,
-                                           previous_basis=basis if refresh else None)
+        surrogate, basis = build_surrogate(model, p, band_hz, o.basis_factor, enrich=o.enrich,
+                                           previous_basis=basis if o.refresh else None)
         tb = time.perf_counter()
-        sub = calibrate(surrogate, data, lower, upper, zeta0, 0, seed, None, quantity, p_start=p, max_nfev=max_nfev)
+        sub = calibrate(surrogate, data, lower, upper, zeta0, replace(fit, n_starts=0), p_start=p)
         tc = time.perf_counter()
         dp = float(np.max(np.abs(sub.p - p)))
         cycles.append({"cycle": k, "p": sub.p.tolist(), "sd": sub.sd, "basis_size": surrogate.size,
                        "basis_s": tb - ta, "fit_s": tc - tb, "max_dp": dp})
         say(f"cycle {k}: sd {sub.sd:.4g}, max |dp| {dp:.2e}")
         p, sd = sub.p, sub.sd
-        if dp < tol:
+        if dp < o.tol:
             break
     return CycleResult(cal, p, sd, surrogate, tuple(cycles), basis)

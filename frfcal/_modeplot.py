@@ -72,10 +72,8 @@ def plot_mode_shapes(assembly, modes, path, *, which=None, max_modes: int = 6, t
         elastic modes.
     """
     import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from mpl_toolkits.mplot3d.art3d import Line3DCollection
+    from matplotlib.figure import Figure
+    from mpl_toolkits.mplot3d.art3d import Line3DCollection  # also registers the 3d projection
 
     model = assembly.model
     if which is None:
@@ -89,8 +87,8 @@ def plot_mode_shapes(assembly, modes, path, *, which=None, max_modes: int = 6, t
     edges = _edges(model)
     ncol = min(3, len(which))
     nrow = int(np.ceil(len(which) / ncol))
-    fig = plt.figure(figsize=(5.2 * ncol, 4.4 * nrow))
-    cmap = plt.get_cmap("viridis")
+    fig = Figure(figsize=(5.2 * ncol, 4.4 * nrow))  # object API: the user's backend is left alone
+    cmap = matplotlib.colormaps["viridis"]
     for k, mode in enumerate(which):
         ax = fig.add_subplot(nrow, ncol, k + 1, projection="3d")
         disp = u[:, :, k]
@@ -118,5 +116,4 @@ def plot_mode_shapes(assembly, modes, path, *, which=None, max_modes: int = 6, t
     fig.tight_layout()
     path = Path(path)
     fig.savefig(path, dpi=110)
-    plt.close(fig)
     return path

@@ -1,4 +1,4 @@
-"""PNG plots of identification results (matplotlib, Agg backend, imported lazily)."""
+"""PNG plots of identification results (matplotlib object API, imported lazily; no pyplot, no backend switch)."""
 
 from __future__ import annotations
 
@@ -9,15 +9,13 @@ import numpy as np
 from ._errors import IdentificationError
 
 
-def _pyplot():
+def _figure(**kw):
+    """A new :class:`matplotlib.figure.Figure` (no pyplot state: the user's backend is left alone)."""
     try:
-        import matplotlib
+        from matplotlib.figure import Figure
     except ImportError as exc:  # pragma: no cover - matplotlib is a core dependency
         raise IdentificationError("plotting needs matplotlib (pip install matplotlib)") from exc
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
-
-    return plt
+    return Figure(**kw)
 
 
 def plot_stabilization(stab, path, freq_hz=None, H=None, title: str | None = None) -> Path:
@@ -39,8 +37,8 @@ def plot_stabilization(stab, path, freq_hz=None, H=None, title: str | None = Non
     -------
     Path of the written file.
     """
-    plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(10, 6))
+    fig = _figure(figsize=(10, 6))
+    ax = fig.subplots()
     lo, hi = stab.band_hz
     for idx, (n, poles) in enumerate(zip(stab.orders, stab.poles)):
         f = poles.frequency_hz
@@ -77,7 +75,6 @@ def plot_stabilization(stab, path, freq_hz=None, H=None, title: str | None = Non
     fig.tight_layout()
     out = Path(path)
     fig.savefig(out, dpi=110)
-    plt.close(fig)
     return out
 
 
@@ -94,7 +91,6 @@ def plot_fit(identification, freq_hz, H, path, channels=None, equalized_model=No
     equalized_model : StateSpace, optional
         Also drawn (dashed).
     """
-    plt = _pyplot()
     f = np.asarray(freq_hz, dtype=float)
     Ha = np.asarray(H)
     if Ha.ndim != 3 or Ha.shape[0] != f.size:
@@ -110,7 +106,8 @@ def plot_fit(identification, freq_hz, H, path, channels=None, equalized_model=No
         dev = np.asarray(identification.fit_deviation)
         order = np.argsort(np.nan_to_num(dev, nan=np.inf).reshape(-1))
         channels = [tuple(int(v) for v in np.unravel_index(k, dev.shape)) for k in order[:4]]
-    fig, axes = plt.subplots(2, len(channels), figsize=(4.2 * len(channels), 6), squeeze=False, sharex=True)
+    fig = _figure(figsize=(4.2 * len(channels), 6))
+    axes = fig.subplots(2, len(channels), squeeze=False, sharex=True)
     for c, (o, i) in enumerate(channels):
         a, b = axes[0, c], axes[1, c]
         a.semilogy(f, np.abs(Ha[:, o, i]), ".", ms=2, color="0.4", label="data")
@@ -131,5 +128,4 @@ def plot_fit(identification, freq_hz, H, path, channels=None, equalized_model=No
     fig.tight_layout()
     out = Path(path)
     fig.savefig(out, dpi=110)
-    plt.close(fig)
     return out

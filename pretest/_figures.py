@@ -1,4 +1,4 @@
-"""Figures of a pretest layout: sensors on the mesh, and the autoMAC matrix (matplotlib, Agg)."""
+"""Figures of a pretest layout: sensors on the mesh, and the autoMAC matrix (matplotlib object API: no pyplot, no backend switch)."""
 
 from __future__ import annotations
 
@@ -13,15 +13,13 @@ __all__ = ["plot_layout", "plot_automac"]
 _SHELLS = ("CQUAD4", "CTRIA3", "CQUAD8", "CTRIA6")
 
 
-def _pyplot():
+def _figure(**kw):
+    """A new :class:`matplotlib.figure.Figure` (no pyplot state: the user's backend is left alone)."""
     try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
+        from matplotlib.figure import Figure
     except ImportError:
         raise PretestError("figures need matplotlib: pip install matplotlib (a core frfcal dependency)") from None
-    return plt
+    return Figure(**kw)
 
 
 def _edges(model) -> np.ndarray:
@@ -54,7 +52,6 @@ def plot_layout(model, result, path, *, title: str | None = None) -> Path:
     path : str or Path
         PNG to write.
     """
-    plt = _pyplot()
     from mpl_toolkits.mplot3d.art3d import Line3DCollection
     from matplotlib.collections import LineCollection
 
@@ -62,7 +59,7 @@ def plot_layout(model, result, path, *, title: str | None = None) -> Path:
     s, d = result.sensors, result.drives
     extent = np.ptp(model.xyz, axis=0).max() or 1.0
     arrow = 0.08 * extent
-    fig = plt.figure(figsize=(14, 10))
+    fig = _figure(figsize=(14, 10))
     ax3 = fig.add_subplot(2, 2, 1, projection="3d")
     if len(edges):
         ax3.add_collection3d(Line3DCollection(edges, colors="0.75", linewidths=0.3))
@@ -120,7 +117,6 @@ def plot_layout(model, result, path, *, title: str | None = None) -> Path:
     fig.tight_layout()
     path = Path(path)
     fig.savefig(path, dpi=110)
-    plt.close(fig)
     return path
 
 
@@ -133,11 +129,11 @@ def plot_automac(result, path) -> Path:
     path : str or Path
         PNG to write.
     """
-    plt = _pyplot()
     am = result.metrics.automac
     n = am.shape[0]
     labels = [f"{k + 1}\n{f:.0f}" if n <= 25 else f"{k + 1}" for k, f in zip(result.target.indices, result.target.frequencies_hz)]
-    fig, ax = plt.subplots(figsize=(8, 7))
+    fig = _figure(figsize=(8, 7))
+    ax = fig.subplots()
     im = ax.imshow(am, vmin=0, vmax=1, cmap="viridis", origin="upper")
     for i in range(n):
         for j in range(n):
@@ -161,5 +157,4 @@ def plot_automac(result, path) -> Path:
     fig.tight_layout()
     path = Path(path)
     fig.savefig(path, dpi=120)
-    plt.close(fig)
     return path

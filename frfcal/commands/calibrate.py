@@ -42,8 +42,7 @@ def run(args) -> int:
     import json
     import sys
 
-    from calibration import load_campaign, run_campaign
-    from calibration._pipeline import json_default
+    from frfcal.campaign import json_default, load_campaign, run_campaign
 
     camp = _override(load_campaign(args.campaign), args)
     # progress goes to stdout, or to stderr with --json (stdout holds only the JSON object)

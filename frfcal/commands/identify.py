@@ -1,7 +1,7 @@
 """``frfcal identify RUN.h5 --band LO HI [--order N]``: subspace identification of a run file.
 
 Without ``--order`` the order is chosen from the stabilization diagram
-(``identification.select_order``). The work is ``calibration._identify_run.identify_run``,
+(``identification.select_order``). The work is ``frfcal.campaign.identify_run``,
 the same function the campaign uses.
 """
 
@@ -39,7 +39,7 @@ def run(args: argparse.Namespace) -> int:
 
     import identification as idf
     from acquisition.runfile import read_run, write_analysis
-    from calibration._identify_run import identify_run, run_weights
+    from frfcal.campaign import identify_run, run_weights
 
     path = Path(args.run)
     run_ = read_run(path)

@@ -6,7 +6,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calibration import CalibrationError, campaign_from_dict, load_campaign, run_campaign
+from calibration import CalibrationError
+from frfcal.campaign import campaign_from_dict, load_campaign, run_campaign
 from frfcal.cli import main
 from tests.calibration._synthetic import make_campaign
 

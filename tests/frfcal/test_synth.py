@@ -252,7 +252,7 @@ def test_all_modes_kept_small_model():
 
 def test_offsets_and_campaign_file(frame_campaign, tmp_path):
     camp, pm = frame_campaign
-    from calibration import load_campaign
+    from frfcal.campaign import load_campaign
 
     path = camp.write_campaign(tmp_path / "camp" / "campaign.toml", calibrate=["acc1", "acc3", "acc5", "acc7"],
                                holdout=["acc2", "acc4", "acc6"], calibration={"starts": 2, "zeta0": 0.002},

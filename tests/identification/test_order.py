@@ -143,9 +143,7 @@ def test_cli_automatic_order_json(run_file, capsys):
 
 
 def test_campaign_identifies_like_the_cli_with_automatic_order(run_file, capsys):
-    from calibration import campaign_from_dict
-    from calibration._identify_run import identify_run
-    from calibration._pipeline import identified_articles, load_articles
+    from frfcal.campaign import campaign_from_dict, identified_articles, identify_run, load_articles
 
     path, t = run_file
     names = [f"acc{i}" for i in range(20)]

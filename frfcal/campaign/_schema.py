@@ -12,7 +12,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from calibration._errors import CalibrationError
+from calibration import CalibrationError
 
 
 class _Strict(BaseModel):

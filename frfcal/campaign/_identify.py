@@ -1,0 +1,168 @@
+"""The one identification of measured lines, used by ``frfcal identify`` and the campaign.
+
+:func:`identify_lines` works on the lines of a selection of channels and
+drives (the campaign keeps them from its load stage); :func:`identify_run`
+selects them from a run file (``acquisition.runfile.Run``) and calls it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import Literal
+
+import numpy as np
+
+from calibration import CalibrationError
+
+
+def line_weights(std_error, frf, valid):
+    """Per-line standard errors as identification weights, or None.
+
+    Parameters
+    ----------
+    std_error, frf : (n_f, n_out, n_in) arrays
+        Standard errors (same unit as the FRF) and the FRF they belong to.
+    valid : (n_f,) bool
+
+    Returns
+    -------
+    (n_f, n_out, n_in) ndarray or None
+        ``std_error`` when it is finite and > 0 on every valid line (entries
+        on invalid lines are set to 1, they are not used), else None (the
+        identification then scales each output by its RMS).
+    """
+    se = np.asarray(std_error, dtype=float)
+    if se.shape != np.asarray(frf).shape:
+        return None
+    v = np.asarray(valid, bool)
+    if not v.any():
+        return None
+    sev = se[v]
+    if np.all(np.isfinite(sev)) and np.all(sev > 0):
+        return np.where(np.isfinite(se) & (se > 0), se, 1.0)
+    return None
+
+
+def run_weights(run, rows=None, cols=None):
+    """The run's per-line standard errors (``[:, rows][:, :, cols]``) as weights, or None (see :func:`line_weights`)."""
+    se = np.asarray(run.std_error, dtype=float)
+    H = np.asarray(run.frf)
+    if se.shape != H.shape:
+        return None
+    if rows is not None:
+        se, H = se[:, rows], H[:, rows]
+    if cols is not None:
+        se, H = se[:, :, cols], H[:, :, cols]
+    return line_weights(se, H, run.valid)
+
+
+def _index(names, available, what, path):
+    lookup = {n: i for i, n in enumerate(available)}
+    missing = [n for n in names if n not in lookup]
+    if missing:
+        raise CalibrationError(f"{path}: {what} {missing} are not in the run (has {sorted(lookup)})")
+    return [lookup[n] for n in names]
+
+
+def identify_lines(
+    frequency_hz,
+    frf,
+    valid,
+    std_error,
+    quantity: str,
+    band_hz=None,
+    *,
+    order: int | None = None,
+    weights: Literal["std_error"] | None = "std_error",
+    block_rows: int | None = None,
+):
+    """Subspace identification of measured FRF lines (valid lines only).
+
+    Parameters
+    ----------
+    frequency_hz : (n_f,) Hz
+    frf : (n_f, n_out, n_in) complex, in ``quantity``
+    valid : (n_f,) bool
+    std_error : (n_f, n_out, n_in) or None
+        Standard error of every value (same unit as ``frf``).
+    quantity : str
+        FRF quantity ("accelerance", ...).
+    band_hz : (lo, hi), optional
+        Identification band [Hz]; clipped to the valid lines by
+        :func:`identification.identify` (the effective band is
+        ``result.band_hz``). Default: all valid lines.
+    order : int, optional
+        State dimension; None chooses it automatically
+        (:func:`identification.select_order`, record in
+        ``result.order_selection``).
+    weights : {"std_error", None}
+        ``"std_error"``: the standard errors when finite and > 0 on every
+        valid line, else output-RMS scaling; None: output-RMS scaling.
+        ``result.settings["weights"]`` says which was used.
+    block_rows : int, optional
+        Block rows of the subspace data matrices (default automatic).
+
+    Returns
+    -------
+    identification.Identification
+    """
+    from identification import identify
+
+    if weights not in ("std_error", None):
+        raise CalibrationError(f"weights must be 'std_error' or None, got {weights!r}")
+    w = None
+    if weights == "std_error" and std_error is not None:
+        w = line_weights(std_error, frf, valid)
+    result = identify(frequency_hz, frf, order, band_hz=band_hz, weights=w, quantity=quantity, valid=valid,
+                      block_rows=block_rows)
+    return replace(result, settings=dict(result.settings, weights="std_error" if w is not None else "output_rms"))
+
+
+def identify_run(
+    run,
+    band_hz=None,
+    *,
+    order: int | None = None,
+    channels=None,
+    drives=None,
+    weights: Literal["std_error"] | None = "std_error",
+    block_rows: int | None = None,
+):
+    """Subspace identification of a run file's FRFs (valid lines only).
+
+    Parameters
+    ----------
+    run : acquisition.runfile.Run
+        As returned by ``read_run``.
+    band_hz, order, weights, block_rows
+        As :func:`identify_lines`.
+    channels, drives : sequence of str, optional
+        Sensor and drive names to use, in this order (default: all).
+
+    Returns
+    -------
+    identification.Identification
+        Outputs in the order of ``channels``, inputs in the order of ``drives``.
+
+    Raises
+    ------
+    CalibrationError
+        A channel or drive name that is not in the run (names the file).
+    identification.IdentificationError
+        Bad band, too few lines, etc.
+    """
+    path = getattr(run, "path", "run")
+    rows = None if channels is None else _index(list(channels), [s.name for s in run.sensors], "channels", path)
+    cols = None if drives is None else _index(list(drives), [d.name for d in run.drives], "drives", path)
+    H = np.asarray(run.frf)
+    se = np.asarray(run.std_error, dtype=float)
+    if se.shape != H.shape:
+        se = None
+    if rows is not None:
+        H = H[:, rows]
+        se = None if se is None else se[:, rows]
+    if cols is not None:
+        H = H[:, :, cols]
+        se = None if se is None else se[:, :, cols]
+    return identify_lines(run.frequency_hz, H, run.valid, se, run.quantity, band_hz, order=order,
+                          weights=weights, block_rows=block_rows)

@@ -1,0 +1,130 @@
+"""The campaign's outputs: calibration.json, calibrated BDF decks, PNG figures (written here, not in the library)."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from calibration import crossvalidation_figure, frf_figure, mac_figure, parameter_figure
+from frfcal.campaign._stages import (
+    CalibrateResult,
+    CrossValidationResult,
+    GroupResult,
+    MemberCalibration,
+    MemberValidation,
+    ValidationResult,
+    identified_modes,
+    raw_data,
+)
+
+
+def json_default(o):
+    """``json.dumps`` default for arrays, numpy scalars, paths; non-finite floats become null."""
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, Path):
+        return str(o)
+    if isinstance(o, float) and not np.isfinite(o):
+        return None
+    raise TypeError(f"not JSON serializable: {type(o).__name__}")
+
+
+def reported_cycle(m: MemberCalibration, v: MemberValidation):
+    """The CycleResult as reported: p and surrogate of the refinement, per-article estimates in it."""
+    cyc, ref = m.cycle, m.refinement
+    if ref is None:
+        return cyc
+    if v.articles:
+        ref = replace(ref, articles=v.articles)
+    return replace(cyc, p=m.p, surrogate=m.surrogate, refinement=ref)
+
+
+def member_figures(camp, label, pm, sur0, arts, cyc, val, cv, identifiability):
+    """The member's figures by file stem (frf, parameters, crossvalidation, mac); None entries left out."""
+    c = camp.calibration
+    band = (camp.band.low_hz, camp.band.high_hz)
+    chans = list(camp.channels.calibrate[:3]) + list(camp.channels.holdout[:3])
+    figs = {
+        f"frf_{label}": frf_figure(label, sur0, cyc.surrogate, cyc.p, [raw_data(a, chans) for a in arts],
+                                   identified_modes(arts[0]), chans, set(camp.channels.calibrate), c.zeta0,
+                                   camp.validation.mac_min, band, arts[0].quantity),
+        f"parameters_{label}": parameter_figure(label, pm, cyc.p, cyc.calibration.sd_nominal, cyc.sd, cv,
+                                                identifiability),
+    }
+    if cv is not None:
+        figs[f"crossvalidation_{label}"] = crossvalidation_figure(pm.parameters.names, cyc.p, cv)
+    mac = mac_figure(val, arts[0].name)
+    if mac is not None:
+        figs[f"mac_{label}"] = mac
+    return figs
+
+
+def write_outputs(camp, pm, articles, groups: GroupResult, cal: CalibrateResult, val: ValidationResult,
+                  xval: CrossValidationResult, timings: dict, stages: dict, outdir: Path, log=print) -> dict:
+    """Write calibration.json (and per member the calibrated BDF and figures); return the result dict."""
+    members = []
+    nominal = pm.physical(np.zeros(pm.n_params))
+    for m, v, x in zip(cal.members, val.members, xval.members):
+        arts = [articles[i] for i in m.articles]
+        cyc, cv, idf = reported_cycle(m, v), x.crossvalidation, m.identifiability
+        params = []
+        phys = pm.physical(cyc.p)
+        for j, name in enumerate(pm.parameters.names):
+            row = {"name": name, "nominal_si": nominal[name], "calibrated_si": phys[name], "p": float(cyc.p[j]),
+                   "identifiable": bool(idf.identifiable[j]), "identifiability": idf.reasons[j] or None}
+            if cv is not None:
+                row["cv_mean_si"] = float(pm.nominal[j] * (1 + cv.mean_p[j]))
+                row["cv_percent"] = cv.cv(j)
+                row["cv_not_meaningful"] = cv.cv_reason[j] or None
+            params.append(row)
+        entry = {
+            "member": m.label,
+            "articles": [a.name for a in arts],
+            "parameters": params,
+            "sd_calibration_nominal": cyc.calibration.sd_nominal,
+            "sd_calibration": cyc.sd,
+            "sd_calibration_definition": "equalized identified test model at zeta0 on the half-bandwidth grid",
+            "sd_raw_calibration": None if cyc.refinement is None else cyc.refinement.sd_raw,
+            "sd_raw_calibration_start": None if cyc.refinement is None else cyc.refinement.sd_raw_start,
+            "sd_raw_definition": "raw calibration lines, model with identified damping mapped by MAC",
+            "identifiability": idf.to_dict(),
+            "calibration": cyc.to_dict(),
+            "validation": None if v.validation is None else v.validation.to_dict(),
+            "crossvalidation": None if cv is None else cv.to_dict(),
+            "timings": {"calibration_s": m.time_s, "validation_s": v.time_s, "crossvalidation_s": x.time_s},
+        }
+        if camp.output.write_bdf:
+            bdf_out = outdir / f"calibrated_{m.label}.bdf"
+            pm.write_bdf(bdf_out, cyc.p)
+            entry["bdf"] = str(bdf_out)
+        if camp.output.figures:
+            written = []
+            for stem, fig in member_figures(camp, m.label, pm, cal.surrogate, arts, cyc, v.validation, cv,
+                                            idf).items():
+                path = outdir / f"{stem}.png"
+                fig.savefig(path, dpi=90)
+                written.append(str(path))
+            entry["figures"] = written
+        members.append(entry)
+    sur0 = cal.surrogate
+    result = {
+        "campaign": {k: v for k, v in json.loads(camp.model_dump_json()).items()},
+        "articles": [a.name for a in articles],
+        "pairwise_sd": None if groups.pairwise_sd is None else groups.pairwise_sd.tolist(),
+        "grouping": None if groups.grouping is None else groups.grouping.to_dict(),
+        "surrogate": {"size": sur0.size, "modes": len(sur0.basis_frequencies_hz), "static": sur0.n_static,
+                      "enrichment": sur0.n_enrich, "timings_s": sur0.timings_s},
+        "members": members,
+        "timings": timings,
+        "stages": stages,
+    }
+    path = outdir / "calibration.json"
+    path.write_text(json.dumps(result, indent=1, default=json_default))
+    result["result_file"] = str(path)
+    log(f"wrote {path}")
+    return result

@@ -1,0 +1,671 @@
+"""The campaign's stages: typed inputs, frozen-dataclass results, kernels from the library layers.
+
+load -> identify -> equalize -> group -> calibrate -> validate -> cross-validate
+(-> report, :mod:`frfcal.campaign._report`). Each stage function takes the
+campaign and the results of earlier stages and returns its own result; it
+does not read what an earlier stage already read, and it writes nothing
+(:func:`frfcal.campaign.run_campaign` stores every result, see
+docs/architecture.md).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from calibration import (
+    CalibrationError,
+    CycleOptions,
+    CycleResult,
+    FitData,
+    FRFModel,
+    Grouping,
+    Identifiability,
+    IdentifiedModes,
+    Objective,
+    Surrogate,
+    Validation,
+    CrossValidation,
+    build_surrogate,
+    calibrate_cycles,
+    cross_validate,
+    grouping,
+    half_bandwidth_frequencies,
+    identifiability,
+    noise_floor_sd,
+    pairwise_sd,
+    validate,
+)
+from calibration._refine import ModalDampingObjective, Refinement, refine
+from calibration._signal import signal_pairs
+from frfcal.campaign._identify import identify_lines
+from frfcal.campaign._schema import Campaign
+
+# ----------------------------------------------------------------------------- load
+
+
+@dataclass(frozen=True)
+class RunLines:
+    """Every line of a run on the campaign's channels and drives (the identification's input).
+
+    Attributes
+    ----------
+    frequency_hz : (n_f,) Hz
+    frf : (n_f, n_ch, n_in) complex, the run's quantity
+    valid : (n_f,) bool
+    std_error : (n_f, n_ch, n_in) or None (the run has none)
+    """
+
+    frequency_hz: np.ndarray
+    frf: np.ndarray
+    valid: np.ndarray
+    std_error: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class Transducer:
+    """A channel or drive as the model sees it: FE grid and unit direction (basic system)."""
+
+    name: str
+    grid: int
+    direction: tuple
+
+
+@dataclass(frozen=True)
+class Article:
+    """One test article's data as the calibration uses it.
+
+    Attributes
+    ----------
+    name : str
+    path : Path, the run file
+    freq_hz : (n_f,) raw valid lines in the band [Hz]
+    frf : (n_f, n_ch, n_in) raw FRF on ``channels`` x ``drives``
+    channels : tuple of str, calibration then hold-out channels
+    drives : tuple of str
+    identification : identification.Identification or None (before the identify stage)
+    ident_channels : tuple of str, output rows of ``identification``
+    quantity : str
+    std_error : like ``frf`` or None (the run has none)
+    pairs : (n_ch, n_in) bool or None: pairs with a signal above the noise (None: all)
+    lines : RunLines or None, all lines of the run on ``channels`` x ``drives``
+    stored : identification.Identification or None
+        The run file's stored identification when ``[identification] use_stored``
+        and it covers every sensor and drive of the run.
+    stored_channels : tuple of str, output rows of ``stored`` (the run's sensors)
+    """
+
+    name: str
+    path: Path
+    freq_hz: np.ndarray
+    frf: np.ndarray
+    channels: tuple
+    drives: tuple
+    identification: object
+    ident_channels: tuple
+    quantity: str
+    std_error: np.ndarray | None = None
+    pairs: np.ndarray | None = None
+    lines: RunLines | None = field(default=None, repr=False)
+    stored: object | None = field(default=None, repr=False)
+    stored_channels: tuple = ()
+
+
+@dataclass(frozen=True)
+class LoadResult:
+    """The load stage: every article, and the channel/drive geometry of the first run (for the model)."""
+
+    articles: tuple
+    channels: tuple  # of Transducer, campaign channel order
+    drives: tuple  # of Transducer
+
+
+def _index(lookup, names, what, path):
+    missing = [n for n in names if n not in lookup]
+    if missing:
+        raise CalibrationError(f"{path}: {what} {missing} are not {what} of the run (has {sorted(lookup)})")
+    return [lookup[n] for n in names]
+
+
+def load_stage(camp: Campaign, log=print) -> LoadResult:
+    """Read every run file once: select channels, drives and band, find pairs without signal.
+
+    Raises
+    ------
+    CalibrationError
+        Naming the run file: unknown channel or drive, no valid line in the
+        band, NaN on a valid line, no pair with signal, mixed FRF quantities.
+    """
+    from acquisition.runfile import read_analysis, read_run
+    from identification import Identification
+
+    ch = camp.channels
+    names = list(ch.calibrate) + list(ch.holdout)
+    lo, hi = camp.band.low_hz, camp.band.high_hz
+    out, geometry = [], None
+    for entry in camp.run:
+        path = camp.resolve(entry.path)
+        run = read_run(path)
+        rows = _index({s.name: i for i, s in enumerate(run.sensors)}, names, "sensors", path)
+        dl = {d.name: i for i, d in enumerate(run.drives)}
+        cols = list(range(len(run.drives))) if not ch.drives else _index(dl, ch.drives, "drives", path)
+        f = np.asarray(run.frequency_hz, float)
+        valid = np.asarray(run.valid, bool)
+        inband = (f >= lo) & (f <= hi)
+        if not np.any(inband & valid):
+            raise CalibrationError(
+                f"{path}: band [{lo}, {hi}] Hz has no valid lines (run covers "
+                f"{f.min() if f.size else float('nan'):.1f}-{f.max() if f.size else float('nan'):.1f} Hz)"
+            )
+        H_all = np.asarray(run.frf)[:, rows][:, :, cols]
+        se_all = np.asarray(run.std_error, float)
+        se_all = se_all[:, rows][:, :, cols] if se_all.shape == np.asarray(run.frf).shape else None
+        sel = inband & valid
+        H = H_all[sel]
+        se = None if se_all is None else se_all[sel]
+        se = se if se is not None and np.any(se > 0) and np.all(np.isfinite(se)) else None  # all zero: not measured
+        bad = ~np.all(np.isfinite(H), axis=(1, 2))
+        if bad.any():
+            raise CalibrationError(
+                f"{path}: {bad.sum()} valid line(s) hold NaN/inf (first at {f[sel][bad][0]:.3f} Hz): flag them invalid"
+            )
+        drives = tuple(run.drives[c].name for c in cols)
+        sig = signal_pairs(f[sel], H, se)
+        for line in sig.describe(names, drives):
+            log(f"{path.name}: {line}: left out of calibration and validation")
+        if not sig.usable.any():
+            raise CalibrationError(f"{path}: no channel/drive pair carries a signal above the noise in the band")
+        stored, stored_channels = None, ()
+        if camp.identification.use_stored and "identification" in (run.analyses or ()):
+            cand = Identification.from_arrays(*read_analysis(path, "identification"))
+            if cand.model.n_out == len(run.sensors) and cand.model.n_in == len(run.drives):
+                stored, stored_channels = cand, tuple(s.name for s in run.sensors)
+        if geometry is None:
+            spec = {s.name: s for s in run.sensors}
+            geometry = (tuple(Transducer(n, int(spec[n].grid), tuple(spec[n].direction)) for n in names),
+                        tuple(Transducer(run.drives[c].name, int(run.drives[c].grid), tuple(run.drives[c].direction))
+                              for c in cols))
+        out.append(Article(
+            name=entry.article or run.article,
+            path=path,
+            freq_hz=f[sel],
+            frf=H,
+            channels=tuple(names),
+            drives=drives,
+            identification=None,
+            ident_channels=tuple(names),
+            quantity=run.quantity,
+            std_error=se,
+            pairs=None if sig.usable.all() else sig.usable,
+            lines=RunLines(f, H_all, valid, se_all),
+            stored=stored,
+            stored_channels=stored_channels,
+        ))
+    quantities = {a.quantity for a in out}
+    if len(quantities) > 1:
+        raise CalibrationError(f"runs mix FRF quantities {sorted(quantities)}")
+    return LoadResult(tuple(out), *geometry)
+
+
+# ----------------------------------------------------------------------------- model
+
+
+def build_model(camp: Campaign, load: LoadResult, log=print):
+    """ParametricModel + FRFModel with the campaign's channels as outputs and drives as inputs.
+
+    Returns
+    -------
+    (femodel.ParametricModel, calibration.FRFModel)
+    """
+    import scipy.sparse as sp
+
+    import femodel
+
+    t0 = time.perf_counter()
+    pm = femodel.parametric_model(camp.resolve(camp.model.parameters), camp.resolve(camp.model.bdf),
+                                  units=camp.model.units)
+
+    def column(t: Transducer, what: str):
+        try:
+            return femodel.sensor_matrix(pm.assembly, [t.grid], [t.direction])
+        except ValueError as exc:
+            raise CalibrationError(f"{what} {t.name!r} (grid {t.grid}, direction {tuple(t.direction)}): {exc}") from None
+
+    C_rows = [column(t, "channel") for t in load.channels]
+    B_cols = [column(t, "drive").T for t in load.drives]
+    model = FRFModel(
+        K=pm.K, M=pm.M,
+        inputs=sp.hstack(B_cols).tocsc(),
+        outputs=sp.vstack(C_rows).tocsr(),
+        input_names=tuple(t.name for t in load.drives),
+        output_names=tuple(t.name for t in load.channels),
+        parameter_names=tuple(pm.parameters.names),
+        parametric=pm,
+    )
+    log(f"model: {pm.K.shape[0]} DOF, {pm.n_params} parameters ({time.perf_counter() - t0:.1f} s)")
+    return pm, model
+
+
+# ----------------------------------------------------------------------------- identify
+
+
+@dataclass(frozen=True)
+class IdentifyResult:
+    """The identify stage: one identification per article (stored or computed) and its output rows."""
+
+    identifications: tuple
+    channels: tuple  # per article: tuple of output names of its identification
+
+    def attached(self, articles) -> tuple:
+        """``articles`` with their identification attached."""
+        return tuple(replace(a, identification=i, ident_channels=c)
+                     for a, i, c in zip(articles, self.identifications, self.channels))
+
+
+def identify_stage(camp: Campaign, articles, log=print) -> IdentifyResult:
+    """The run file's stored identification when usable, else subspace identification of the article's lines.
+
+    The identification band is ``[identification] low_hz/high_hz``, by default
+    0.8 x band low to 1.25 x band high (clipped to the data); the work is
+    :func:`frfcal.campaign.identify_lines`, the same as ``frfcal identify``.
+    """
+    lo, hi = camp.band.low_hz, camp.band.high_hz
+    ilo = camp.identification.low_hz or 0.8 * lo
+    ihi = camp.identification.high_hz or 1.25 * hi
+    idents, chans = [], []
+    for a in articles:
+        if camp.identification.use_stored and a.stored is not None:
+            idents.append(a.stored)
+            chans.append(a.stored_channels)
+            log(f"{a.path.name}: using stored identification (order {a.stored.order})")
+            continue
+        t0 = time.perf_counter()
+        ln = a.lines
+        ident = identify_lines(ln.frequency_hz, ln.frf, ln.valid, ln.std_error, a.quantity, (ilo, ihi),
+                               order=camp.identification.order)
+        blo, bhi = ident.band_hz
+        how = "set" if ident.order_selection is None else f"automatic: {ident.order_selection.reason}"
+        log(f"{a.path.name}: identified order {ident.order} ({how}), {ident.modal.n_modes} modes in "
+            f"{blo:.0f}-{bhi:.0f} Hz, weights {ident.settings['weights']} ({time.perf_counter() - t0:.1f} s)")
+        idents.append(ident)
+        chans.append(a.channels)
+    return IdentifyResult(tuple(idents), tuple(chans))
+
+
+def identified_modes(article: Article) -> IdentifiedModes:
+    """The identified modes of an article (after the identify stage)."""
+    m = article.identification.modal
+    return IdentifiedModes(m.frequency_hz, m.damping, m.shapes, article.ident_channels)
+
+
+def pair_mask(article: Article, channels, n_f: int):
+    """FitData mask leaving out the pairs without signal (None when every pair has one)."""
+    if article.pairs is None:
+        return None
+    use = article.pairs[[article.channels.index(n) for n in channels]]
+    return None if use.all() else np.broadcast_to(use, (n_f, *use.shape)).copy()
+
+
+def raw_data(article: Article, channels) -> FitData:
+    """The article's measured in-band lines on ``channels``."""
+    rows = [article.channels.index(n) for n in channels]
+    return FitData(article.freq_hz, article.frf[:, rows], tuple(channels), article.drives, article=article.name,
+                   mask=pair_mask(article, channels, article.freq_hz.size))
+
+
+def raw_std_error(article: Article, channels):
+    """The article's standard errors on ``channels`` (None without)."""
+    if article.std_error is None:
+        return None
+    return article.std_error[:, [article.channels.index(n) for n in channels]]
+
+
+# ----------------------------------------------------------------------------- equalize
+
+
+@dataclass(frozen=True)
+class EqualizeResult:
+    """The equalize stage: each article's identified model, damping-equalized, on the calibration channels.
+
+    Attributes
+    ----------
+    freq_hz : (n_f,) half-bandwidth grid at zeta0 [Hz]
+    data : tuple of FitData, one per article, equalized to zeta0
+    continuation : tuple of (zeta, tuple of FitData per article), the continuation stages
+    """
+
+    freq_hz: np.ndarray
+    data: tuple
+    continuation: tuple = ()
+
+    def member(self, idx):
+        """(data, continuation) of the articles ``idx`` in the form :func:`calibration.calibrate_cycles` takes."""
+        return ([self.data[i] for i in idx],
+                [(z, [d[i] for i in idx]) for z, d in self.continuation])
+
+
+def equalized_data(article: Article, zeta, freq_hz, outputs) -> FitData:
+    """The article's identified model with every physical pole at ``zeta``, on ``freq_hz`` and ``outputs``."""
+    from identification import equalized
+
+    H = equalized(article.identification, zeta).frf(freq_hz)
+    rows = [article.ident_channels.index(n) for n in outputs]
+    return FitData(freq_hz, H[:, rows], tuple(outputs), inputs=article.drives, article=article.name,
+                   mask=pair_mask(article, outputs, freq_hz.size))
+
+
+def equalize_stage(camp: Campaign, articles) -> EqualizeResult:
+    """Equalized data at zeta0 and at each continuation damping, on their half-bandwidth grids."""
+    c = camp.calibration
+    band = (camp.band.low_hz, camp.band.high_hz)
+    chans = camp.channels.calibrate
+    f = half_bandwidth_frequencies(*band, c.zeta0, c.samples_per_half_bandwidth)
+    data = tuple(equalized_data(a, c.zeta0, f, chans) for a in articles)
+    cont = []
+    for z in c.continuation_zeta:
+        fz = half_bandwidth_frequencies(*band, z, c.samples_per_half_bandwidth)
+        cont.append((z, tuple(equalized_data(a, z, fz, chans) for a in articles)))
+    return EqualizeResult(f, data, tuple(cont))
+
+
+# ----------------------------------------------------------------------------- group
+
+
+@dataclass(frozen=True)
+class GroupResult:
+    """The group stage: the ensemble members (label, article indices), pairwise SD and grouping (or None)."""
+
+    members: tuple  # of (label, tuple of int)
+    pairwise_sd: np.ndarray | None = None
+    grouping: Grouping | None = None
+
+
+def group_stage(camp: Campaign, articles, equalize: EqualizeResult, log=print) -> GroupResult:
+    """Members of the ensemble: all articles, each, or groups of articles by their pairwise SD."""
+    mode = camp.calibration.ensemble
+    if mode == "all" or len(articles) == 1:
+        return GroupResult((("all", tuple(range(len(articles)))),))
+    if mode == "article":
+        return GroupResult(tuple((a.name, (i,)) for i, a in enumerate(articles)))
+    D = pairwise_sd([d.frf for d in equalize.data])
+    floors = []
+    for a in articles:
+        se = raw_std_error(a, camp.channels.calibrate)
+        floors.append(None if se is None else noise_floor_sd(raw_data(a, camp.channels.calibrate), se))
+    grp = grouping(D, camp.calibration.n_groups, None if any(x is None for x in floors) else floors)
+    labels = grp.labels
+    groups = [tuple(i for i in range(len(articles)) if labels[i] == g) for g in range(labels.max() + 1)]
+    log("groups: " + "; ".join(", ".join(articles[i].name for i in g) for g in groups))
+    log("grouping: " + grp.describe([a.name for a in articles]))
+    return GroupResult(tuple((f"group{g + 1}", idx) for g, idx in enumerate(groups)), D, grp)
+
+
+# ----------------------------------------------------------------------------- calibrate
+
+
+@dataclass(frozen=True)
+class MemberCalibration:
+    """One ensemble member's calibration.
+
+    Attributes
+    ----------
+    label : str
+    articles : tuple of int, indices into the load stage's articles
+    cycle : CycleResult
+        The equalized stage (multi-start, re-basis cycles). Its ``basis`` is
+        None after a resume (not stored).
+    refinement : Refinement or None
+        The raw-line refinement with its re-basis cycles (None with
+        ``[calibration] refine = false``).
+    p : (n_p,) the reported normalized parameters (refined when refined)
+    surrogate : Surrogate at ``p``'s basis point
+    identifiability : Identifiability at ``p``
+    time_s : float, wall time of this member's calibration
+    basis : (n, r) ndarray or None
+        The full-order basis of ``surrogate`` (for diagnosis and model
+        extension, :func:`calibration.extended_surrogate`). Not stored: None
+        after a resume.
+    """
+
+    label: str
+    articles: tuple
+    cycle: CycleResult
+    refinement: Refinement | None
+    p: np.ndarray
+    surrogate: Surrogate
+    identifiability: Identifiability
+    time_s: float = 0.0
+    basis: np.ndarray | None = field(default=None, repr=False, compare=False)
+
+
+@dataclass(frozen=True)
+class CalibrateResult:
+    """The calibrate stage: the nominal surrogate and every member's calibration."""
+
+    surrogate: Surrogate
+    members: tuple  # of MemberCalibration
+    basis_s: float = 0.0
+
+
+def _refined(camp: Campaign, model, arts, cyc, band, lower, upper, log, label):
+    """Refine the equalized optimum on the raw lines, then re-basis the raw-line stage until p settles.
+
+    Returns (Refinement of the last cycle with every stage of all cycles, p, surrogate, its basis).
+    """
+    c = camp.calibration
+    raw = [raw_data(a, camp.channels.calibrate) for a in arts]
+    idents = [(a.identification, a.ident_channels) for a in arts]
+    modes = [identified_modes(a) for a in arts]
+    opts = dict(quantity=arts[0].quantity, mac_min=camp.validation.mac_min, band_hz=band,
+                max_nfev=c.max_evaluations)
+    t0 = time.perf_counter()
+    ref = refine(cyc.surrogate, cyc.p, raw, idents, modes, lower, upper, c.zeta0, floors=c.refine_floors, **opts)
+    stages = list(ref.stages)
+    log(f"[{label}] raw-line SD (identified damping) {ref.sd_raw_start:.4g} -> {ref.sd_raw:.4g} "
+        f"after {len(ref.stages)} refinement stage(s), max |dp| {np.max(np.abs(ref.p - cyc.p)):.3g} "
+        f"({time.perf_counter() - t0:.1f} s)")
+    sur, basis = cyc.surrogate, cyc.basis
+    for k in range(c.refine_cycles):
+        t0 = time.perf_counter()
+        sur, basis = build_surrogate(model, ref.p, band, c.basis_factor, enrich=c.enrich, previous_basis=basis)
+        nxt = refine(sur, ref.p, raw, idents, modes, lower, upper, c.zeta0, floors=(0.0,), **opts)
+        dp = float(np.max(np.abs(nxt.p - ref.p)))
+        stages.extend(nxt.stages)
+        ref = nxt
+        log(f"[{label}] raw-line re-basis {k + 1}: SD {ref.sd_raw:.4g}, max |dp| {dp:.2e} "
+            f"({time.perf_counter() - t0:.1f} s)")
+        if dp < c.cycle_tol:
+            break
+    return replace(ref, stages=tuple(stages)), ref.p, sur, basis
+
+
+def _identifiability(camp: Campaign, cyc, data, ref, p, sur, arts, lower, upper, names):
+    """Identifiability at the reported point, from the objective that produced it.
+
+    After the refinement that is the raw-line objective (identified damping as
+    estimated, each article's lines); else the equalized one. The residual is
+    stacked frequency-major per data set, so adjacent lines are n_out x n_in
+    values apart (the stride of the correlated-residual inflation).
+    """
+    if ref is None:
+        obj = Objective(cyc.surrogate, data, camp.calibration.zeta0, arts[0].quantity)
+        stride = data[0].frf.shape[1] * data[0].frf.shape[2]
+    else:
+        raw = [raw_data(a, camp.channels.calibrate) for a in arts]
+        obj = ModalDampingObjective(sur, raw, ref.zeta, ref.p_zeta, 0.0, arts[0].quantity)
+        stride = raw[0].frf.shape[1] * raw[0].frf.shape[2]
+    return identifiability(obj.jacobian(p), obj.residual(p), p, lower, upper, names, stride=stride)
+
+
+def calibrate_stage(camp: Campaign, model, articles, equalize: EqualizeResult, groups: GroupResult, executor,
+                    log=print) -> CalibrateResult:
+    """Nominal surrogate, then per member: equalized multi-start with re-basis cycles, raw-line refinement,
+    identifiability at the result.
+
+    ``executor`` runs the multi-start (start it before: its workers then
+    import while the basis is built); ``articles`` carry their identification.
+    """
+    c = camp.calibration
+    band = (camp.band.low_hz, camp.band.high_hz)
+    pm = model.parametric
+    lower, upper = pm.lower, pm.upper
+    t = time.perf_counter()
+    sur0, T0 = build_surrogate(model, np.zeros(pm.n_params), band, c.basis_factor, enrich=c.enrich)
+    basis_s = time.perf_counter() - t
+    log(f"surrogate: {sur0.size} ({len(sur0.basis_frequencies_hz)} modes, {sur0.n_static} static, "
+        f"{sur0.n_enrich} enrichment) in {basis_s:.1f} s")
+    opts = CycleOptions(n_starts=c.starts, seed=c.seed, quantity=articles[0].quantity, max_cycles=c.max_cycles,
+                        tol=c.cycle_tol, basis_factor=c.basis_factor, enrich=c.enrich, max_nfev=c.max_evaluations)
+    members = []
+    for label, idx in groups.members:
+        arts = [articles[i] for i in idx]
+        data, cont = equalize.member(idx)
+        t = time.perf_counter()
+        log(f"[{label}] calibrating on {len(arts)} article(s), {len(equalize.freq_hz)} frequencies x "
+            f"{len(camp.channels.calibrate)} channels, {c.starts + 1} starts")
+        cyc = calibrate_cycles(model, data, band, lower, upper, c.zeta0, options=replace(opts, quantity=arts[0].quantity),
+                               executor=executor, surrogate=sur0, basis=T0, continuation=cont, log=log)
+        log(f"[{label}] calibration SD (equalized test model, zeta0={100 * c.zeta0:g} %) "
+            f"{cyc.calibration.sd_nominal:.4g} -> {cyc.sd:.4g} ({time.perf_counter() - t:.1f} s)")
+        ref, p_final, sur_final, basis_final = None, cyc.p, cyc.surrogate, cyc.basis
+        if c.refine:
+            ref, p_final, sur_final, basis_final = _refined(camp, model, arts, cyc, band, lower, upper, log, label)
+        t_cal = time.perf_counter() - t
+        idf = _identifiability(camp, cyc, data, ref, p_final, sur_final, arts, lower, upper, pm.parameters.names)
+        log(f"[{label}] identifiability at the calibrated point:\n{idf.table()}")
+        members.append(MemberCalibration(label, tuple(idx), cyc, ref, p_final, sur_final, idf, t_cal, basis_final))
+    return CalibrateResult(sur0, tuple(members), basis_s)
+
+
+# ----------------------------------------------------------------------------- validate
+
+
+@dataclass(frozen=True)
+class MemberValidation:
+    """One member's hold-out validation (None without hold-out channels) and per-article estimates.
+
+    ``articles``: with several refined articles, each article's own raw-line
+    estimate started from the member's (dicts: article, p,
+    sd_raw_calibration, sd_holdout); else empty.
+    """
+
+    label: str
+    validation: Validation | None
+    articles: tuple = ()
+    time_s: float = 0.0
+
+
+@dataclass(frozen=True)
+class ValidationResult:
+    members: tuple  # of MemberValidation
+
+
+def _per_article(camp: Campaign, sur0, sur, arts, p, band, lower, upper, log, label) -> tuple:
+    """Each article's own raw-line estimate, started from the ensemble's, and its hold-out SD.
+
+    One parameter set cannot fit several articles to their noise floor: the
+    articles differ (test-to-test scatter), and at 0.1 % damping a 0.3 %
+    stiffness difference already moves a resonance by most of a half-power
+    bandwidth. The ensemble estimate stays the member's result; these per-article
+    estimates show the scatter (their spread) and whether each article's data
+    are explained to their floor.
+    """
+    c = camp.calibration
+    out = []
+    for a in arts:
+        modes = identified_modes(a)
+        r = refine(sur, p, [raw_data(a, camp.channels.calibrate)], [(a.identification, a.ident_channels)], [modes],
+                   lower, upper, c.zeta0, floors=(0.0,), quantity=a.quantity, mac_min=camp.validation.mac_min,
+                   band_hz=band, max_nfev=c.max_evaluations)
+        row = {"article": a.name, "p": r.p.tolist(), "sd_raw_calibration": r.sd_raw, "sd_holdout": None}
+        if camp.channels.holdout:
+            v = validate(sur0, sur, r.p, [raw_data(a, camp.channels.holdout)], modes, c.zeta0, None,
+                         camp.validation.mac_min, a.quantity, band)
+            row["sd_holdout"] = v.sd_calibrated
+        out.append(row)
+        log(f"[{label}] article {a.name}: own estimate, raw-line SD {r.sd_raw:.4g}"
+            + ("" if row["sd_holdout"] is None else f", hold-out SD {row['sd_holdout']:.4g}"))
+    P = np.array([r["p"] for r in out])
+    spread = (1 + P).std(axis=0, ddof=1) / (1 + P).mean(axis=0)
+    log(f"[{label}] article-to-article spread of the estimates: median {100 * np.median(spread):.3g} %, "
+        f"largest {100 * spread.max():.3g} %")
+    return tuple(out)
+
+
+def validate_stage(camp: Campaign, articles, cal: CalibrateResult, bounds, log=print) -> ValidationResult:
+    """Hold-out validation of every member (raw hold-out lines, damping as the refinement estimated it),
+    and each article's own estimate when a refined member has several articles.
+
+    ``bounds`` is (lower, upper) of the normalized parameters.
+    """
+    c = camp.calibration
+    band = (camp.band.low_hz, camp.band.high_hz)
+    lower, upper = bounds
+    out = []
+    for m in cal.members:
+        arts = [articles[i] for i in m.articles]
+        ref = m.refinement
+        t = time.perf_counter()
+        val = None
+        if camp.channels.holdout:
+            raw = [raw_data(a, camp.channels.holdout) for a in arts]
+            errs = [raw_std_error(a, camp.channels.holdout) for a in arts]
+            val = validate(cal.surrogate, m.surrogate, m.p, raw, [identified_modes(a) for a in arts], c.zeta0,
+                           camp.validation.target_sd, camp.validation.mac_min, arts[0].quantity, band,
+                           std_error=None if any(e is None for e in errs) else errs,
+                           damping=None if ref is None else (ref.zeta, ref.p_zeta))
+            log(f"[{m.label}] {val.summary()}")
+        rows = ()
+        if ref is not None and len(arts) > 1:
+            rows = _per_article(camp, cal.surrogate, m.surrogate, arts, m.p, band, lower, upper, log, m.label)
+        out.append(MemberValidation(m.label, val, rows, time.perf_counter() - t))
+    return ValidationResult(tuple(out))
+
+
+# ----------------------------------------------------------------------------- cross-validate
+
+
+@dataclass(frozen=True)
+class MemberCrossValidation:
+    label: str
+    crossvalidation: CrossValidation | None
+    time_s: float = 0.0
+
+
+@dataclass(frozen=True)
+class CrossValidationResult:
+    members: tuple  # of MemberCrossValidation
+
+
+def crossvalidate_stage(camp: Campaign, articles, equalize: EqualizeResult, cal: CalibrateResult, bounds,
+                        parameter_names, executor, log=print) -> CrossValidationResult:
+    """Monte Carlo half/half recalibration of what each member calibrated last.
+
+    After the refinement: the raw calibration lines with the identified
+    damping as estimated; else the equalized data.
+    """
+    c, xv = camp.calibration, camp.crossvalidation
+    lower, upper = bounds
+    out = []
+    for m in cal.members:
+        arts = [articles[i] for i in m.articles]
+        t = time.perf_counter()
+        cv = None
+        if xv.realizations:
+            ref = m.refinement
+            if ref is None:
+                data, _ = equalize.member(m.articles)
+                cv = cross_validate(m.cycle.surrogate, data, m.cycle.p, lower, upper, c.zeta0, xv.realizations,
+                                    xv.seed, executor, arts[0].quantity, xv.max_evaluations)
+            else:
+                cv = cross_validate(m.surrogate, [raw_data(a, camp.channels.calibrate) for a in arts], m.p,
+                                    lower, upper, c.zeta0, xv.realizations, xv.seed, executor, arts[0].quantity,
+                                    xv.max_evaluations, damping=(ref.zeta, ref.p_zeta))
+            log(f"[{m.label}] cross-validation RSE {cv.rse:.4g} ({cv.p.shape[0]} realizations)")
+            for j in np.flatnonzero(cv.n_at_bound):
+                log(f"[{m.label}] CV of {parameter_names[j]}: not meaningful, {cv.cv_reason[j]}")
+        out.append(MemberCrossValidation(m.label, cv, time.perf_counter() - t))
+    return CrossValidationResult(tuple(out))

@@ -1,0 +1,167 @@
+"""Campaign stages: stored results, fingerprints, rerun and resume."""
+
+import json
+
+import numpy as np
+import pytest
+
+from calibration import CalibrationError
+from frfcal.campaign import STAGES, StageStore, decode, encode, load_campaign, run_campaign
+from tests.calibration._synthetic import make_campaign
+
+P_TRUE = np.array([0.05, -0.04, 0.06, -0.05, 0.04, -0.03, 0.05, -0.06, 0.03,
+                   -0.04, 0.05, -0.02, 0.08, -0.07, 0.06, -0.05, 0.04])
+
+
+@pytest.fixture(scope="module")
+def staged(tmp_path_factory):
+    """A small campaign (1000 DOF, 2 Hz lines, 1 % noise, 1 start, 2 CV realizations) run once."""
+    tmp = tmp_path_factory.mktemp("stages")
+    path, _, _ = make_campaign(tmp, p_true=P_TRUE, target_dof=1000, step_hz=2.0, noise=0.01, starts=0,
+                               realizations=2, extra="figures = false")
+    camp = load_campaign(path)
+    first = run_campaign(camp, log=lambda m: None)
+    return camp, first
+
+
+def _with(camp, out, **sections):
+    changes = {"output": camp.output.model_copy(update={"dir": out})}
+    for name, upd in sections.items():
+        changes[name] = getattr(camp, name).model_copy(update=upd)
+    return camp.model_copy(update=changes)
+
+
+def _status(res):
+    return {k: v["status"] for k, v in res["stages"].items()}
+
+
+def _members(res):
+    """What a campaign computed (everything but timings)."""
+    out = []
+    for m in res["members"]:
+        m = dict(m)
+        m.pop("timings")
+        m.pop("bdf", None)
+        m["calibration"] = {k: v for k, v in m["calibration"].items() if k not in ("cycles", "multistart")}
+        out.append(m)
+    return out
+
+
+def test_first_run_stores_every_stage(staged):
+    camp, first = staged
+    assert list(first["stages"]) == list(STAGES)
+    assert all(s == "ran" for s in _status(first).values())
+    stages = camp.resolve(camp.output.dir) / "stages"
+    for name in STAGES:
+        head = json.loads((stages / f"{name}.json").read_text())
+        assert head["fingerprint"] == first["stages"][name]["fingerprint"]
+        assert (stages / f"{name}.npz").exists()
+
+
+def test_rerun_with_unchanged_inputs_skips_every_stage(staged):
+    camp, first = staged
+    logged = []
+    again = run_campaign(camp, log=logged.append)
+    assert _status(again) == {name: "reused" for name in STAGES}
+    assert not any("calibrating on" in m or "identified order" in m for m in logged)
+    # the same result, read back from the stored stages (surrogates, refinement, validation, CV)
+    assert json.dumps(_members(again)) == json.dumps(_members(first))
+    assert again["surrogate"] == first["surrogate"] and again["grouping"] == first["grouping"]
+
+
+def test_changed_validation_setting_redoes_validation_only(staged, tmp_path):
+    camp, first = staged
+    out = camp.resolve(camp.output.dir)
+    changed = _with(camp, out, validation={"target_sd": 1e-3})
+    res = run_campaign(changed, log=lambda m: None)
+    st = _status(res)
+    assert all(st[s] == "reused" for s in ("load", "identify", "equalize", "group", "calibrate"))
+    assert st["validate"] == "ran"
+    assert st["crossvalidate"] == "reused"  # it does not read the validation
+    v0, v1 = first["members"][0]["validation"], res["members"][0]["validation"]
+    assert v1["sd_calibrated"] == pytest.approx(v0["sd_calibrated"], rel=1e-12)
+    assert "target" in v1["verdict"] and "target" not in v0["verdict"]
+    # the parameters are the stored ones
+    assert [r["p"] for r in res["members"][0]["parameters"]] == [r["p"] for r in first["members"][0]["parameters"]]
+
+
+def test_interrupted_campaign_resumes_without_recalibrating(staged, tmp_path, monkeypatch):
+    camp, first = staged
+    camp = _with(camp, tmp_path / "o")
+
+    def broken(*a, **k):
+        raise RuntimeError("power cut during validation")
+
+    monkeypatch.setattr("frfcal.campaign._stages.validate", broken)
+    with pytest.raises(RuntimeError, match="power cut"):
+        run_campaign(camp, log=lambda m: None)
+    stored = tmp_path / "o" / "stages"
+    assert (stored / "calibrate.json").exists() and not (stored / "validate.json").exists()
+    monkeypatch.undo()
+    logged = []
+    res = run_campaign(camp, log=logged.append)
+    st = _status(res)
+    assert all(st[s] == "reused" for s in ("load", "identify", "equalize", "group", "calibrate"))
+    assert st["validate"] == "ran" and st["crossvalidate"] == "ran"
+    assert not any("calibrating on" in m for m in logged)
+    # the reported parameters are the stored calibration's, exactly
+    stored_cal = StageStore(stored).load("calibrate", res["stages"]["calibrate"]["fingerprint"])
+    m1 = res["members"][0]
+    assert [r["p"] for r in m1["parameters"]] == stored_cal.members[0].p.tolist()
+    # and agree with the uninterrupted run to the run-to-run scatter of the Lanczos start vector (eigsh, no v0)
+    m0 = first["members"][0]
+    np.testing.assert_allclose([r["p"] for r in m1["parameters"]], [r["p"] for r in m0["parameters"]],
+                               rtol=5e-3, atol=1e-5)
+    assert m1["validation"]["sd_calibrated"] == pytest.approx(m0["validation"]["sd_calibrated"], rel=0.05)
+    # the n x r basis is not stored: None after the resume
+    assert stored_cal.members[0].basis is None and stored_cal.members[0].cycle.basis is None
+
+
+def test_store_rebuilds_only_frfcal_types(tmp_path):
+    arrays = {}
+    tree = encode({"x": (1, np.arange(3.0)), 2: "two"}, arrays)
+    back = decode(json.loads(json.dumps(tree)), arrays)
+    assert back["x"][0] == 1 and np.array_equal(back["x"][1], np.arange(3.0)) and back[2] == "two"
+    with pytest.raises(CalibrationError, match="not one of frfcal's result types"):
+        decode({"__dc__": "subprocess:Popen", "fields": {"args": "true"}}, {})
+    # a damaged or foreign stage file is not an error: the stage runs again
+    store = StageStore(tmp_path)
+    store.save("load", "k1", {"a": np.ones(2)}, 0.1)
+    assert store.load("load", "k2") is None and np.array_equal(store.load("load", "k1")["a"], np.ones(2))
+    (tmp_path / "load.json").write_text(json.dumps({"format": "frfcal.stage/1", "fingerprint": "k1",
+                                                   "result": {"__dc__": "os:system", "fields": {}}}))
+    assert store.load("load", "k1") is None
+
+
+def test_stages_compose_and_keep_the_final_basis(staged):
+    """The stage functions by hand (as run_campaign wires them): typed results, the final basis kept."""
+    from calibration import SerialExecutor
+    from frfcal.campaign import (
+        build_model,
+        calibrate_stage,
+        equalize_stage,
+        group_stage,
+        identify_stage,
+        load_stage,
+    )
+
+    camp, first = staged
+    camp = camp.model_copy(update={"calibration": camp.calibration.model_copy(
+        update={"max_cycles": 1, "refine_cycles": 1, "continuation_zeta": [0.03]})})
+    quiet = lambda m: None  # noqa: E731
+    load = load_stage(camp, quiet)
+    pm, model = build_model(camp, load, quiet)
+    assert [t.name for t in load.channels] == list(camp.channels.calibrate) + list(camp.channels.holdout)
+    arts = identify_stage(camp, load.articles, quiet).attached(load.articles)
+    eq = equalize_stage(camp, arts)
+    assert eq.data[0].frf.shape == (eq.freq_hz.size, len(camp.channels.calibrate), 1)
+    assert [z for z, _ in eq.continuation] == [0.03]
+    groups = group_stage(camp, arts, eq, quiet)
+    assert groups.members == (("all", (0,)),)
+    cal = calibrate_stage(camp, model, arts, eq, groups, SerialExecutor(), quiet)
+    m = cal.members[0]
+    assert m.basis is not None and m.basis.shape == (model.K.shape[0], m.surrogate.size)
+    # M-orthonormal basis of the reported surrogate at its basis point
+    Mr = m.basis.T @ (model.M.at(m.surrogate.p_basis) @ m.basis)
+    np.testing.assert_allclose(Mr, np.eye(m.surrogate.size), atol=1e-8)
+    np.testing.assert_allclose(m.p, [r["p"] for r in first["members"][0]["parameters"]], rtol=0.02, atol=2e-3)
