@@ -56,7 +56,7 @@ def main(argv=None) -> int:
     malloc_tuned = keep_large_allocations()  # as the frfcal command does
 
     import femodel
-    from calibration import load_campaign, run_campaign
+    from frfcal.campaign import load_campaign, run_campaign
     from frfcal.synth import SynthChannel, synthesize
 
     band = (100.0, 400.0)
