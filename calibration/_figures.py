@@ -11,7 +11,7 @@ import numpy as np
 
 from calibration._errors import CalibrationError
 from calibration._surrogate import modal_frf, reduced_modes
-from calibration._validation import mapped_damping
+from calibration._damping import mapped_damping
 
 
 def _figure(**kw):

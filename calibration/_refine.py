@@ -56,7 +56,7 @@ from calibration._surrogate import (
     reduced_term_stack,
     reduced_modes,
 )
-from calibration._validation import IdentifiedModes, mapped_damping
+from calibration._damping import IdentifiedModes, mapped_damping
 
 #: Default damping floors of the refinement stages, as multiples of zeta0 (the last, 0, is the raw data).
 DEFAULT_FLOORS = (1.0, 0.3, 0.1, 0.0)

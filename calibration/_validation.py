@@ -34,76 +34,9 @@ from calibration._errors import CalibrationError
 from calibration._fit import FitData
 from calibration._metric import LN10, log_deviation, square_deviation
 from calibration._surrogate import Surrogate, modal_frf, reduced_modes
-from labdata import mac
-
-
-def pair_modes(mac_matrix: np.ndarray, mac_min: float = 0.6) -> list[tuple[int, int, float]]:
-    """One-to-one pairs (i_a, i_b, mac) picked greedily by the largest MAC above ``mac_min``."""
-    M = np.array(mac_matrix, dtype=float, copy=True)
-    pairs = []
-    while M.size and np.nanmax(M) >= mac_min:
-        i, j = np.unravel_index(np.nanargmax(M), M.shape)
-        pairs.append((int(i), int(j), float(M[i, j])))
-        M[i, :] = -1.0
-        M[:, j] = -1.0
-    return sorted(pairs)
-
-
-@dataclass(frozen=True)
-class IdentifiedModes:
-    """Modal parameters from identification, at named output channels.
-
-    frequency_hz : (m,) ; damping : (m,) ratios ; shapes : (n_ch, m) complex ; channels : tuple of str
-    """
-
-    frequency_hz: np.ndarray
-    damping: np.ndarray
-    shapes: np.ndarray
-    channels: tuple
-
-    def __post_init__(self) -> None:
-        f = np.asarray(self.frequency_hz, float)
-        z = np.asarray(self.damping, float)
-        s = np.asarray(self.shapes)
-        if s.ndim != 2 or s.shape != (len(self.channels), f.size) or z.shape != f.shape:
-            raise CalibrationError(
-                f"identified modes: shapes {s.shape} must be ({len(self.channels)} channels, {f.size} modes)"
-            )
-        object.__setattr__(self, "frequency_hz", f)
-        object.__setattr__(self, "damping", z)
-        object.__setattr__(self, "shapes", s)
-        object.__setattr__(self, "channels", tuple(self.channels))
-
-
-def mapped_damping(
-    sur: Surrogate, p, modes: IdentifiedModes, zeta0: float = 0.01, mac_min: float = 0.6, band_hz=None
-):
-    """Per-reduced-mode damping at p: identified damping on MAC-paired modes, zeta0 elsewhere.
-
-    Returns
-    -------
-    zeta : (r,) damping ratio per reduced mode (ascending frequency)
-    pairs : list of dict (fe_hz, test_hz, mac, zeta)
-    mac_matrix : (m_fe, m_test) MAC of the FE modes in the band (or all elastic) vs identified modes
-    fe_hz : (m_fe,) frequencies of those FE modes
-    """
-    lam, X = reduced_modes(sur, p)
-    fe_hz = np.sqrt(np.clip(lam, 0, None)) / (2 * np.pi)
-    elastic = fe_hz > sur.rigid_hz
-    if band_hz is not None:
-        lo, hi = band_hz
-        elastic &= (fe_hz >= 0.7 * lo) & (fe_hz <= 1.3 * hi)
-    idx = np.flatnonzero(elastic)
-    rows = sur.output_index(modes.channels)
-    phi_fe = sur.outputs[rows] @ X[:, idx]
-    M = mac(phi_fe, modes.shapes)
-    zeta = np.full(lam.size, float(zeta0))
-    pairs = []
-    for i, j, v in pair_modes(M, mac_min):
-        zeta[idx[i]] = modes.damping[j]
-        pairs.append({"fe_hz": float(fe_hz[idx[i]]), "test_hz": float(modes.frequency_hz[j]), "mac": v,
-                      "zeta": float(modes.damping[j])})
-    return zeta, pairs, M, fe_hz[idx]
+from calibration._damping import IdentifiedModes, mapped_damping, pair_modes  # noqa: F401 (re-exported)
+from calibration._refine import ModalDampingObjective
+from labdata import mac  # noqa: F401 (re-exported)
 
 
 def _deviation(sur: Surrogate, p, data: FitData, zeta, quantity: str) -> np.ndarray:
@@ -289,8 +222,6 @@ def validate(
                 lam, _ = reduced_modes(sur, p)
                 zeta, pr, M = np.full(lam.size, zeta0), [], np.zeros((0, 0))
             if stage == 1 and damping is not None:
-                from calibration._refine import ModalDampingObjective
-
                 obj = ModalDampingObjective(sur, [d], [damping[0][k]], damping[1], 0.0, quantity)
                 e_all.append(obj.deviation(p)[0])
             else:
