@@ -49,6 +49,8 @@ def main(argv=None) -> int:
     ap.add_argument("--realizations", type=int, default=10)
     ap.add_argument("--workers", type=int, default=None)
     ap.add_argument("--seed", type=int, default=11)
+    ap.add_argument("--max-cycles", type=int, default=None, help="re-basis cycles of the equalized stage")
+    ap.add_argument("--refine-cycles", type=int, default=None, help="re-basis cycles of the raw-line stage")
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "calibration.json"))
     args = ap.parse_args(argv)
     from frfcal._malloc import keep_large_allocations
@@ -84,7 +86,10 @@ def main(argv=None) -> int:
     del pm
     camp_path = sc.write_campaign(
         tmp / "campaign.toml", calibrate=cal, holdout=hold, band_hz=band,
-        calibration={"starts": args.starts}, crossvalidation={"realizations": args.realizations},
+        calibration={"starts": args.starts,
+                     **({} if args.max_cycles is None else {"max_cycles": args.max_cycles}),
+                     **({} if args.refine_cycles is None else {"refine_cycles": args.refine_cycles})},
+        crossvalidation={"realizations": args.realizations},
         execution={"workers": args.workers} if args.workers else {}, output={"dir": str(tmp / "out"),
                                                                           "figures": False})
     camp = load_campaign(camp_path)
