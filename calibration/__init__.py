@@ -18,6 +18,7 @@ from calibration._fit import (
     calibrate,
     calibrate_cycles,
     latin_hypercube_starts,
+    log_frequency_weights,
     run_start,
 )
 from calibration._metric import log_deviation, square_deviation, stacked
@@ -35,7 +36,15 @@ from calibration._nonlinearity import (
     nonlinearity,
     sweep_direction,
 )
+from calibration._refine import (
+    ModalDampingObjective,
+    Refinement,
+    RefineStage,
+    debiased_target,
+    refine,
+)
 from calibration._sampling import half_bandwidth_frequencies
+from calibration._signal import SignalPairs, signal_pairs
 from calibration._validation import (
     IdentifiedModes,
     Validation,
@@ -59,6 +68,14 @@ from calibration._surrogate import (
 )
 
 __all__ = [
+    "ModalDampingObjective",
+    "Refinement",
+    "RefineStage",
+    "debiased_target",
+    "refine",
+    "SignalPairs",
+    "signal_pairs",
+    "log_frequency_weights",
     "CrossValidation",
     "Identifiability",
     "IdentifiedModes",
