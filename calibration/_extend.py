@@ -27,11 +27,10 @@ import time
 from dataclasses import replace
 
 import numpy as np
-import scipy.linalg as sla
 import scipy.sparse as sp
 
 from calibration._errors import CalibrationError
-from calibration._surrogate import FRFModel, Surrogate, _congruent, _factor, _shifted, _sym
+from calibration._surrogate import FRFModel, Surrogate, _factor, _shifted, _sym, m_orthonormalized
 
 
 def _range_basis(A: np.ndarray, rtol: float) -> np.ndarray:
@@ -171,17 +170,7 @@ def extended_surrogate(
 
     Kr = extend(model.K, sur.K)
     Mr = extend(model.M, sur.M)
-    Te = np.hstack([T, W])
-    try:
-        L = np.linalg.cholesky(_sym(Mr.at(p_b)))
-    except np.linalg.LinAlgError:
-        raise CalibrationError("extended basis is numerically dependent (reduced mass not definite); "
-                               "raise vector_rtol") from None
-    if np.abs(L - np.eye(L.shape[0])).max() > 1e-12:
-        Li = sla.solve_triangular(L, np.eye(L.shape[0]), lower=True)
-        Kr = _congruent(Kr, Li)
-        Mr = _congruent(Mr, Li)
-        Te = Te @ Li.T
+    Kr, Mr, Te = m_orthonormalized(Kr, Mr, np.hstack([T, W]), p_b, "raise vector_rtol")
     t4 = time.perf_counter()
     B = model.inputs.toarray() if sp.issparse(model.inputs) else np.asarray(model.inputs, float)
     C = model.outputs.toarray() if sp.issparse(model.outputs) else np.asarray(model.outputs, float)

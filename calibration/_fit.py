@@ -133,6 +133,30 @@ def log_frequency_weights(freq_hz) -> np.ndarray:
     return w / w.mean() if w.sum() > 0 else np.ones(f.size)
 
 
+def value_weights(data) -> np.ndarray | None:
+    """sqrt of the line weights of data sets over their compared values, scaled to mean square 1 (None: all 1)."""
+    if all(d.weights is None for d in data):
+        return None
+    w = np.concatenate([np.ones(d.n_values) if d.weights is None else d.value_weights() for d in data])
+    return w / np.sqrt(np.mean(w**2))
+
+
+def stacked_residual(eps, deps=None, sqrt_w=None):
+    """Real residual ``[Re e; Im e]/sqrt(N)`` (and Jacobian ``(2N, n)``) of weighted log deviations.
+
+    ``eps`` (N,) complex, ``deps`` (n, N) complex derivatives, ``sqrt_w`` (N,)
+    value weights or None; ``sum(r**2)`` is the weighted square deviation.
+    """
+    if sqrt_w is not None:
+        eps = eps * sqrt_w
+        deps = None if deps is None else deps * sqrt_w[None, :]
+    s = 1.0 / np.sqrt(eps.size)
+    r = np.concatenate([eps.real, eps.imag]) * s
+    if deps is None:
+        return r
+    return r, np.concatenate([deps.real, deps.imag], axis=1).T * s
+
+
 class Objective:
     """Residual and Jacobian of the square deviation of a surrogate against data sets.
 
@@ -171,10 +195,7 @@ class Objective:
         self.n_values = sum(d.n_values for d in self.data)
         if self.n_values == 0:
             raise CalibrationError("no data values selected for calibration")
-        self._sqrt_w = None
-        if any(d.weights is not None for d in self.data):
-            w = np.concatenate([np.ones(d.n_values) if d.weights is None else d.value_weights() for d in self.data])
-            self._sqrt_w = w / np.sqrt(np.mean(w**2))
+        self._sqrt_w = value_weights(self.data)
         self._memo_p = None
         self._memo = None
 
@@ -210,13 +231,7 @@ class Objective:
                 e, de = e[d.mask], de[:, d.mask]
             eps.append(e.ravel())
             deps.append(de.reshape(de.shape[0], -1))
-        e = self._weighted(eps)
-        de = np.concatenate(deps, axis=1)
-        if self._sqrt_w is not None:
-            de = de * self._sqrt_w[None, :]
-        s = 1.0 / np.sqrt(e.size)
-        r = np.concatenate([e.real, e.imag]) * s
-        J = np.concatenate([de.real, de.imag], axis=1).T * s
+        r, J = stacked_residual(np.concatenate(eps), np.concatenate(deps, axis=1), self._sqrt_w)
         self._memo_p, self._memo = p.copy(), (r, J)
         return r, J
 
@@ -225,8 +240,7 @@ class Objective:
         p = np.asarray(p, dtype=float)
         if self._memo_p is not None and np.array_equal(p, self._memo_p):
             return self._memo[0]
-        e = self._weighted(self.deviation(p))
-        return np.concatenate([e.real, e.imag]) / np.sqrt(e.size)
+        return stacked_residual(np.concatenate([x.ravel() for x in self.deviation(p)]), sqrt_w=self._sqrt_w)
 
     def jacobian(self, p):
         return self.evaluate(p)[1]

@@ -46,7 +46,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from calibration._errors import CalibrationError
-from calibration._fit import FitData, log_frequency_weights
+from calibration._fit import FitData, log_frequency_weights, stacked_residual, value_weights
 from calibration._metric import LN10, log_deviation, square_deviation
 from calibration._threads import blas_threads
 from calibration._surrogate import (
@@ -152,9 +152,8 @@ class ModalDampingObjective:
             if missing:
                 raise CalibrationError(f"drives {missing} are not inputs of the model {list(surrogate.input_names)}")
             self._in.append(np.array([lookup[n] for n in names]))
-        w = np.concatenate([np.ones(d.n_values) if d.weights is None else d.value_weights() for d in self.data])
-        self._sqrt_w = w / np.sqrt(np.mean(w**2))
-        self.n_values = w.size
+        self._sqrt_w = value_weights(self.data)
+        self.n_values = sum(d.n_values for d in self.data)
         self._memo_p = None
         self._memo = None
 
@@ -222,8 +221,7 @@ class ModalDampingObjective:
         p = self._x(p)
         if self._memo_p is not None and np.array_equal(p, self._memo_p):
             return self._memo[0]
-        e = np.concatenate(self.deviation(p)) * self._sqrt_w
-        return np.concatenate([e.real, e.imag]) / np.sqrt(e.size)
+        return stacked_residual(np.concatenate(self.deviation(p)), sqrt_w=self._sqrt_w)
 
     def sd(self, p) -> float:
         """Weighted square deviation sum(w |eps|^2)/sum(w)."""
@@ -292,11 +290,7 @@ class ModalDampingObjective:
                 e, de = e[d.mask], de[:, d.mask]
             eps_all.append(e.ravel())
             deps_all.append(de.reshape(de.shape[0], -1))
-        e = np.concatenate(eps_all) * self._sqrt_w
-        de = np.concatenate(deps_all, axis=1) * self._sqrt_w[None, :]
-        s = 1.0 / np.sqrt(e.size)
-        res = np.concatenate([e.real, e.imag]) * s
-        J = np.concatenate([de.real, de.imag], axis=1).T * s
+        res, J = stacked_residual(np.concatenate(eps_all), np.concatenate(deps_all, axis=1), self._sqrt_w)
         self._memo_p, self._memo = x.copy(), (res, J)
         return res, J
 

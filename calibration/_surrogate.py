@@ -536,18 +536,7 @@ def build_surrogate(
     with ThreadPoolExecutor(max_workers=2) as pool, _blas_threads(1):
         Kr = _projected(model.K, T, pool)
         Mr = _projected(model.M, T, pool)
-    # exact M-orthonormality of T at p by a congruence in reduced space (no n-sized work but T L^-T)
-    try:
-        L = np.linalg.cholesky(_sym(Mr.at(p)))
-    except np.linalg.LinAlgError:
-        raise CalibrationError(
-            f"reduction basis at p={np.round(p, 4)} is numerically dependent (reduced mass not definite); "
-            "raise enrich_tol or lower basis_factor") from None
-    if np.abs(L - np.eye(L.shape[0])).max() > 1e-12:
-        Li = sla.solve_triangular(L, np.eye(L.shape[0]), lower=True)
-        Kr = _congruent(Kr, Li)
-        Mr = _congruent(Mr, Li)
-        T = T @ Li.T
+    Kr, Mr, T = m_orthonormalized(Kr, Mr, T, p, "raise enrich_tol or lower basis_factor")
     t6 = time.perf_counter()
     sur = Surrogate(
         K=Kr,
@@ -567,6 +556,25 @@ def build_surrogate(
                    "orthonormalize": t5 - t4, "project": t6 - t5},
     )
     return sur, T
+
+
+def m_orthonormalized(Kr: AffineMatrix, Mr: AffineMatrix, T: np.ndarray, p, remedy: str):
+    """Reduced terms and basis made exactly M-orthonormal at p by a congruence in reduced space.
+
+    With M_r(p) = L L^T, the basis T L^-T and the terms L^-1 (.) L^-T; no
+    n-sized work but the one product T L^-T. A reduced mass that is not
+    definite means the basis is numerically dependent (``remedy`` says what to change).
+    """
+    try:
+        L = np.linalg.cholesky(_sym(Mr.at(p)))
+    except np.linalg.LinAlgError:
+        raise CalibrationError(
+            f"reduction basis at p={np.round(np.asarray(p, float), 4)} is numerically dependent "
+            f"(reduced mass not definite); {remedy}") from None
+    if np.abs(L - np.eye(L.shape[0])).max() > 1e-12:
+        Li = sla.solve_triangular(L, np.eye(L.shape[0]), lower=True)
+        Kr, Mr, T = _congruent(Kr, Li), _congruent(Mr, Li), T @ Li.T
+    return Kr, Mr, T
 
 
 def _complement_coefficients(W, Phi, MPhi, M, sizes, tols, MW=None) -> list:
