@@ -590,13 +590,22 @@ def _slug(label: str) -> str:
 _AXES = "xyz"
 
 
+def _movable(ctx: CandidateContext, grids) -> tuple:
+    """The grids with at least one free translation (a mass on a clamped grid does nothing)."""
+    grids = tuple(grids)
+    if not grids:
+        return ()
+    ok = np.any(ctx.free[ctx.grid_index(grids), :3], axis=1)
+    return tuple(g for g, k in zip(grids, ok.tolist()) if k)
+
+
 def sensor_mass_family(ctx: CandidateContext):
     """One common mass on every sensor grid (accelerometers of one type): p = 1 is
-    ``sensor_mass_fraction`` of the total mass on each grid."""
-    if not ctx.sensors:
+    ``sensor_mass_fraction`` of the total mass on each grid. Clamped sensor grids are left out."""
+    g = _movable(ctx, ctx.sensors)
+    if not g:
         return
     scale = ctx.options.sensor_mass_fraction * ctx.total_mass
-    g = ctx.sensors
     term = AddedMass("sensor_mass", g, scale, 0.0, ctx.options.upper,
                      f"one sensor mass on each of the {len(g)} measured grids")
     yield ctx.candidate("sensor_mass", term, g,
@@ -608,7 +617,7 @@ def sensor_masses_family(ctx: CandidateContext):
     """One mass per sensor grid (a heavier sensor or cable clamp): p = 1 is
     ``sensor_mass_fraction`` of the total mass."""
     scale = ctx.options.sensor_mass_fraction * ctx.total_mass
-    for g in ctx.sensors:
+    for g in _movable(ctx, ctx.sensors):
         term = AddedMass(f"sensor_mass_g{g}", (g,), scale, 0.0, ctx.options.upper, f"sensor mass at grid {g}")
         yield ctx.candidate("sensor_masses", term, (g,),
                             f"sensor mass {scale:.3g} kg x p at sensor {ctx.grid_label(g)}")
@@ -618,7 +627,7 @@ def shaker_attachment_family(ctx: CandidateContext):
     """A mass at each drive grid (force sensor, stinger end, adhesive): p = 1 is
     ``attachment_mass_fraction`` of the total mass."""
     scale = ctx.options.attachment_mass_fraction * ctx.total_mass
-    for g in dict.fromkeys(g for g, _ in ctx.drives):
+    for g in _movable(ctx, dict.fromkeys(g for g, _ in ctx.drives)):
         term = AddedMass(f"shaker_mass_g{g}", (g,), scale, 0.0, ctx.options.upper,
                          f"shaker attachment mass at drive grid {g}")
         yield ctx.candidate("shaker_attachment", term, (g,),
