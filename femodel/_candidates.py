@@ -728,8 +728,8 @@ def element_cluster_family(ctx: CandidateContext):
                 yield ctx.candidate(
                     "element_cluster", term, grids,
                     f"{what} of {len(eids)} {part} elements ({ctx.element_cards[sel[0]]} {eids[0]}"
-                    f"{'..' + str(eids[-1]) if len(eids) > 1 else ''}) around ({c[0]:.4g}, {c[1]:.4g}, {c[2]:.4g}) "
-                    f"deck units, {edge / size:.2g} element sizes across, times 1 + p",
+                    f"{'..' + str(eids[-1]) if len(eids) > 1 else ''}) in a cube of {ctx.deck_length(edge):.4g} "
+                    f"around ({c[0]:.4g}, {c[1]:.4g}, {c[2]:.4g}) (deck length unit), times 1 + p",
                     parts=(part,), points=ctx.element_centers[sel], size=size)
 
 
@@ -772,9 +772,13 @@ def contact_pairs(ctx: CandidateContext) -> np.ndarray:
     Both grids belong to exactly one part (a grid of two parts is a
     junction), the parts differ, the distance is within
     min(``contact_factor`` x local size, ``contact_max_gap_m``) of either
-    grid, no connector holds both (and, with ``contact_hops`` = 2, no grid
-    is a neighbour of both), and both grids' displacement systems agree
-    (a scalar spring between equal components is then a physical spring).
+    grid, each is the other's nearest grid of its part (mutual nearest:
+    facing grids, not the diagonals of a fine mesh nor the overhang at the
+    edge of an overlap; equal distances all kept), no
+    connector (element, RBE2, RBE3, MPC equation) holds both (and no path
+    of at most ``contact_hops`` connectors joins them), and both grids'
+    displacement systems agree (a scalar spring between equal components
+    is then a physical spring).
     """
     from scipy.spatial import cKDTree
 
@@ -790,22 +794,37 @@ def contact_pairs(ctx: CandidateContext) -> np.ndarray:
     a = np.repeat(np.arange(single.size), counts)
     b = np.fromiter((j for f in found for j in f), dtype=np.int64, count=int(counts.sum()))
     a, b = single[a], single[b]
-    keep = a < b
-    a, b = a[keep], b[keep]
-    part_of = np.array([p[0] if len(p) == 1 else "" for p in ctx.grid_parts], dtype=object)
+    part_of = np.full(ctx.grid_ids.size, -1, dtype=np.int64)
+    _, inv = np.unique(np.array([ctx.grid_parts[i][0] for i in single.tolist()], dtype=object), return_inverse=True)
+    part_of[single] = inv.ravel()
     keep = part_of[a] != part_of[b]
-    a, b = a[keep], b[keep]
     # the union over the two grids' radii: a pair found from either side once
-    pairs = np.unique(np.column_stack([np.minimum(a, b), np.maximum(a, b)]), axis=0)
+    pairs = np.unique(np.column_stack([np.minimum(a[keep], b[keep]), np.maximum(a[keep], b[keep])]), axis=0)
     if pairs.size == 0:
         return np.zeros((0, 2), np.int64)
+    d = np.linalg.norm(ctx.xyz[pairs[:, 0]] - ctx.xyz[pairs[:, 1]], axis=1)
+    n_parts = int(part_of.max()) + 1
+
+    def nearest(x, y):
+        """Pairs where y is (one of) the nearest grids of its part to x."""
+        key = x * n_parts + part_of[y]
+        order = np.lexsort((d, key))
+        k = key[order]
+        first = np.r_[True, k[1:] != k[:-1]]
+        best = np.minimum.reduceat(d[order], np.flatnonzero(first))
+        low = np.empty_like(d)
+        low[order] = np.repeat(best, np.diff(np.r_[np.flatnonzero(first), k.size]))
+        return d <= low * (1.0 + 1e-9) + 1e-15
+
+    pairs = pairs[nearest(pairs[:, 0], pairs[:, 1]) & nearest(pairs[:, 1], pairs[:, 0])]
     inc = _incidence(ctx)
     joined = np.asarray(inc[pairs[:, 0]].multiply(inc[pairs[:, 1]]).sum(axis=1)).ravel() > 0
     if o.contact_hops >= 2:
         adj = _adjacency(ctx, inc)
-        reach = adj
+        reach = adj  # grids within hops - 1 connectors of a grid (walks of up to that length)
+        step = sp.csr_matrix(adj + sp.identity(adj.shape[0], format="csr"))
         for _ in range(o.contact_hops - 2):
-            reach = sp.csr_matrix(reach @ adj)
+            reach = sp.csr_matrix(reach @ step)
         joined |= np.asarray(adj[pairs[:, 0]].multiply(reach[pairs[:, 1]]).sum(axis=1)).ravel() > 0
     pairs = pairs[~joined]
     if ctx.cd_axes is not None:
@@ -832,7 +851,7 @@ def contact_spring_family(ctx: CandidateContext):
     pairs = contact_pairs(ctx)
     if pairs.size == 0:
         return
-    part_of = [p[0] for p in ctx.grid_parts]
+    part_of = [p[0] if p else "" for p in ctx.grid_parts]
     keyset = {}
     for k, (i, j) in enumerate(pairs.tolist()):
         keyset.setdefault(tuple(sorted((part_of[i], part_of[j]))), []).append(k)
