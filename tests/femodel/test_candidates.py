@@ -196,7 +196,7 @@ def test_setup_families_at_the_given_grids(frame_pm):
     (common,) = fam["sensor_mass"]
     assert common.term.grids == tuple(sensors) and common.term.scale == pytest.approx(1e-3 * total)
     assert [c.term.grids for c in fam["sensor_masses"]] == [(g,) for g in sensors]
-    (shaker,) = fam["shaker_attachment"]
+    (shaker,) = fam["shaker_attachment_mass"]
     assert shaker.term.grids == (drives[0][0],)
     (stinger,) = fam["stinger_spring"]
     # drive direction (0.1, 0.2, -1): dominant axis z, grounded spring, p = 1 bounces the frame at 10 Hz
