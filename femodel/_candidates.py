@@ -204,12 +204,27 @@ class Candidate:
     """
 
     family: str
-    term: object
+    term: AddedSpring | AddedMass | ElementFactor
     grids: tuple
     parts: tuple
     center: tuple
     size: float
     description: str
+
+    def __post_init__(self) -> None:
+        what = f"Candidate of family {self.family!r}"
+        if not isinstance(self.term, (AddedSpring, AddedMass, ElementFactor)):
+            raise ParameterError(f"{what}: term must be an AddedSpring, AddedMass or ElementFactor, "
+                                 f"got {type(self.term).__name__}")
+        center = tuple(float(x) for x in self.center)
+        if len(center) != 3 or not all(math.isfinite(x) for x in center):
+            raise ParameterError(f"{what} {self.term.name!r}: center must be 3 finite coordinates, got {self.center!r}")
+        if not (math.isfinite(float(self.size)) and float(self.size) >= 0.0):
+            raise ParameterError(f"{what} {self.term.name!r}: size must be finite and >= 0, got {self.size!r}")
+        object.__setattr__(self, "center", center)
+        object.__setattr__(self, "size", float(self.size))
+        object.__setattr__(self, "grids", tuple(int(g) for g in self.grids))
+        object.__setattr__(self, "parts", tuple(str(q) for q in self.parts))
 
     @property
     def name(self) -> str:
