@@ -747,9 +747,11 @@ def element_cluster_family(ctx: CandidateContext):
         keys = np.floor((pts - pts.min(axis=0)) / edge).astype(np.int64)
         _, inv = np.unique(keys, axis=0, return_inverse=True)
         inv = inv.ravel()
-        for n in range(inv.max() + 1):
-            sel = els[inv == n]
+        order = np.argsort(inv, kind="stable")
+        cells = np.split(els[order], np.cumsum(np.bincount(inv))[:-1])
+        for n, sel in enumerate(cells):
             eids = tuple(int(e) for e in ctx.element_ids[sel])
+            listed = ", ".join(str(e) for e in eids[:2]) + (f", ..., {eids[-1]}" if len(eids) > 2 else "")
             grids = sorted({g for e in sel for g in ctx.element_grids[e]})
             size = float(np.median(ctx.element_sizes[sel]))
             c = ctx.deck_length(ctx.element_centers[sel].mean(axis=0))
@@ -759,8 +761,8 @@ def element_cluster_family(ctx: CandidateContext):
                                      o.factor_bounds[1], f"{what} of {len(eids)} elements of {part}")
                 yield ctx.candidate(
                     "element_cluster", term, grids,
-                    f"{what} of {len(eids)} {part} elements ({ctx.element_cards[sel[0]]} {eids[0]}"
-                    f"{'..' + str(eids[-1]) if len(eids) > 1 else ''}) in a cube of {ctx.deck_length(edge):.4g} "
+                    f"{what} of {len(eids)} {part} elements ({ctx.element_cards[sel[0]]} {listed}) "
+                    f"in a cube of {ctx.deck_length(edge):.4g} "
                     f"around ({c[0]:.4g}, {c[1]:.4g}, {c[2]:.4g}) (deck length unit), times 1 + p",
                     parts=(part,), points=ctx.element_centers[sel], size=size)
 
