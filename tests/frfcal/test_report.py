@@ -299,3 +299,24 @@ def test_renders_in_headless_chromium(campaign, tmp_path):
     assert px.shape == (4000, 1280)
     assert px.std() > 20  # text, tables and figures, not a blank page
     assert (px < 100).mean() > 0.005  # dark ink: headings, text, plot lines
+
+
+def test_pretest_layout_section(campaign, tmp_path):
+    """With a pretest result the layout section adds the planned layout and its autoMAC."""
+    from pretest import PretestConfig, plan_pretest
+
+    _, camp, _, _, r = campaign
+    plan = plan_pretest(r.model.assembly.model, PretestConfig(n_sensors=6, n_modes=6, direction="z"),
+                        assembly=r.model.assembly)
+    text = write_report(camp, tmp_path, {"load": r.load, "model": r.model, "pretest": plan},
+                        log=lambda m: None).read_text()
+    p = _parse(text)
+    assert "<h3>Pretest layout</h3>" in text and "no pretest in this campaign" not in text
+    assert "autoMAC of the target modes" in text
+    assert len(p.imgs) == 3 + 3  # layout, pretest layout, autoMAC; three sweep-quality figures
+
+
+def test_report_command_needs_a_campaign_that_ran(campaign, tmp_path, capsys):
+    _, _, path, _, _ = campaign
+    assert main(["report", str(path), "--out", str(tmp_path / "empty")]) == 2
+    assert "no stored load stage" in capsys.readouterr().err
