@@ -29,6 +29,7 @@ import numpy as np
 
 from frfcal.campaign._report_figures import (
     frf_overlay_figure,
+    overlay,
     layout_figure,
     level_figure,
     pairwise_sd_figure,
@@ -314,20 +315,31 @@ def _overlays(camp, r: ReportResults, tmp: Path) -> str:
     chans = list(camp.channels.calibrate[:3]) + list(camp.channels.holdout[:3])
     ext = _extended(r)
     band = (camp.band.low_hz, camp.band.high_hz)
-    out = []
+    out, rows = [], []
     vals = {v.label: v for v in r.validate.members} if r.validate is not None else {}
     for m in r.calibrate.members:
         marts = [arts[i] for i in m.articles]
         p = m.p
         if m.label in vals:
             p = reported_cycle(m, vals[m.label]).p
-        fig = frf_overlay_figure(m.label, r.calibrate.surrogate, m.surrogate, p, [raw_data(a, chans) for a in marts],
-                                 [raw_std_error(a, chans) for a in marts], identified_modes(marts[0]), chans,
-                                 set(camp.channels.calibrate), camp.calibration.zeta0, camp.validation.mac_min, band,
-                                 marts[0].quantity, ext.get(m.label))
+        ov = overlay(r.calibrate.surrogate, m.surrogate, p, [raw_data(a, chans) for a in marts],
+                     [raw_std_error(a, chans) for a in marts], identified_modes(marts[0]), chans,
+                     camp.calibration.zeta0, camp.validation.mac_min, band, marts[0].quantity, ext.get(m.label))
+        dev = ov.deviation()
+        floor = None if dev["floor"] is None else float(np.nanmedian(dev["floor"]))
+        for name, _ in ov.models:
+            med = float(np.nanmedian(dev[name]))
+            rows.append((m.label, marts[0].name, name, med, floor, None if not floor else med / floor))
+        fig = frf_overlay_figure(m.label, ov, set(camp.channels.calibrate), camp.calibration.zeta0, band,
+                                 marts[0].quantity)
         out.append(_fig(fig, f"{m.label} ({', '.join(a.name for a in marts)}): test lines (grey) with their "
                         "+-2 standard-error band, nominal model, calibrated model"
-                        + (", extended model" if m.label in ext else "")))
+                        + (", extended model" if m.label in ext else "")
+                        + "; bottom: relative deviation of each model from the first article against its floor"))
+    out.insert(0, "<p>Median over the first article's lines of the relative deviation |H_model/H_test - 1| "
+               "(RMS over the channels drawn, first drive), and of the floor std error/|H_test|:</p>"
+               + _table(("member", "article", "model", "median rel. deviation", "median floor", "ratio to floor"),
+                        rows))
     if not ext:
         out.append(_note("no extended model (the diagnosis did not run or accepted no effect)"))
     return "".join(out)

@@ -294,77 +294,135 @@ def level_figure(article: str, levels):
 # ----------------------------------------------------------------------------- FRF overlays
 
 
-def frf_overlay_figure(label: str, sur_nominal, sur_calibrated, p, tests, std_errors, modes, channels,
-                       calibrate_channels, zeta0: float, mac_min: float, band_hz, quantity: str, extended=None):
-    """Test / nominal / calibrated (/ extended) FRFs on the first drive with the test's noise-floor band.
+@dataclass(frozen=True)
+class Overlay:
+    """Test lines and the models on them, first drive, for the FRF overlay of one ensemble member.
+
+    Attributes
+    ----------
+    channels : tuple of str
+    tests : tuple of FitData, raw lines of each article on ``channels``
+    std_error : (n_f, n_ch, n_in) or None, standard errors of ``tests[0]``
+    models : tuple of (name, (n_f, n_ch, n_in) complex)
+        "nominal", "calibrated" (and "extended") on ``tests[0]``'s lines.
+    """
+
+    channels: tuple
+    tests: tuple
+    std_error: np.ndarray | None
+    models: tuple
+
+    def deviation(self) -> dict:
+        """Per line of ``tests[0]``: RMS over channels of |H_model / H_test - 1| for every model, and the
+        floor RMS(std_error / |H_test|) ("floor", None without standard errors); first drive; (n_f,) each."""
+        t = self.tests[0]
+        rows = [list(t.outputs).index(n) for n in self.channels]
+        Ht = t.frf[:, rows, 0]
+        if t.mask is not None:  # pairs without signal above the noise (calibration._signal) are left out
+            Ht = np.where(t.mask[:, rows, 0], Ht, np.nan)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            out = {name: np.sqrt(np.nanmean(np.abs(H[:, :, 0] / Ht - 1) ** 2, axis=1)) for name, H in self.models}
+            out["floor"] = (None if self.std_error is None
+                            else np.sqrt(np.nanmean((self.std_error[:, :, 0] / np.abs(Ht)) ** 2, axis=1)))
+        return out
+
+
+def overlay(sur_nominal, sur_calibrated, p, tests, std_errors, modes, channels, zeta0: float, mac_min: float,
+            band_hz, quantity: str, extended=None) -> Overlay:
+    """The nominal, calibrated (and extended) models on the first article's lines.
 
     Parameters
     ----------
-    label : str
-        Member label (title).
     sur_nominal, sur_calibrated : Surrogate
         Evaluated at p = 0 with damping ``zeta0`` and at ``p`` with the
         identified damping mapped by MAC.
     p : (n_p,) normalized calibrated parameters
     tests : sequence of FitData
-        Raw lines of each article on ``channels`` (the model is evaluated on
+        Raw lines of each article on ``channels`` (the models are evaluated on
         the first one's lines).
     std_errors : sequence of (n_f, n_ch, n_in) arrays or None
-        Standard errors of ``tests`` (same unit as the FRF); the band
-        |H| +- 2 sigma of the first article is shaded (None: no band).
+        Standard errors of ``tests`` (same unit as the FRF).
     modes : IdentifiedModes of the first article (damping mapping)
-    channels : sequence of str, one axis each
-    calibrate_channels : collection of str (others are labelled hold-out)
+    channels : sequence of str
     zeta0, mac_min : float
     band_hz : (lo, hi) Hz
     quantity : str
     extended : (Surrogate, p) or None
-        The extended model of the diagnosis at its parameters (drawn green).
+        The extended model of the diagnosis at its parameters.
+
+    Returns
+    -------
+    Overlay
+    """
+    from calibration import mapped_damping, model_frf
+
+    f = tests[0].freq_hz
+    z1, *_ = mapped_damping(sur_calibrated, p, modes, zeta0, mac_min, band_hz)
+    models = [("nominal", model_frf(sur_nominal, np.zeros(sur_nominal.n_params), sur_nominal.output_index(channels),
+                                    f, zeta0, quantity)),
+              ("calibrated", model_frf(sur_calibrated, p, sur_calibrated.output_index(channels), f, z1, quantity))]
+    if extended is not None:
+        sur_e, p_e = extended
+        ze, *_ = mapped_damping(sur_e, p_e, modes, zeta0, mac_min, band_hz)
+        models.append(("extended", model_frf(sur_e, p_e, sur_e.output_index(channels), f, ze, quantity)))
+    se0 = None if not std_errors or std_errors[0] is None else std_errors[0]
+    return Overlay(tuple(channels), tuple(tests), se0, tuple(models))
+
+
+_STYLE = {"nominal": "b--", "calibrated": "r-", "extended": "g-"}
+
+
+def frf_overlay_figure(label: str, ov: Overlay, calibrate_channels, zeta0: float, band_hz, quantity: str):
+    """Test / nominal / calibrated (/ extended) |FRF| per channel with the test's noise band, and below the
+    relative deviation of each model from the test against the floor (:meth:`Overlay.deviation`).
+
+    Parameters
+    ----------
+    label : str, member label (title)
+    ov : Overlay
+    calibrate_channels : collection of str (others are labelled hold-out)
+    zeta0 : float, damping of the nominal model (legend)
+    band_hz : (lo, hi) Hz
+    quantity : str
 
     Returns
     -------
     matplotlib.figure.Figure
     """
-    from calibration import mapped_damping, model_frf
-
-    z1, *_ = mapped_damping(sur_calibrated, p, modes, zeta0, mac_min, band_hz)
-    fig = _figure(figsize=(9, 2.3 * len(channels) + 0.6))
-    axes = fig.subplots(len(channels), 1, sharex=True, squeeze=False)[:, 0]
-    f = tests[0].freq_hz
-    H0 = model_frf(sur_nominal, np.zeros(sur_nominal.n_params), sur_nominal.output_index(channels), f, zeta0,
-                   quantity)
-    H1 = model_frf(sur_calibrated, p, sur_calibrated.output_index(channels), f, z1, quantity)
-    He = None
-    if extended is not None:
-        sur_e, p_e = extended
-        ze, *_ = mapped_damping(sur_e, p_e, modes, zeta0, mac_min, band_hz)
-        He = model_frf(sur_e, p_e, sur_e.output_index(channels), f, ze, quantity)
-    se0 = None if not std_errors or std_errors[0] is None else std_errors[0]
+    channels, t0, se0 = ov.channels, ov.tests[0], ov.std_error
+    fig = _figure(figsize=(9, 2.3 * (len(channels) + 1) + 0.6))
+    all_axes = fig.subplots(len(channels) + 1, 1, sharex=True, squeeze=False)[:, 0]
+    axes, dev_ax = all_axes[:-1], all_axes[-1]
+    f = t0.freq_hz
     for k, (ax, name) in enumerate(zip(axes, channels)):
-        t0 = tests[0]
         row = list(t0.outputs).index(name)
         if se0 is not None:
             a = np.abs(t0.frf[:, row, 0])
             s = se0[:, row, 0]
-            ax.fill_between(t0.freq_hz, np.maximum(a - 2 * s, 1e-3 * a), a + 2 * s, color="gold", alpha=0.5, lw=0)
-        for t in tests:
+            ax.fill_between(f, np.maximum(a - 2 * s, 1e-3 * a), a + 2 * s, color="gold", alpha=0.5, lw=0)
+        for t in ov.tests:
             ax.semilogy(t.freq_hz, np.abs(t.frf[:, list(t.outputs).index(name), 0]), color="0.6", lw=1.8)
-        ax.semilogy(f, np.abs(H0[:, k, 0]), "b--", lw=0.9)
-        ax.semilogy(f, np.abs(H1[:, k, 0]), "r-", lw=0.9)
-        if He is not None:
-            ax.semilogy(f, np.abs(He[:, k, 0]), "g-", lw=0.9)
+        for mname, H in ov.models:
+            ax.semilogy(f, np.abs(H[:, k, 0]), _STYLE[mname], lw=0.9)
         ax.set_ylabel(f"{name}\n({'cal' if name in calibrate_channels else 'hold-out'})", fontsize=8)
         ax.set_xlim(band_hz)
+    dev = ov.deviation()
+    for mname, _ in ov.models:
+        dev_ax.semilogy(f, dev[mname], _STYLE[mname], lw=0.8, label=mname)
+    if dev["floor"] is not None:
+        dev_ax.fill_between(f, 1e-4, dev["floor"], color="gold", alpha=0.6, lw=0, label="floor (std error / |H|)")
+    dev_ax.set_ylabel("rel. deviation\n(RMS over channels)", fontsize=8)
+    dev_ax.legend(fontsize=7, loc="upper right", ncol=4)
     a0 = axes[0]
     a0.plot([], [], color="0.6", lw=1.8, label="test (raw lines)")
     if se0 is not None:
         a0.fill_between([], [], [], color="gold", alpha=0.5, label="test +- 2 std error (floor)")
-    a0.plot([], [], "b--", label=f"nominal (zeta0 {100 * zeta0:g} %)")
-    a0.plot([], [], "r-", label="calibrated")
-    if He is not None:
-        a0.plot([], [], "g-", label="extended (diagnosis)")
+    labels = {"nominal": f"nominal (zeta0 {100 * zeta0:g} %)", "calibrated": "calibrated",
+              "extended": "extended (diagnosis)"}
+    for mname, _ in ov.models:
+        a0.plot([], [], _STYLE[mname], label=labels[mname])
     a0.legend(fontsize=7, loc="upper right", ncol=2)
-    axes[-1].set_xlabel("frequency [Hz]")
+    dev_ax.set_xlabel("frequency [Hz]")
     fig.suptitle(f"{label}: |{quantity}| test vs model, first drive ({quantity_unit(quantity)})")
     fig.tight_layout()
     return fig

@@ -170,6 +170,18 @@ def test_validation_numbers_and_floor(campaign):
         assert [f"{val.floor_ratio:.4g}"] == _rows(text, "hold-out SD / floor")[r.validate.members.index(v)][1:]
 
 
+def test_frf_overlay_deviation_against_the_floor(campaign):
+    """One-article member: the calibrated model meets its article to the noise floor, the nominal does not."""
+    _, _, _, page, r = campaign
+    text = page.read_text()
+    rows = {(c[0], c[2]): c for c in _rows(text, "group1") if len(c) == 6}
+    nominal, calibrated = rows[("group1", "nominal")], rows[("group1", "calibrated")]
+    assert nominal[4] == calibrated[4]  # the same floor
+    assert float(calibrated[5]) < 2.0  # the data's own noise
+    assert float(nominal[5]) > 20.0  # 5-15 % parameter offsets: resonances off by more than a bandwidth
+    assert ("group2", "nominal") in {(c[0], c[2]) for c in _rows(text, "group2") if len(c) == 6}
+
+
 def test_sweep_quality_of_an_acquired_run_and_level_comparison(campaign, tmp_path):
     """An acquisition-like run (target force, tolerance, THD) and the same article at a second level."""
     from acquisition.runfile import LineQuality, create_run, read_run
