@@ -332,3 +332,63 @@ def test_report_command_needs_a_campaign_that_ran(campaign, tmp_path, capsys):
     _, _, path, _, _ = campaign
     assert main(["report", str(path), "--out", str(tmp_path / "empty")]) == 2
     assert "no stored load stage" in capsys.readouterr().err
+
+
+_SIM_PLAN = """
+name = "lvl"
+sample_rate_hz = 4096.0
+layout = "layout.json"
+[lines]
+kind = "bandwidth"
+start_hz = 110.0
+stop_hz = 135.0
+background_step = 0.04
+lines_per_bandwidth = 2
+span_bandwidths = 1.5
+poles = [{ frequency_hz = 120.0, damping = 0.001 }]
+[force]
+levels_n = [0.5, 1.0]
+[ensemble]
+articles = ["SF01"]
+drives = ["d1"]
+[sim]
+noise_rms = 1e-4
+[sim.modes]
+frequencies_hz = [120.0, 185.0]
+damping = 0.001
+shapes_out = [[0.5, 0.4], [0.35, -0.45]]
+shapes_in = [[0.5, 0.4]]
+"""
+
+_SIM_LAYOUT = {
+    "format": "frfcal-layout", "version": 1, "model": {"path": "m.bdf", "units": "mm-t-s"},
+    "channels": [{"name": f"acc{k}", "role": "response", "quantity": "acceleration", "unit": "m/s^2",
+                  "grid": 10 + k, "direction": [0, 0, 1], "xyz_m": [0.1 * k, 0, 0]} for k in range(2)],
+    "drives": [{"name": "d1", "role": "force", "quantity": "force", "unit": "N", "grid": 10, "direction": [0, 0, 1],
+                "xyz_m": [0, 0, 0]}],
+    "target_modes_hz": [120.0], "metrics": {},
+}
+
+
+def test_sweep_quality_of_simulated_acquisitions_at_two_levels(campaign, tmp_path):
+    """``frfcal acquire --driver sim`` at 0.5 and 1 N: the force held within the plan's 2 %, the level comparison."""
+    import json
+
+    _, camp, _, _, r = campaign
+    (tmp_path / "layout.json").write_text(json.dumps(_SIM_LAYOUT))
+    (tmp_path / "plan.toml").write_text(_SIM_PLAN)
+    assert main(["acquire", str(tmp_path / "plan.toml"), "--driver", "sim", "--out", str(tmp_path / "runs")]) == 0
+    runs = sorted((tmp_path / "runs").glob("*.h5"))
+    assert len(runs) == 2
+    a0 = r.load.articles[0]
+    load = LoadResult(tuple(replace(a0, name="SF01", path=p) for p in runs), r.load.channels, r.load.drives)
+    text = write_report(camp, tmp_path / "out", {"load": load}, log=lambda m: None).read_text()
+    for p, level in zip(runs, (0.5, 1.0)):
+        (row,) = _rows(text, p.name)
+        assert row[1] == "SF01" and row[3] == "0"  # no flagged line
+        cells = dict(zip(re.findall(r"<th>(.*?)</th>", text[text.index("<section id=\"sweep\">"):])[:len(row)], row))
+        assert float(cells["target force N"]) == level
+        assert float(cells["max force deviation %"]) < 2.0
+        assert cells["lines within tolerance %"] == "100"
+        assert float(cells["max THD response %"]) < 1.0
+    assert "SF01: the same article at 0.5, 1 N" in text
