@@ -32,6 +32,7 @@ COMMANDS: tuple[tuple[str, str], ...] = (
     ("identify", "frfcal.commands.identify"),
     ("calibrate", "frfcal.commands.calibrate"),
     ("demo", "frfcal.commands.demo"),
+    ("report", "frfcal.commands.report"),
 )
 
 
