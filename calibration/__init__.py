@@ -1,6 +1,16 @@
 """calibration layer (see ARCHITECTURE.md)."""
 
 from calibration._crossval import CrossValidation, cross_validate, split_halves
+from calibration._diagnose import (
+    CandidateCheck,
+    CandidateTerm,
+    Screening,
+    candidate_jacobian,
+    extend_with_candidates,
+    extended_model,
+    screen,
+    shifted_solver,
+)
 from calibration._ensemble import Grouping, group_articles, grouping, pairwise_sd
 from calibration._errors import CalibrationError
 from calibration._extend import extended_surrogate
@@ -68,6 +78,14 @@ from calibration._surrogate import (
 )
 
 __all__ = [
+    "CandidateCheck",
+    "CandidateTerm",
+    "Screening",
+    "candidate_jacobian",
+    "extend_with_candidates",
+    "extended_model",
+    "screen",
+    "shifted_solver",
     "ModalDampingObjective",
     "Refinement",
     "RefineStage",
