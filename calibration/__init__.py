@@ -1,13 +1,16 @@
 """calibration layer (see ARCHITECTURE.md)."""
 
+from calibration._accept import Acceptance, Separation, accept, separating_effect
 from calibration._crossval import CrossValidation, cross_validate, split_halves
 from calibration._diagnose import (
     CandidateCheck,
+    CandidateFit,
     CandidateTerm,
     Screening,
     candidate_jacobian,
     extend_with_candidates,
     extended_model,
+    fit_with,
     screen,
     shifted_solver,
 )
@@ -78,6 +81,12 @@ from calibration._surrogate import (
 )
 
 __all__ = [
+    "Acceptance",
+    "Separation",
+    "accept",
+    "separating_effect",
+    "CandidateFit",
+    "fit_with",
     "CandidateCheck",
     "CandidateTerm",
     "Screening",
