@@ -79,6 +79,7 @@ from calibration._surrogate import (
     FRFModel,
     Surrogate,
     _factor,
+    _local_terms,
     _shifted,
     modal_omegas,
     quantity_factor,
@@ -300,7 +301,52 @@ def _with_linear_terms(A, new_mats: list, n_new: int):
     for k, (_, j) in enumerate(new_mats):
         lin[t + k] = j
     mats = tuple(A.matrices) + tuple(D for D, _ in new_mats)
-    return ExtendedAffineMatrix(mats, a, b, ratio, lin)
+    out = ExtendedAffineMatrix(mats, a, b, ratio, lin)
+    # the per-term row tables of the old terms are the base's (computed once, shared by every extension)
+    extra = ExtendedAffineMatrix(tuple(D for D, _ in new_mats), a[t:], b[t:], ratio[t:], lin[t:]) if new_mats else None
+    out.cache["calibration.local_rows"] = list(_local_terms(A)) + (list(_local_terms(extra)) if extra else [])
+    return out
+
+
+class _LinearExtension:
+    """Fast K(p), M(p) and derivatives of :func:`extended_model` (the ``parametric`` of its FRFModel).
+
+    The existing part comes from the base model (its shared-pattern assembly
+    when it has one); the candidates add ``c_j dK_j``, ``c_j dM_j``.
+    """
+
+    def __init__(self, base: FRFModel, newK: list, newM: list):
+        self.base, self.n_old = base, base.n_params
+        self.newK, self.newM = newK, newM
+
+    def _add(self, A, new, p):
+        for D, j in new:
+            if p[j] != 0.0:
+                A = A + p[j] * D
+        return A
+
+    def stiffness(self, p):
+        p = np.asarray(p, float)
+        return sp.csr_matrix(self._add(self.base.stiffness(p[:self.n_old]), self.newK, p))
+
+    def mass(self, p):
+        p = np.asarray(p, float)
+        return sp.csr_matrix(self._add(self.base.mass(p[:self.n_old]), self.newM, p))
+
+    def _d(self, p, j, new, old):
+        if j < self.n_old:
+            return old(np.asarray(p, float)[:self.n_old], j)
+        for D, k in new:
+            if k == j:
+                return D
+        n = self.base.K.shape[0]
+        return sp.csr_matrix((n, n))
+
+    def dK(self, p, j):
+        return self._d(p, j, self.newK, self.base.dK)
+
+    def dM(self, p, j):
+        return self._d(p, j, self.newM, self.base.dM)
 
 
 def extended_model(model: FRFModel, candidates) -> FRFModel:
@@ -325,6 +371,7 @@ def extended_model(model: FRFModel, candidates) -> FRFModel:
         input_names=model.input_names,
         output_names=model.output_names,
         parameter_names=tuple(model.parameter_names) + tuple(c.name for c in cands),
+        parametric=_LinearExtension(model, newK, newM),
     )
 
 

@@ -332,3 +332,67 @@ def test_separating_effect_on_a_3_2_ensemble(frame):
     mixed = separating_effect(common.surrogate, common.x, articles, ZETA, [0, 1, 0, 1, 0], common.lower,
                               common.upper)
     assert not mixed.separates
+
+
+def test_raw_line_refinement_runs_on_the_fitted_extension():
+    """The final number: :func:`calibration.refine` on a :class:`CandidateFit`'s surrogate reaches the floor.
+
+    Beam of tests/calibration/_models.py with an unmodelled 0.2 kg point mass
+    (the truth); per-mode damping, uneven line grid, 1 % noise, identified
+    modes for the damping mapping, as tests/calibration/test_refine.py.
+    """
+    import scipy.sparse as sp
+
+    from calibration import IdentifiedModes, extended_model, refine
+    from calibration._metric import log_deviation, square_deviation
+    from identification import identify
+    from tests.calibration._models import beam_model
+
+    band, lo, hi = (20.0, 400.0), -0.3 * np.ones(7), 0.3 * np.ones(7)
+    p_true = np.array([0.03, -0.04, 0.02, -0.05, 0.04, 0.03, -0.02])
+    model, _ = beam_model()
+    n = model.K.shape[0]
+    node = 12
+    dM = sp.csr_matrix(([0.2], ([2 * node], [2 * node])), shape=(n, n))
+    cand = CandidateTerm("m_node12", None, dM, 0.0, 5.0)
+    truth = extended_model(model, [cand])
+    rng = np.random.default_rng(3)
+    zeta = 10 ** rng.uniform(np.log10(1e-3), np.log10(3e-3), n)
+    f = np.geomspace(band[0], band[1], 400)
+    H = full_order_frf(truth, np.r_[p_true, 1.0], f, zeta)
+    Hn = H * (1 + 0.01 * (rng.standard_normal(H.shape) + 1j * rng.standard_normal(H.shape)) / np.sqrt(2))
+    floor = square_deviation(log_deviation(H, Hn))
+    ident = identify(f, Hn, 24, band_hz=band)
+    modes = IdentifiedModes(ident.modal.frequency_hz, ident.modal.damping, ident.modal.shapes, model.output_names)
+    raw = FitData(f, Hn, model.output_names, article="beam")
+    sur, T = build_surrogate(model, np.zeros(7), band)
+    # equalized target at 0.02 (the identified model resynthesized; here the truth at uniform damping)
+    fe = half_bandwidth_frequencies(*band, 0.02, 3)
+    eq = [FitData(fe, full_order_frf(truth, np.r_[p_true, 1.0], fe, 0.02), model.output_names)]
+    fit = fit_with(sur, T, model, [cand], eq, 0.02, lo, hi, p0=np.zeros(7), c0=[0.5], shift_hz=8.0)
+    assert fit.c[0] == pytest.approx(1.0, rel=0.05)
+    ref = refine(fit.surrogate, fit.x, [raw], [(ident, raw.outputs)], [modes], fit.lower, fit.upper, 0.02)
+    assert ref.p[-1] == pytest.approx(1.0, rel=0.03)
+    assert ref.sd_raw < 2.0 * floor, (ref.sd_raw, floor)
+    # without the mass the raw lines stay far from the floor
+    ref0 = refine(sur, np.zeros(7), [raw], [(ident, raw.outputs)], [modes], lo, hi, 0.02)
+    assert ref0.sd_raw > 10 * floor, (ref0.sd_raw, floor)
+    print(f"refine on the extension: c {fit.c[0]:.4f} -> {ref.p[-1]:.4f}, raw SD {ref.sd_raw / floor:.2f} x floor "
+          f"(without the candidate {ref0.sd_raw / floor:.1f} x)")
+
+
+def test_extended_model_is_linear_in_the_candidates(frame):
+    from calibration import extended_model
+
+    pm, model, sur, T, terms, cands = frame
+    sub = [_by_name(cands, "m30"), _by_name(cands, "f1"), _by_name(cands, "kg1")]
+    ext = extended_model(model, sub)
+    assert ext.parameter_names == tuple(pm.names) + ("m30", "f1", "kg1")
+    x = np.r_[P_OLD, 0.7, -0.2, 1.5]
+    K = pm.stiffness(P_OLD) - 0.2 * sub[1].dK + 1.5 * sub[2].dK
+    M = pm.mass(P_OLD) + 0.7 * sub[0].dM
+    for fast, slow, ref in ((ext.stiffness(x), ext.K.at(x), K), (ext.mass(x), ext.M.at(x), M)):
+        scale = abs(ref).max()
+        assert abs(fast - ref).max() < 1e-12 * scale and abs(slow - ref).max() < 1e-12 * scale
+    assert abs(ext.dM(x, 7) - sub[0].dM).max() == 0 and ext.dK(x, 7).nnz == 0
+    assert abs(ext.dK(x, 0) - pm.dK(P_OLD, 0)).max() == 0 and abs(pm.dK(P_OLD, 0)).max() > 0
