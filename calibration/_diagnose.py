@@ -147,8 +147,8 @@ class CandidateTerm:
 
 
 def _bytes_per_candidate(m: int, n_f: int, n_out: int, n_in: int, n_res: int) -> int:
-    """Scratch bytes of one candidate in :func:`_candidate_block` (complex W, T3, dH; real J column)."""
-    return 16 * n_f * n_in * (3 * m + 3 * n_out + 2 * n_out) + 8 * 2 * n_res
+    """Scratch bytes of one candidate in :func:`_candidate_block` (complex W, T3, dH; A, B, R; real J column and its projection)."""
+    return 16 * n_f * n_in * (3 * m + 3 * n_out + 2 * n_out) + 48 * m * m + 32 * n_res
 
 
 class _Modal:
@@ -642,7 +642,7 @@ def screen(
         (Bonferroni over candidates and stages).
     chunk_bytes : float
         Memory bound of the scratch arrays of one chunk of candidates (bytes);
-        the chunk holds about ``16 n_f n_in (3 r + 5 n_out) + 16 N`` bytes
+        the chunk holds about ``16 n_f n_in (3 r + 5 n_out) + 48 r^2 + 32 N`` bytes
         per candidate (r basis size, N compared values).
 
     Returns
