@@ -68,7 +68,15 @@ class Acceptance:
     floor_ratio_after: float
 
     def to_dict(self) -> dict:
-        return {k: (bool(v) if isinstance(v, (bool, np.bool_)) else v) for k, v in self.__dict__.items()}
+        """Plain values; a ratio to a zero floor (inf) becomes None."""
+        out = {}
+        for k, v in self.__dict__.items():
+            if isinstance(v, (bool, np.bool_)):
+                v = bool(v)
+            elif isinstance(v, (float, np.floating)):
+                v = float(v) if np.isfinite(v) else None
+            out[k] = v
+        return out
 
 
 def accept(
