@@ -1,6 +1,26 @@
 """calibration layer (see ARCHITECTURE.md)."""
 
+from calibration._accept import (
+    Acceptance,
+    Separation,
+    accept,
+    rank_separating,
+    separating_effect,
+    separation_score,
+)
 from calibration._crossval import CrossValidation, cross_validate, split_halves
+from calibration._diagnose import (
+    CandidateCheck,
+    CandidateFit,
+    CandidateTerm,
+    Screening,
+    candidate_jacobian,
+    extend_with_candidates,
+    extended_model,
+    fit_with,
+    screen,
+    shifted_solver,
+)
 from calibration._ensemble import Grouping, group_articles, grouping, pairwise_sd
 from calibration._errors import CalibrationError
 from calibration._extend import extended_surrogate
@@ -68,6 +88,22 @@ from calibration._surrogate import (
 )
 
 __all__ = [
+    "Acceptance",
+    "Separation",
+    "accept",
+    "separating_effect",
+    "rank_separating",
+    "separation_score",
+    "CandidateFit",
+    "fit_with",
+    "CandidateCheck",
+    "CandidateTerm",
+    "Screening",
+    "candidate_jacobian",
+    "extend_with_candidates",
+    "extended_model",
+    "screen",
+    "shifted_solver",
     "ModalDampingObjective",
     "Refinement",
     "RefineStage",
