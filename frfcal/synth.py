@@ -54,7 +54,7 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 
-from frfcal.effects import EffectError, resolve_articles
+from frfcal.effects import Effect, EffectError, resolve_articles
 from labdata import FRF_QUANTITIES, quantity_factor
 
 #: rigid-body threshold (Hz), as femodel's
@@ -619,8 +619,9 @@ def synthesize(bdf, parameters, out_dir, *, sensors, drives, band_hz, units=None
         Articles are named ``<prefix>1``, ``<prefix>2``, ...
     parametric : femodel.ParametricModel, optional
         A parametric model of the same deck and parameters, to reuse.
-    effects : sequence of frfcal.effects.Effect, optional
-        Undeclared effects (docs/synth.md): an article's truth is the model
+    effects : sequence of frfcal.effects.Effect (or of tuples of them), optional
+        Undeclared effects (docs/synth.md; tuples, as
+        :func:`frfcal.effects.standard_effects` gives them, are flattened): an article's truth is the model
         extended by the terms of the effects it has
         (:meth:`femodel.ParametricModel.with_terms`) at p_true and the
         effects' values; the parameter file (the calibration model) lacks
@@ -690,7 +691,7 @@ def synthesize(bdf, parameters, out_dir, *, sensors, drives, band_hz, units=None
     p_true = np.array([np.clip(p_pop + scatter * r.standard_normal(pm.n_params), 0.95 * pm.lower, 0.95 * pm.upper)
                        for r in art_rng])
     articles = tuple(f"{article_prefix}{i + 1}" for i in range(n_articles))
-    effects = tuple(effects or ())
+    effects = tuple(e for item in (effects or ()) for e in ((item,) if isinstance(item, Effect) else tuple(item)))
     try:
         effect_keys = resolve_articles(effects, articles) if effects else [()] * n_articles
     except EffectError as exc:
