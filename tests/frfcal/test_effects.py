@@ -100,6 +100,22 @@ def test_truth_has_the_effect_and_the_model_lacks_it(family_campaign):
         assert lacking > 10 * floor, f"{fam}: model without the effect {lacking:.3g} vs floor {floor:.3g}"
 
 
+def test_every_family_at_once(frame, tmp_path):
+    """All seven terms on one article (two springs to ground lift two rigid modes); the other has none."""
+    d, ex, pm, sensors, drives, std = frame
+    effects = [dataclasses.replace(e, articles=("A1",)) for es in std.values() for e in es]
+    camp = synthesize(ex.bdf, ex.params, tmp_path, sensors=sensors, drives=drives, band_hz=BAND, n_articles=2,
+                      seed=4, parametric=pm, effects=effects, write_uff=False, **FAST)
+    z = camp.truth()
+    assert np.sum(z["modes_hz_0"] == 0.0) == 4 and np.sum(z["modes_hz_1"] == 0.0) == 6
+    assert len(camp.article_effects(0)) == 7 and camp.article_effects(1) == ()
+    es = camp.article_effects(0)
+    full = camp.model_sd(camp.p_true[0], 0, terms=[e.term for e in es], values=[e.value for e in es])
+    assert full == pytest.approx(camp.floor_sd(articles=[0]), rel=1e-6)
+    assert camp.model_sd(camp.p_true[1], 1) == pytest.approx(camp.floor_sd(articles=[1]), rel=1e-6)
+    assert camp.model_sd(camp.p_true[0], 0) > 100 * camp.floor_sd(articles=[0])
+
+
 def test_a_lifted_rigid_mode_is_a_damped_low_mode(family_campaign):
     """Springs to ground make one rigid mode elastic: below the band, with the top of zeta_range."""
     camp = family_campaign
