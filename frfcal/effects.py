@@ -401,10 +401,12 @@ def mode_shifts(pm, effects, *, band_hz=None, n_modes: int = 10, p=None) -> Mode
     effects = tuple(e for item in effects for e in ((item,) if isinstance(item, Effect) else tuple(item)))
     p = np.zeros(pm.n_params) if p is None else np.asarray(p, float)
     ref = _reference_modes(pm, p, band_hz, n_modes)
+    from frfcal.synth import modes_up_to
+
     pe = pm.with_terms([e.term for e in effects])
     q = np.concatenate([p, [e.p for e in effects]])
-    n = int(np.searchsorted(np.sort(ref.f_hz), ref.f_hz.max())) + 1
-    modes = pe.modes(q, 6 + 2 * n + 6)
+    # every mode of the extended model up to 1.5 x the top reference mode: the partners shift by less
+    modes, _ = modes_up_to(pe.stiffness(q), pe.mass(q), 1.5 * float(ref.f_hz.max()), dofs=pe.aset)
     M = pm.mass(p)
     phi = modes.shapes
     mac = (ref.phi.T @ (M @ phi)) ** 2 / np.outer(np.ones(ref.f_hz.size), np.einsum("ik,ik->k", phi, M @ phi))
