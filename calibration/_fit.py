@@ -684,7 +684,8 @@ def calibrate_cycles(
     for k in range(2, o.max_cycles + 1):
         ta = time.perf_counter()
         surrogate, basis = build_surrogate(model, p, band_hz, o.basis_factor, enrich=o.enrich,
-                                           previous_basis=basis if o.refresh else None)
+                                           previous_basis=basis if o.refresh else None,
+                                           previous_surrogate=surrogate if o.refresh else None)
         tb = time.perf_counter()
         sub = calibrate(surrogate, data, lower, upper, zeta0, replace(fit, n_starts=0), p_start=p)
         tc = time.perf_counter()
