@@ -423,7 +423,7 @@ def refreshed_modes(K, M, T_old, max_hz: float, shift_hz: float, extra=None, cac
 
 
 def corrected_basis(K, M, T_old, Kr_old, Mr_old, solve, static_old, loads, max_hz: float, shift_hz: float,
-                    tol: float = 1e-4, step_tol: float = 1e-3, max_steps: int = 3, refactor=None,
+                    tol: float = 1e-4, abs_tol: float = 1e-10, step_tol: float = 1e-4, max_steps: int = 3, refactor=None,
                     refactor_step: float = 0.02, refactor_ratio: float = 0.3):
     """Extend an old basis by preconditioned correction steps of its modes and statics at a new point.
 
@@ -439,8 +439,8 @@ def corrected_basis(K, M, T_old, Kr_old, Mr_old, solve, static_old, loads, max_h
     M-normalized) or static vector: the M-norm would overlook high-frequency
     errors, which move a Ritz frequency most. Made orthogonal to the basis in
     that product, they are cut where the eigenvalues of their Gram matrix fall
-    below ``tol`` times the largest of their group or below ``step_tol^2``,
-    and appended. Steps repeat until the largest relative correction of a mode
+    below ``tol`` times the largest of their group or below ``abs_tol`` (a
+    relative energy squared), and appended. Steps repeat until the largest relative correction of a mode
     is below ``step_tol`` (its frequency is then off by about ``step_tol^2``)
     or after ``max_steps``.
 
@@ -468,10 +468,10 @@ def corrected_basis(K, M, T_old, Kr_old, Mr_old, solve, static_old, loads, max_h
         Modes of the basis up to this frequency (Hz) are corrected.
     shift_hz : float
         Shift of ``solve`` (Hz): s = (2 pi shift_hz)^2.
-    tol : float
-        Relative cut of the corrections within a group.
+    tol, abs_tol : float
+        Cuts of the corrections: relative within a group, absolute (squared relative energy norm).
     step_tol : float
-        Target: largest relative energy norm of a mode correction (also the absolute cut).
+        Target: largest relative energy norm of a mode correction.
     max_steps : int
         At most this many correction steps.
     refactor : callable, optional
@@ -540,7 +540,7 @@ def corrected_basis(K, M, T_old, Kr_old, Mr_old, solve, static_old, loads, max_h
                 Ag = Ag - done @ (done.T @ (G @ Ag))
             if size:
                 w, U = np.linalg.eigh(_sym(Ag.T @ G @ Ag))
-                keep = w > max(tol * w.max(), step_tol**2)
+                keep = w > max(tol * w.max(), abs_tol)
                 Ag = Ag @ (U[:, keep] / np.sqrt(w[keep]))
             kept.append(Ag.shape[1])
             done = np.hstack([done, Ag])

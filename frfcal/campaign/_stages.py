@@ -470,8 +470,7 @@ def _refined(camp: Campaign, model, arts, cyc, band, lower, upper, log, label):
     sur, basis = cyc.surrogate, cyc.basis
     for k in range(c.refine_cycles):
         t0 = time.perf_counter()
-        sur, basis = build_surrogate(model, ref.p, band, c.basis_factor, enrich=c.enrich, previous_basis=basis,
-                                     previous_surrogate=sur)
+        sur, basis = build_surrogate(model, ref.p, band, c.basis_factor, enrich=c.enrich, previous_basis=basis)
         nxt = refine(sur, ref.p, raw, idents, modes, lower, upper, c.zeta0, floors=(0.0,), **opts)
         dp = float(np.max(np.abs(nxt.p - ref.p)))
         stages.extend(nxt.stages)
