@@ -469,14 +469,6 @@ class CycleOptions(FitOptions):
     refresh : bool
         A new basis starts from the previous one by one block inverse
         iteration instead of a fresh Lanczos solution.
-    correct : bool
-        With ``refresh``: extend the previous basis by correction steps of its
-        modes and statics preconditioned by the kept factorization
-        (:func:`calibration.corrected_basis`; a new factorization only when
-        the point is too far) instead of the block inverse iteration. About a
-        third of the CPU time of a refresh at 200k DOF; off by default: on the
-        200k benchmark its campaigns ended 3.8-4.3x above the hold-out floor
-        against 2.5x (docs/calibration.md, Performance).
     """
 
     max_cycles: int = 4
@@ -484,7 +476,6 @@ class CycleOptions(FitOptions):
     basis_factor: float = 2.0
     enrich: bool = True
     refresh: bool = True
-    correct: bool = False
 
     def fit(self) -> FitOptions:
         """The multi-start part."""
@@ -693,8 +684,7 @@ def calibrate_cycles(
     for k in range(2, o.max_cycles + 1):
         ta = time.perf_counter()
         surrogate, basis = build_surrogate(model, p, band_hz, o.basis_factor, enrich=o.enrich,
-                                           previous_basis=basis if o.refresh else None,
-                                           previous_surrogate=surrogate if o.refresh and o.correct else None)
+                                           previous_basis=basis if o.refresh else None)
         tb = time.perf_counter()
         sub = calibrate(surrogate, data, lower, upper, zeta0, replace(fit, n_starts=0), p_start=p)
         tc = time.perf_counter()

@@ -42,7 +42,6 @@ equalized zeta0); FRFs with per-mode damping (validation) need no Jacobian.
 from __future__ import annotations
 
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -422,146 +421,6 @@ def refreshed_modes(K, M, T_old, max_hz: float, shift_hz: float, extra=None, cac
     return out if extra is None else (*out, X_extra)
 
 
-def corrected_basis(K, M, T_old, Kr_old, Mr_old, solve, static_old, loads, max_hz: float, shift_hz: float,
-                    tol: float = 1e-4, abs_tol: float = 1e-10, step_tol: float = 1e-4, max_steps: int = 3, refactor=None,
-                    refactor_step: float = 0.02, refactor_ratio: float = 0.3):
-    """Extend an old basis by preconditioned correction steps of its modes and statics at a new point.
-
-    The Ritz pairs (lambda_i, phi_i = T x_i) of the basis at the new point come
-    from its reduced matrices (``Kr_old``, ``Mr_old`` evaluated there, then
-    updated block by block: no full-size projection). The residuals
-    ``K phi_i - lambda_i M phi_i`` of the modes up to ``max_hz`` (and, in the
-    first step, the residual ``loads - (K + s M) S_old`` of the static
-    vectors) are mapped by ``solve``, the solver of ``K + s M`` at an
-    *earlier* point: a Davidson (preconditioned inverse-iteration) step; no
-    new factorization. The corrections are measured in the energy norm of
-    ``K + s M`` relative to their mode (``sqrt(lambda_i + s)``, the mode
-    M-normalized) or static vector: the M-norm would overlook high-frequency
-    errors, which move a Ritz frequency most. Made orthogonal to the basis in
-    that product, they are cut where the eigenvalues of their Gram matrix fall
-    below ``tol`` times the largest of their group or below ``abs_tol`` (a
-    relative energy squared), and appended. Steps repeat until the largest relative correction of a mode
-    is below ``step_tol`` (its frequency is then off by about ``step_tol^2``)
-    or after ``max_steps``.
-
-    When the first step exceeds ``refactor_step``, or a later one shrinks by
-    less than ``refactor_ratio``, the solver's point is too far away for the
-    steps to converge (e.g. a plate thickness 30 % from it): ``refactor()``
-    then factorizes at the new point, and the step is redone (statics
-    included) with the exact shift-invert, which converges in one or two.
-
-    Parameters
-    ----------
-    K, M : (n, n) sparse
-        Stiffness and mass at the new point (SI).
-    T_old : (n, r) ndarray
-        Old basis.
-    Kr_old, Mr_old : (r, r) ndarray
-        ``T_old^T K T_old`` and ``T_old^T M T_old`` at the new point.
-    solve : callable
-        ``(K' + s M')^-1 F`` for (n, k) arrays, K', M' at an earlier point.
-    static_old : (n, k) ndarray
-        ``solve(loads)``: the static vectors of that point (in span(T_old)).
-    loads : (n, k) ndarray
-        Drive load vectors and sensor output rows.
-    max_hz : float
-        Modes of the basis up to this frequency (Hz) are corrected.
-    shift_hz : float
-        Shift of ``solve`` (Hz): s = (2 pi shift_hz)^2.
-    tol, abs_tol : float
-        Cuts of the corrections: relative within a group, absolute (squared relative energy norm).
-    step_tol : float
-        Target: largest relative energy norm of a mode correction.
-    max_steps : int
-        At most this many correction steps.
-    refactor : callable, optional
-        ``refactor() -> (solve, static)`` at the new point; None: never refactor.
-    refactor_step, refactor_ratio : float
-        When to refactor (see above).
-
-    Returns
-    -------
-    T : (n, r + c) ndarray
-        ``[T_old, corrections]`` (not M-orthonormal: the caller orthonormalizes in reduced space).
-    n_modes, n_static : int
-        Correction columns kept from the modes and from the statics.
-    steps : list of float
-        Per step, the largest relative energy norm of a mode's correction
-        outside the basis: the first is how far the old basis is from the
-        modes at the new point.
-    refactored : bool
-        Whether ``refactor`` was called.
-    """
-    s = (2 * np.pi * shift_hz) ** 2
-    Kr, Mr = _sym(np.asarray(Kr_old, float)), _sym(np.asarray(Mr_old, float))
-    T, steps, n_modes, n_static, refactored = T_old, [], 0, 0, refactor is None
-    with_statics, last = True, None  # last: the previous step with the current solver
-    for _ in range(max_steps + 1):  # + 1: a step discarded for a refactorization does not count
-        if len(steps) >= max_steps:
-            break
-        try:
-            lam, X = sla.eigh(Kr, Mr)
-        except np.linalg.LinAlgError as exc:
-            raise CalibrationError("the old basis is numerically dependent at the new point "
-                                   "(reduced mass not definite)") from exc
-        sel = np.flatnonzero(lam <= (2 * np.pi * max_hz) ** 2)
-        Phi = T @ X[:, sel]
-        # each mode's residual scaled by 1 / sqrt(lambda + s): its correction's energy norm is then relative
-        R = (K @ Phi - (M @ Phi) * lam[sel][None, :]) / np.sqrt(np.clip(lam[sel], 0.0, None) + s)[None, :]
-        if with_statics:  # the statics by their own energy norm, so that every cut is relative to its vector
-            FS = K @ static_old + s * (M @ static_old)
-            norm = np.sqrt(np.maximum(np.einsum("ij,ij->j", static_old, FS), np.finfo(float).tiny))
-            R = np.hstack([R, (loads - FS) / norm[None, :]])
-            del FS
-        del Phi
-        D = solve(R)
-        del R
-        FD = K @ D + s * (M @ D)
-        P = T.T @ FD  # overlap with the basis in the energy product of K + s M
-        C = sla.cho_solve(sla.cho_factor(_sym(Kr + s * Mr)), P)  # D = T C + (part outside span(T))
-        G = _sym(D.T @ FD - P.T @ C)  # energy Gram of the part outside
-        del FD
-        step = float(np.sqrt(max(np.max(np.diag(G)[:sel.size], initial=0.0), 0.0)))
-        if not refactored and step > (refactor_step if last is None else refactor_ratio * last):
-            # the solver's point is too far from this one for its steps to converge: factorize here,
-            # and redo the step (statics included) with the exact shift-invert
-            solve, static_old = refactor()
-            refactored, with_statics, last = True, True, None
-            continue
-        steps.append(step)
-        last = step
-        k = D.shape[1]
-        done, start, kept = np.zeros((k, 0)), 0, []
-        for size in (sel.size, k - sel.size):
-            Ag = np.zeros((k, size))
-            Ag[start + np.arange(size), np.arange(size)] = 1.0
-            start += size
-            if done.shape[1] and size:
-                Ag = Ag - done @ (done.T @ (G @ Ag))
-            if size:
-                w, U = np.linalg.eigh(_sym(Ag.T @ G @ Ag))
-                keep = w > max(tol * w.max(), abs_tol)
-                Ag = Ag @ (U[:, keep] / np.sqrt(w[keep]))
-            kept.append(Ag.shape[1])
-            done = np.hstack([done, Ag])
-        n_modes += kept[0]
-        n_static += kept[1]
-        with_statics = False
-        if done.shape[1] == 0:
-            break
-        E = D @ done - T @ (C @ done)
-        del D
-        KE, ME = K @ E, M @ E
-        Kx, Mx = T.T @ KE, T.T @ ME
-        Kr = _sym(np.block([[Kr, Kx], [Kx.T, E.T @ KE]]))
-        Mr = _sym(np.block([[Mr, Mx], [Mx.T, E.T @ ME]]))
-        del KE, ME
-        T = np.hstack([T, E])
-        if step < step_tol:
-            break
-    return T, n_modes, n_static, steps, refactored and refactor is not None
-
-
 def build_surrogate(
     model: FRFModel,
     p,
@@ -573,7 +432,6 @@ def build_surrogate(
     enrich_tol: float = 1e-4,
     enrich_factor: float = 1.25,
     previous_basis: np.ndarray | None = None,
-    previous_surrogate: Surrogate | None = None,
 ) -> tuple[Surrogate, np.ndarray]:
     """Reduction basis at ``p`` and the exact-in-p reduced model.
 
@@ -606,12 +464,6 @@ def build_surrogate(
         the result (one factorization, no Lanczos run). The old basis holds
         the modes plus their first-order parameter corrections, so one step
         converges the in-band modes; everything else is rebuilt as usual.
-    previous_surrogate : Surrogate, optional
-        The surrogate of ``previous_basis``. Given both, and a factorization of
-        ``K + s M`` from an earlier build on this model (kept in
-        ``model.factor_cache``), no new factorization is made: the old basis is
-        extended by one correction step of its modes and statics at ``p``
-        (:func:`corrected_basis`, preconditioned by that factorization).
 
     Returns
     -------
@@ -632,6 +484,8 @@ def build_surrogate(
     cache.pop("factor_s", None)
     # the local term tables (projection, derivative loads) are built on a second core
     # while this one factors and runs Lanczos; first build only (cached on the matrices)
+    from concurrent.futures import ThreadPoolExecutor
+
     side = ThreadPoolExecutor(max_workers=1)
     warm = side.submit(lambda: (_local_halves(model.K), _local_halves(model.M)))
     side.shutdown(wait=False)  # the task runs on; warm.result() joins it
@@ -643,13 +497,6 @@ def build_surrogate(
     B = model.inputs.toarray() if sp.issparse(model.inputs) else np.asarray(model.inputs, float)
     C = model.outputs.toarray() if sp.issparse(model.outputs) else np.asarray(model.outputs, float)
     loads = np.hstack([B, C.T])
-    kept = cache.get("refresh_factor")
-    if (previous_basis is not None and previous_surrogate is not None and kept is not None
-            and kept["n"] == K0.shape[0] and kept["shift_hz"] == shift_hz
-            and previous_surrogate.size == previous_basis.shape[1]):
-        warm.result()
-        return _corrected_surrogate(model, p, previous_basis, previous_surrogate, kept, K0, M0, B, C, loads,
-                                    (low, high), basis_factor, enrich_factor, enrich_tol, t0, t1)
     if previous_basis is None:
         freqs, Phi, solve = full_modes(K0, M0, basis_factor * high, shift_hz, max_modes=max_modes, cache=cache)
         MPhi = M0 @ Phi
@@ -660,9 +507,6 @@ def build_surrogate(
     t2 = time.perf_counter()
     if static is None:
         static = solve(loads)
-    # the factorization and its statics precondition later corrected bases (one factor held at a time)
-    cache["refresh_factor"] = {"n": K0.shape[0], "shift_hz": shift_hz, "p": p.copy(), "solve": solve,
-                               "static": static}
     t3 = time.perf_counter()
     E = None
     if enrich and carried is not None:
@@ -710,52 +554,6 @@ def build_surrogate(
         timings_s={"assemble": t1 - t0, "modes": t2 - t1, "factor (part of modes)": cache.get("factor_s", 0.0),
                    "statics": t3 - t2, "enrichment solves": t4 - t3,
                    "orthonormalize": t5 - t4, "project": t6 - t5},
-    )
-    return sur, T
-
-
-def _corrected_surrogate(model, p, T_old, sur_old, kept, K0, M0, B, C, loads, band, basis_factor, enrich_factor,
-                         enrich_tol, t0, t1):
-    """build_surrogate from an old basis by :func:`corrected_basis`, preconditioned by the kept factorization
-    (a new one only when that is too far from ``p``)."""
-    low, high = band
-    s = (2 * np.pi * kept["shift_hz"]) ** 2
-    cache = model.factor_cache
-
-    def refactor():
-        solve = _factor(_shifted(sp.csr_matrix(K0), sp.csr_matrix(M0), s, cache), cache)
-        static = solve(loads)
-        cache["refresh_factor"] = {"n": K0.shape[0], "shift_hz": kept["shift_hz"], "p": p.copy(), "solve": solve,
-                                   "static": static}
-        return solve, static
-
-    T, n_mc, n_sc, steps, refactored = corrected_basis(
-        K0, M0, T_old, sur_old.K.at(p), sur_old.M.at(p), kept["solve"], kept["static"], loads, enrich_factor * high,
-        kept["shift_hz"], tol=enrich_tol, refactor=refactor)
-    t4 = time.perf_counter()
-    with ThreadPoolExecutor(max_workers=2) as pool, _blas_threads(1):
-        Kr = _projected(model.K, T, pool)
-        Mr = _projected(model.M, T, pool)
-    Kr, Mr, T = m_orthonormalized(Kr, Mr, T, p, "raise enrich_tol or lower basis_factor")
-    t5 = time.perf_counter()
-    lam = np.clip(sla.eigh(_sym(Kr.at(p)), _sym(Mr.at(p)), eigvals_only=True), 0.0, None)
-    freqs = np.sqrt(lam[lam <= (2 * np.pi * basis_factor * high) ** 2]) / (2 * np.pi)
-    n_static = sur_old.n_static + n_sc
-    sur = Surrogate(
-        K=Kr,
-        M=Mr,
-        inputs=np.asarray(T.T @ B),
-        outputs=np.asarray(C @ T),
-        p_basis=p.copy(),
-        basis_frequencies_hz=freqs,
-        n_static=n_static,
-        n_enrich=T.shape[1] - freqs.size - n_static,
-        rigid_hz=max(1e-3 * max(low, 1.0), 1e-6 * high),
-        output_names=tuple(model.output_names),
-        input_names=tuple(model.input_names),
-        parameter_names=tuple(model.parameter_names),
-        timings_s={"assemble": t1 - t0, ("correction steps (refactorized)" if refactored else
-                                         "correction steps (no factorization)"): t4 - t1, "project": t5 - t4},
     )
     return sur, T
 

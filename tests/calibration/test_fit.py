@@ -80,17 +80,6 @@ def test_cycles_rebasis_converge_to_truth():
     assert len(res.cycles) >= 2 and res.cycles[-1]["max_dp"] < 1e-5
 
 
-def test_cycles_with_corrected_rebasis_converge_to_truth():
-    """CycleOptions(correct=True): the re-basis by correction steps (no inverse iteration) reaches the truth too."""
-    model, _ = beam_model()
-    data = _data(model, P_TRUE, 0.01)
-    res = calibrate_cycles(model, data, BAND, LO, HI, n_starts=0, max_cycles=4, tol=1e-5, correct=True,
-                           continuation=[(z, _data(model, P_TRUE, z)) for z in SCHEDULE])
-    assert np.abs((1 + res.p) / (1 + P_TRUE) - 1).max() < 1e-4
-    assert len(res.cycles) >= 2 and res.cycles[-1]["max_dp"] < 1e-5
-    assert any(k.startswith("correction steps") for k in res.surrogate.timings_s)
-
-
 def test_noisy_truth_inside_cross_validation_scatter(beam):
     model, sur = beam
     rng = np.random.default_rng(7)
