@@ -10,7 +10,9 @@ against its own noisy lines.
 
     python benchmarks/bench_calibration.py [--dof 200000] [--starts 20] [--realizations 10]
 
-Prints a table and writes benchmarks/results/calibration.json.
+Prints a table and writes benchmarks/results/calibration.json. The script imports the installed
+(editable) packages: to measure a worktree's code run it as ``PYTHONPATH=. python benchmarks/...``
+from the worktree.
 """
 
 from __future__ import annotations
