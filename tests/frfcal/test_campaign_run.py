@@ -262,5 +262,181 @@ def test_stage_commands_on_a_campaign_run_up_to_their_stage_and_reuse_the_stored
     assert len(err) == 1 and "no [pretest] section: add one" in err[0]
 
 
+
+def _plant(params, layout, out, p, zeta=0.01):
+    """Modal plant of the frame at ``p`` seen by the layout's channels and drives (free modes only)."""
+    from labdata import read_layout_file
+
+    pm = femodel.parametric_model(params)
+    lay = read_layout_file(layout)
+    c_out = femodel.sensor_matrix(pm.assembly, lay.grids("channels"), lay.directions("channels"))
+    c_in = femodel.sensor_matrix(pm.assembly, lay.grids("drives"), lay.directions("drives"))
+    modes = pm.modes(p, 30)
+    f, sh = modes.frequencies_hz[modes.n_rigid:], modes.shapes[:, modes.n_rigid:]
+    np.savez(out, frequencies_hz=f, damping=np.full(f.shape, zeta), shapes_out=np.asarray(c_out @ sh),
+             shapes_in=np.asarray(c_in @ sh))
+
+
+def _acquiring_campaign(tmp, noise=1e-5):
+    ex = femodel.example_frame(tmp / "model")
+    grids = [int(g) for g in femodel.parametric_model(ex.params).assembly.model.grid_ids]
+    camp = tmp / "acq.toml"
+    camp.write_text(f"""[model]
+parameters = "{ex.params}"
+[pretest]
+sensors = 8
+modes = 6
+direction = "z"
+candidates = {grids}
+figures = false
+[acquisition]
+driver = "sim"
+[acquisition.plan]
+name = "frame"
+sample_rate_hz = 4096.0
+lines = {{ kind = "linear", start_hz = 50.0, stop_hz = 300.0, step_hz = 5.0 }}
+measure = {{ blocks = 2 }}
+ensemble = {{ articles = ["T1"] }}
+sim = {{ model = "plant.npz", noise_rms = {noise}, shaker = "ideal" }}
+[channels]
+calibrate = ["acc01", "acc03", "acc05", "acc07"]
+holdout = ["acc02", "acc04", "acc06", "acc08"]
+[band]
+low_hz = 60.0
+high_hz = 250.0
+[output]
+dir = "out"
+figures = false
+""")
+    return ex, camp
+
+
+def test_an_acquiring_campaign_plans_the_layout_then_acquires_and_resumes_an_interrupted_sweep(tmp_path, capsys,
+                                                                                             monkeypatch):
+    import frfcal.campaign._front as front
+    from acquisition.runfile import read_run
+
+    ex, camp = _acquiring_campaign(tmp_path)
+    assert main(["pretest", str(camp), "--json"]) == 0  # the layout first: the simulated plant is built on it
+    res = json.loads(capsys.readouterr().out)
+    assert _status(res) == {"pretest": "ran"}
+    layout = tmp_path / "out" / "layout.json"
+    assert [c["name"] for c in json.loads(layout.read_text())["channels"]] == [f"acc{k:02d}" for k in range(1, 9)]
+    _plant(ex.params, layout, tmp_path / "plant.npz", np.full(7, 0.05))
+
+    # the sweep is interrupted at its 21st line (Ctrl-C in the driver): the drive ramps down, the lines stay
+    real = front.driver_factory
+
+    def interrupted(camp_, plan):
+        make, channels = real(camp_, plan)
+
+        def make_once(*a):
+            drv = make(*a)
+            lines = set()
+            set_drive = drv.set_drive
+
+            def counting(frequency_hz, amplitude_v):
+                lines.add(round(frequency_hz, 6))
+                if len(lines) > 20:
+                    raise KeyboardInterrupt
+                return set_drive(frequency_hz, amplitude_v)
+
+            drv.set_drive = counting
+            return drv
+
+        return make_once, channels
+
+    monkeypatch.setattr(front, "driver_factory", interrupted)
+    assert main(["acquire", str(camp)]) == 130
+    assert capsys.readouterr().err.strip() == "frfcal: interrupted"
+    run_file = tmp_path / "out" / "runs" / "frame_T1_drive1_1N.h5"
+    partial = read_run(run_file)
+    assert partial.status == "aborted" and partial.n_lines == 20
+    monkeypatch.setattr(front, "driver_factory", real)
+    assert main(["acquire", str(camp), "--json"]) == 0  # resumes the sweep, keeps the lines measured before
+    res = json.loads(capsys.readouterr().out)
+    assert _status(res) == {"pretest": "reused", "acquire": "ran"}
+    run = read_run(run_file)
+    assert run.status == "completed" and run.n_lines == 51
+    np.testing.assert_array_equal(run.frf[: partial.n_lines], partial.frf)
+    assert main(["acquire", str(camp), "--json"]) == 0
+    assert _status(json.loads(capsys.readouterr().out)) == {"pretest": "reused", "acquire": "reused"}
+
+    # other acquisition settings: the old runs are set aside (never deleted), the sweep starts afresh
+    camp.write_text(camp.read_text().replace("noise_rms = 1e-05", "noise_rms = 2e-05"))
+    assert main(["acquire", str(camp), "--json"]) == 0
+    assert _status(json.loads(capsys.readouterr().out)) == {"pretest": "reused", "acquire": "ran"}
+    kept = tmp_path / "out" / "runs.superseded-1" / run_file.name
+    assert read_run(kept).n_lines == 51 and read_run(run_file).status == "completed"
+
+
+
+@pytest.mark.parametrize("text, expect", [
+    ("[model]\nparameters = 'p.toml'\n[channels]\ncalibrate = ['a']\n[band]\nlow_hz = 1.0\nhigh_hz = 2.0\n",
+     "no data: give [[run]] entries"),
+    ("[model]\nparameters = 'p.toml'\n[[run]]\npath = 'a.h5'\nuff = 'a.uff'\n[channels]\ncalibrate = ['a']\n"
+     "[band]\nlow_hz = 1.0\nhigh_hz = 2.0\n", "run.0: Value error, give exactly one of path (run file) or uff"),
+    ("[model]\nparameters = 'p.toml'\n[[run]]\npath = 'a.h5'\n[channels]\ncalibrate = ['a']\n"
+     "[band]\nlow_hz = 1.0\nhigh_hz = 2.0\n[calibration]\nstrats = 3\n", "calibration.strats: unknown field"),
+    ("[model]\nparameters = 'p.toml'\n[pretest]\n[layout]\nfile = 'l.json'\n[acquisition]\nplan = 'p.toml'\n"
+     "[channels]\ncalibrate = ['a']\n[band]\nlow_hz = 1.0\nhigh_hz = 2.0\n", "give [pretest]"),
+    ("[model]\nparameters = 'p.toml'\n[acquisition]\nplan = 'p.toml'\ndriver = 'ni'\n[channels]\n"
+     "calibrate = ['a']\n[band]\nlow_hz = 1.0\nhigh_hz = 2.0\n", "driver 'ni' needs hardware"),
+    ("[model]\nparameters = 'p.toml'\n[[run]]\npath = 'a.h5'\n[channels]\ncalibrate = ['a']\n"
+     "[band]\nlow_hz = 1.0\nhigh_hz = 2.0\n[lines]\nstart_hz = 1.0\n",
+     {"run": "lines: unknown field", "calibrate": "lines: unknown field", "identify": "both a campaign",
+      "acquire": "both a campaign"}),
+    ("[model]\nparameters = 'p.toml'\n[[run]]\npath = 'missing.h5'\n[channels]\ncalibrate = ['a']\n"
+     "[band]\nlow_hz = 1.0\nhigh_hz = 2.0\n", {"acquire": "nothing to acquire: add an [acquisition] section"}),
+])
+@pytest.mark.parametrize("command", ["run", "calibrate", "identify", "acquire"])
+def test_campaign_errors_are_one_line_saying_what_to_fix_and_v_gives_the_traceback(tmp_path, capsys, text, expect,
+                                                                                command):
+    """Through `frfcal run`/`calibrate` and the campaign form of the stage commands (a dict: per command)."""
+    camp = tmp_path / "c.toml"
+    camp.write_text(text)
+    if isinstance(expect, dict):
+        expect = expect.get(command, "missing.h5: cannot read")
+    assert main([command, str(camp)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"frfcal {command}: error: ") and expect in err[0], err
+    with pytest.raises(ValueError, match=re.escape(expect)):
+        main([command, str(camp), "-v"])  # -v after the sub-command: the exception and its traceback
+
+
+def test_an_internal_fault_is_two_lines_and_v_shows_it(tmp_path, capsys, monkeypatch):
+    import frfcal.commands.run as run_cmd
+
+    def broken(args, upto):
+        raise ZeroDivisionError("division by zero")
+
+    monkeypatch.setattr(run_cmd, "run_stage", broken)
+    assert main(["run", str(tmp_path / "c.toml")]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["frfcal run: internal error: ZeroDivisionError: division by zero",
+                   "frfcal run: rerun with -v for the traceback and report it"]
+    with pytest.raises(ZeroDivisionError):
+        main(["-v", "run", str(tmp_path / "c.toml")])
+
+
+#: code that would execute or unpickle what a user hands in
+_UNSAFE = re.compile(r"\beval\(|\bexec\(|\bimport pickle\b|\bfrom pickle\b|\bpickle\.loads?\(|allow_pickle\s*=\s*True"
+                     r"|\bmarshal\.loads?\(|\bshelve\.open\(|\byaml\.(unsafe_)?load\(|\bcloudpickle\.loads?\("
+                     r"|\bdill\.|\bjoblib\.load\(|\btorch\.load\(|__import__\(")
+
+
+def test_nothing_a_user_loads_is_executed_or_unpickled():
+    hits = []
+    for pkg in ("frfcal", "calibration", "femodel", "acquisition", "identification", "pretest", "labdata"):
+        for f in sorted((REPO / pkg).rglob("*.py")):
+            for n, line in enumerate(f.read_text().splitlines(), 1):
+                if _UNSAFE.search(line.split("#")[0]):
+                    hits.append(f"{f.relative_to(REPO)}:{n}: {line.strip()}")
+    assert not hits, "\n".join(hits)
+    # the stored stage results are rebuilt only as frfcal's own types, arrays read without pickle
+    store = (REPO / "frfcal" / "campaign" / "_store.py").read_text()
+    assert "allow_pickle=False" in store and "_ALLOWED" in store
+
+
 if __name__ == "__main__":  # the executor comparison in a fresh process (see _executor_comparison)
     print(json.dumps(_executor_comparison(Path(sys.argv[1]), json.loads(sys.argv[2]), sys.argv[3])))
