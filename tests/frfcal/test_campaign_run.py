@@ -438,5 +438,25 @@ def test_nothing_a_user_loads_is_executed_or_unpickled():
     assert "allow_pickle=False" in store and "_ALLOWED" in store
 
 
+
+def test_the_documented_campaign_files_are_valid():
+    """docs/campaign.md: the reference block, the complete example, and it turned into an acquiring campaign."""
+    import tomllib
+
+    from frfcal.campaign import campaign_from_dict
+
+    blocks = [tomllib.loads(b) for b in re.findall(r"```toml\n(.*?)```", (REPO / "docs" / "campaign.md").read_text(),
+                                                   re.S)]
+    front, reference, example, inline = blocks
+    assert [e.uff is not None for e in campaign_from_dict(reference).run] == [False, True]
+    assert [str(e.uff) for e in campaign_from_dict(example).run] == ["data/A1.uff", "data/A2.uff"]
+    acquiring = {k: v for k, v in example.items() if k != "run"}
+    acquiring.update(pretest=front["pretest"], acquisition=inline["acquisition"])
+    camp = campaign_from_dict(acquiring)
+    assert camp.acquisition.driver == "sim" and camp.pretest.sensors == 20 and not camp.run
+    with pytest.raises(ValueError, match="not both"):
+        campaign_from_dict({**acquiring, "run": example["run"]})
+
+
 if __name__ == "__main__":  # the executor comparison in a fresh process (see _executor_comparison)
     print(json.dumps(_executor_comparison(Path(sys.argv[1]), json.loads(sys.argv[2]), sys.argv[3])))
