@@ -248,7 +248,7 @@ def uff_entries(camp: Campaign) -> list:
     return [(i, e) for i, e in enumerate(camp.run) if e.uff is not None]
 
 
-def import_target(camp: Campaign, outdir: Path, index: int, entry: RunEntry) -> Path:
+def import_target(outdir: Path, entry: RunEntry) -> Path:
     """Run file an imported UFF58 entry becomes: ``<outdir>/runs/<article or file stem>.h5``."""
     return outdir / "runs" / f"{entry.article or Path(entry.uff).stem}.h5"
 
@@ -260,7 +260,7 @@ def import_stage(camp: Campaign, outdir: Path, log=print) -> RunFiles:
     paths, arts = [], []
     seen: dict = {}
     for i, e in uff_entries(camp):
-        out = import_target(camp, outdir, i, e)
+        out = import_target(outdir, e)
         if out in seen:
             raise CalibrationError(f"[[run]] {seen[out] + 1} and {i + 1} would both import into {out}: "
                                    "give them different article labels")
