@@ -409,6 +409,49 @@ def test_campaign_errors_are_one_line_saying_what_to_fix_and_v_gives_the_traceba
         main([command, str(camp), "-v"])  # -v after the sub-command: the exception and its traceback
 
 
+def test_later_stages_plug_in_with_a_line_each_and_are_stored_like_the_others(small, monkeypatch):
+    """How diagnosis and the report join the campaign: StageSpec entries in LATE_STAGES."""
+    import frfcal.campaign._run as run_mod
+    from frfcal.campaign import StageSpec, load_campaign, run_campaign, section
+
+    tmp, camp_path, ref = small
+    same = tmp / "small_late.toml"
+    same.write_text(camp_path.read_text().replace('dir = "out"', 'dir = "ref"'))
+    calls = []
+
+    def diagnose(ctx):
+        calls.append("diagnose")
+        assert ctx.outputs is None and ctx.camp.run[0].path.name == "A1.h5"
+        m, v = ctx.results["calibrate"].members[0], ctx.results["validate"].members[0].validation
+        return {"p": m.p, "sd_holdout": v.sd_calibrated}
+
+    def report(ctx):
+        calls.append("report")
+        assert ctx.results["diagnose"]["sd_holdout"] == ctx.outputs["members"][0]["validation"]["sd_calibrated"]
+        return {"members": len(ctx.outputs["members"])}
+
+    monkeypatch.setattr(run_mod, "LATE_STAGES", [
+        StageSpec("diagnose", ("calibrate", "validate"), lambda c: section(c, "band"), diagnose),
+        StageSpec("report", ("diagnose",), lambda c: section(c, "output", "write_bdf"), report, after_outputs=True),
+    ])
+    camp = load_campaign(same)
+    logged = []
+    res = run_campaign(camp, log=logged.append)
+    assert list(res["stages"]) == ["import", *CORE, "diagnose", "report"]
+    assert _status(res)["diagnose"] == "ran" and _status(res)["report"] == "ran" and calls == ["diagnose", "report"]
+    assert "[9/10] diagnose: done in" in "\n".join(logged)
+    np.testing.assert_array_equal(_stored(tmp, res, "diagnose")["p"], _params(ref)[0])
+    again = run_campaign(camp, log=lambda m: None)
+    assert set(_status(again).values()) == {"reused"} and calls == ["diagnose", "report"]
+    # `frfcal calibrate` stops after cross-validation: the later stages are not its business
+    upto = run_campaign(camp, log=lambda m: None, upto="crossvalidate")
+    assert list(upto["stages"]) == ["import", *CORE]
+    # a changed setting redoes the stage that reads it, and only that one
+    changed = camp.model_copy(update={"output": camp.output.model_copy(update={"write_bdf": False})})
+    st = _status(run_campaign(changed, log=lambda m: None))
+    assert st["report"] == "ran" and st["diagnose"] == "reused" and calls == ["diagnose", "report", "report"]
+
+
 def test_an_internal_fault_is_two_lines_and_v_shows_it(tmp_path, capsys, monkeypatch):
     import frfcal.commands.run as run_cmd
 
