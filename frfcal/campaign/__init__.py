@@ -7,7 +7,20 @@ Application layer: it reads run files (``acquisition``), builds the model
 
 from frfcal.campaign._identify import identify_lines, identify_run, line_weights, run_weights
 from frfcal.campaign._report import json_default, member_figures, write_outputs
-from frfcal.campaign._run import STAGES, load_key, model_fingerprint, run_campaign, stage_keys
+from frfcal.campaign._front import LayoutResult, RunFiles, acquire_stage, campaign_plan, import_stage, pretest_stage
+from frfcal.campaign._run import (
+    FRONT_STAGES,
+    LATE_STAGES,
+    STAGES,
+    StageContext,
+    StageSpec,
+    campaign_stages,
+    load_key,
+    model_fingerprint,
+    run_campaign,
+    section,
+    stage_keys,
+)
 from frfcal.campaign._schema import Campaign, campaign_from_dict, load_campaign
 from frfcal.campaign._stages import (
     Article,
@@ -50,7 +63,19 @@ def identified_articles(camp: Campaign, articles, log=print) -> list:
 
 
 __all__ = [
+    "FRONT_STAGES",
+    "LATE_STAGES",
+    "LayoutResult",
+    "RunFiles",
     "STAGES",
+    "StageContext",
+    "StageSpec",
+    "acquire_stage",
+    "campaign_plan",
+    "campaign_stages",
+    "import_stage",
+    "pretest_stage",
+    "section",
     "Article",
     "CalibrateResult",
     "Campaign",
