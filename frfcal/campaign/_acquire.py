@@ -287,7 +287,7 @@ class SimulatedRun:
     wall_s: float
 
 
-def acquire_simulated(sim, plan, pm, out_dir, *, log=print, progress: bool = False):
+def acquire_simulated(sim, plan, pm, out_dir, *, levels=None, log=print, progress: bool = False):
     """Sweep every article of ``plan`` at every force level on its simulated truth.
 
     Parameters
@@ -300,6 +300,9 @@ def acquire_simulated(sim, plan, pm, out_dir, *, log=print, progress: bool = Fal
     out_dir : path-like
         Run files ``<plan>_<article>_<drive>_<level>N.h5`` (one drive: the first of the layout
         or of ``ensemble.drives``).
+    levels : mapping article -> sequence of float, optional
+        Force levels (N peak) per article (default: every level of the plan for
+        every article), e.g. the high level on a few articles only.
     log : callable
     progress : bool
         A progress bar per sweep.
@@ -323,17 +326,22 @@ def acquire_simulated(sim, plan, pm, out_dir, *, log=print, progress: bool = Fal
         drives = (by_name[plan.ensemble.drives[0]],)
     drive = drives[0]
     lines = plan_lines(plan)
-    levels = sorted(plan.force.levels_n)
+    levels = {a: sorted(plan.force.levels_n) for a in plan.ensemble.articles} if levels is None else \
+        {a: sorted(float(x) for x in levels.get(a, ())) for a in plan.ensemble.articles}
+    if not all(levels.values()):
+        raise SimulationError(f"levels: every article of the plan needs at least one force level, got {levels}")
+    top = max(max(v) for v in levels.values())
     log(f"simulated articles ({len(plan.ensemble.articles)}): truth from the deck, free-free, "
-        f"{lines.size} planned lines {lines.min():.1f}-{lines.max():.1f} Hz, levels {levels} N")
+        f"{lines.size} planned lines {lines.min():.1f}-{lines.max():.1f} Hz, levels (N) "
+        + ", ".join(f"{a} {v}" for a, v in levels.items()))
     articles = simulated_articles(sim, pm, plan.ensemble.articles, sensors, (drive,),
-                                  data_hz=(plan.lines.start_hz, plan.lines.stop_hz), drive_level_n=max(levels), log=log)
+                                  data_hz=(plan.lines.start_hz, plan.lines.stop_hz), drive_level_n=top, log=log)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     chans = tuple(replace(c, physical=f"sim/{k}") for k, c in enumerate(sensors)) + (replace(drive, physical="sim/force"),)
     runs = []
     for a, art in enumerate(articles):
-        for j, level in enumerate(levels):
+        for j, level in enumerate(levels[art.name]):
             nl = art.nonlinearity(level)
             lab = SimulatedLab(art.plant, drive_index=0, shaker=ShakerModel() if sim.shaker == "electrodynamic" else None,
                                noise_rms=sim.noise_rms, seed=int(sim.seed) * 7919 + 100 * a + j, nonlinearity=nl)
@@ -371,3 +379,32 @@ def runs_by_level(runs) -> dict:
             raise SimulationError(f"{r}: the run file's plan records no level_n")
         out.setdefault(run.article, []).append((float(level), Path(r)))
     return {k: sorted(v) for k, v in out.items()}
+
+
+def level_checks(by_level, **options) -> dict:
+    """Level dependence (``calibration.level_dependence``) of every article measured at two or more levels.
+
+    Parameters
+    ----------
+    by_level : dict
+        :func:`runs_by_level` output.
+    **options
+        Passed to ``calibration.level_dependence`` (e.g. ``z_threshold``).
+
+    Returns
+    -------
+    dict article -> calibration.LevelDependence
+    """
+    from acquisition import read_run
+    from calibration import frf_level_from_run, level_dependence
+
+    out = {}
+    for article, entries in by_level.items():
+        if len(entries) < 2:
+            continue
+        levels = []
+        for level, path in entries:
+            run = read_run(path)
+            levels.append(frf_level_from_run(run, level=level))
+        out[article] = level_dependence(levels, **options)
+    return out
