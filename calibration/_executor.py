@@ -136,7 +136,7 @@ class DaskExecutor:
     Needs the ``dask`` extra (``pip install frfcal[dask]``).
     """
 
-    def __init__(self, address=None, client=None, progress: str | None = None):
+    def __init__(self, address=None, client=None, progress: str | None = None, cluster=None):
         try:
             from distributed import Client
         except ImportError as exc:
@@ -155,6 +155,28 @@ class DaskExecutor:
             self._own = False
         self.client = client
         self.progress = progress
+        self._cluster = cluster
+
+    @classmethod
+    def local(cls, n_workers: int | None = None, host: str = "127.0.0.1", progress: str | None = None):
+        """Start a ``distributed.LocalCluster`` of worker processes on ``host`` (loopback by default) and use it.
+
+        The scheduler, workers and the dashboard listen on ``host`` only; the
+        cluster is shut down by :meth:`close`.
+        """
+        try:
+            from distributed import Client, LocalCluster
+        except ImportError as exc:
+            raise CalibrationError(
+                "execution.scheduler = \"local\" needs dask.distributed: install the 'dask' extra "
+                "(pip install frfcal[dask])"
+            ) from exc
+        n = n_workers or os.cpu_count() or 1
+        cluster = LocalCluster(host=host, n_workers=n, threads_per_worker=1, processes=True,
+                               dashboard_address=f"{host}:0")
+        ex = cls(client=Client(cluster), progress=progress, cluster=cluster)
+        ex._own = True
+        return ex
 
     def map(self, fn: Callable, items: Iterable) -> list:
         items = list(items)
@@ -170,6 +192,9 @@ class DaskExecutor:
     def close(self) -> None:
         if self._own:
             self.client.close()
+            if self._cluster is not None:
+                self._cluster.close()
+                self._cluster = None
 
     def __enter__(self):
         return self
@@ -178,8 +203,15 @@ class DaskExecutor:
         self.close()
 
 
-def make_executor(scheduler: str | None = None, workers: int | None = None, progress: str | None = None):
-    """Dask when a scheduler address is given, else a local process pool (serial when workers == 1)."""
+def make_executor(scheduler: str | None = None, workers: int | None = None, progress: str | None = None,
+                  host: str = "127.0.0.1"):
+    """Dask when a scheduler address is given, else a local process pool (serial when workers == 1).
+
+    ``scheduler="local"`` starts a Dask LocalCluster of ``workers`` processes
+    listening on ``host`` (loopback unless another interface is named).
+    """
+    if scheduler == "local":
+        return DaskExecutor.local(workers, host=host, progress=progress)
     if scheduler:
         return DaskExecutor(scheduler, progress=progress)
     if workers == 1:

@@ -8,7 +8,8 @@ imports happen inside ``run`` so that ``frfcal --help`` stays instant.
 Errors a user can act on (bad file, unknown card, missing channel) are raised
 by the layers as ``ValueError``/``OSError`` subclasses with a message naming
 the file, card, channel or field; they are printed as one line and exit with
-status 2. ``--debug`` shows the traceback instead.
+status 2; anything else as one line "internal error" and status 1. ``-v``/``--debug``
+(before or after the sub-command) shows the traceback instead.
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ COMMANDS: tuple[tuple[str, str], ...] = (
     ("export-uff", "frfcal.commands.export_uff"),
     ("identify", "frfcal.commands.identify"),
     ("calibrate", "frfcal.commands.calibrate"),
+    ("run", "frfcal.commands.run"),
     ("demo", "frfcal.commands.demo"),
 )
 
@@ -42,7 +44,7 @@ def build_parser() -> argparse.ArgumentParser:
         "stepped-sine acquisition, identification and calibration.",
     )
     parser.add_argument("--version", action="version", version=f"frfcal {__version__}")
-    parser.add_argument("--debug", action="store_true", help="show full tracebacks on errors")
+    parser.add_argument("-v", "--debug", action="store_true", help="show full tracebacks on errors")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, module_name in COMMANDS:
         if importlib.util.find_spec(module_name) is None:
@@ -50,6 +52,9 @@ def build_parser() -> argparse.ArgumentParser:
         module = importlib.import_module(module_name)
         p = sub.add_parser(name, help=module.HELP, description=module.HELP)
         module.configure(p)
+        # -v/--debug also after the sub-command (frfcal run x.toml -v); SUPPRESS keeps the global one otherwise
+        p.add_argument("-v", "--debug", action="store_true", default=argparse.SUPPRESS,
+                       help="show full tracebacks on errors")
         p.set_defaults(_run=module.run)
     return parser
 
@@ -72,8 +77,20 @@ def main(argv: list[str] | None = None) -> int:
         if args.debug:
             raise
         message = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
-        print(f"frfcal {args.command}: error: {message}", file=sys.stderr)
+        print(f"frfcal {args.command}: error: {_short(message)}", file=sys.stderr)
         return 2
+    except Exception as exc:  # a fault of frfcal itself, not of the input: still one line, the traceback on -v
+        if args.debug:
+            raise
+        print(f"frfcal {args.command}: internal error: {type(exc).__name__}: {_short(exc)}\n"
+              f"frfcal {args.command}: rerun with -v for the traceback and report it", file=sys.stderr)
+        return 1
+
+
+def _short(message, limit: int = 600) -> str:
+    """An error message on one line (a long one cut, -v shows it whole)."""
+    text = " ".join(str(message).split())
+    return text if len(text) <= limit else text[: limit - 20] + " ... (-v: all of it)"
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -1,5 +1,11 @@
 """run_campaign: the stages in order, each result stored under ``<output dir>/stages`` with a fingerprint.
 
+Stages: [pretest] -> [acquire | import] -> load -> identify -> equalize ->
+group -> calibrate -> validate -> crossvalidate -> (outputs) -> the stages
+registered in :data:`LATE_STAGES` (diagnosis, report, ...). The bracketed
+ones run when the campaign has ``[pretest]``, ``[acquisition]`` or
+``[[run]] uff = ...`` entries.
+
 A stage whose fingerprint (its campaign settings, the fingerprints of the
 stages it reads, and for the load stage the content of the run files; for
 the calibrate stage the assembled model) matches the stored one is not run
@@ -14,12 +20,25 @@ from __future__ import annotations
 import hashlib
 import json
 import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
 
 import numpy as np
 import scipy.sparse as sp
 
 from calibration import make_executor
 from frfcal.campaign._report import write_outputs
+from calibration import CalibrationError
+from frfcal.campaign._front import (
+    acquire_stage,
+    campaign_plan,
+    import_stage,
+    plan_inputs,
+    pretest_stage,
+    resolved_runs,
+    uff_entries,
+)
 from frfcal.campaign._schema import Campaign
 from frfcal.campaign._stages import (
     build_model,
@@ -34,6 +53,7 @@ from frfcal.campaign._stages import (
 from frfcal.campaign._store import StageStore, file_hash, fingerprint
 
 STAGES = ("load", "identify", "equalize", "group", "calibrate", "validate", "crossvalidate")
+FRONT_STAGES = ("pretest", "acquire", "import")
 VERSION = 1  # bump when a stage computes differently: every stored result is then stale
 
 
@@ -69,10 +89,29 @@ def model_fingerprint(model) -> str:
 
 def load_key(camp: Campaign) -> str:
     """Fingerprint of the load stage: run files (path, content), channels, band, use of stored identifications."""
+    for i, e in enumerate(camp.run):
+        if e.path is None:
+            raise CalibrationError(f"[[run]] {i + 1}: uff = {str(e.uff)!r} is not imported yet (the import stage)")
     runs = [{"path": str(camp.resolve(e.path).resolve()), "article": e.article,
              "sha256": file_hash(camp.resolve(e.path))} for e in camp.run]
     return fingerprint(VERSION, "load", runs, _section(camp, "channels"), _section(camp, "band"),
                        _section(camp, "identification", "use_stored"))
+
+
+def front_keys(camp: Campaign) -> dict:
+    """Fingerprints of the front stages the campaign has (pretest, import; acquire needs the layout first)."""
+    from frfcal.campaign._front import deck
+
+    k = {}
+    if camp.pretest is not None:
+        bdf, units = deck(camp)
+        k["pretest"] = fingerprint(VERSION, "pretest", _section(camp, "pretest"), str(bdf.resolve()), file_hash(bdf),
+                                   units)
+    ups = uff_entries(camp)
+    if ups:
+        k["import"] = fingerprint(VERSION, "import", [{"uff": str(camp.resolve(e.uff).resolve()), "article": e.article,
+                                                       "sha256": file_hash(camp.resolve(e.uff))} for _, e in ups])
+    return k
 
 
 def stage_keys(camp: Campaign, model, load: str) -> dict:
@@ -99,7 +138,8 @@ class _Executor:
 
     def get(self):
         if self._ex is None:
-            self._ex = make_executor(self.camp.execution.scheduler, self.camp.execution.workers, progress=None)
+            ex = self.camp.execution
+            self._ex = make_executor(ex.scheduler, ex.workers, progress=None, host=ex.host)
             self._ex.start()
         return self._ex
 
@@ -109,58 +149,213 @@ class _Executor:
             close()
 
 
-def run_campaign(camp: Campaign, log=print) -> dict:
+@dataclass
+class StageContext:
+    """What the stages of a campaign run have computed so far (``results[name]``), for later stages.
+
+    ``camp`` has every ``[[run]]`` as a run file (after import/acquire);
+    ``pm``, ``model`` the parametric and FRF model; ``articles`` the
+    identified articles; ``outputs`` the dict :func:`write_outputs` returned
+    (for stages registered with ``after_outputs``); ``executor()`` the
+    campaign's executor (started on first call).
+    """
+
+    camp: Campaign
+    outdir: Path
+    log: Callable
+    executor: Callable
+    results: dict = field(default_factory=dict)
+    pm: Any = None
+    model: Any = None
+    articles: tuple = ()
+    outputs: dict | None = None
+    names: list = field(default_factory=list)
+    last: int = 0
+
+
+@dataclass(frozen=True)
+class StageSpec:
+    """A stage after cross-validation, plugged into :func:`run_campaign` by appending it to :data:`LATE_STAGES`.
+
+    Attributes
+    ----------
+    name : str
+        Stage name (``frfcal <name> CAMPAIGN.toml`` runs up to it when a command of that name exists).
+    reads : tuple of str
+        Stages whose results it reads; their fingerprints enter its own.
+    settings : callable (Campaign) -> JSON-able
+        The campaign settings its result depends on (e.g. ``lambda c: section(c, "diagnosis")``).
+    compute : callable (StageContext) -> result
+        The stage; its result (frozen dataclasses, arrays, numbers, strings)
+        is stored like every other stage's and put into ``ctx.results[name]``.
+    applies : callable (Campaign) -> bool
+        Whether the campaign has this stage (default: always).
+    after_outputs : bool
+        Run after ``calibration.json`` and the figures are written (a report).
+    """
+
+    name: str
+    reads: tuple
+    settings: Callable
+    compute: Callable
+    applies: Callable = lambda camp: True
+    after_outputs: bool = False
+
+
+#: Stages after cross-validation, in order. A stage plugs in with one line, e.g.
+#: ``LATE_STAGES.append(StageSpec("diagnose", ("calibrate", "validate"), lambda c: section(c, "diagnosis"), fn))``.
+LATE_STAGES: list = []
+
+
+def section(camp: Campaign, name: str, *keys):
+    """A campaign section as a JSON-able dict (``keys``: only these), for a stage's fingerprint."""
+    return _section(camp, name, *keys)
+
+
+def campaign_stages(camp: Campaign) -> list:
+    """The names of the stages this campaign has, in order."""
+    names = [n for n, on in (("pretest", camp.pretest is not None), ("acquire", camp.acquisition is not None),
+                             ("import", bool(uff_entries(camp)))) if on]
+    names += list(STAGES)
+    names += [s.name for s in LATE_STAGES if s.applies(camp)]
+    return names
+
+
+def _stale(result) -> bool:
+    """A stored front-stage result whose files are gone (the stage then runs again)."""
+    missing = getattr(result, "missing", None)
+    if missing is not None:
+        return bool(missing())
+    path = getattr(result, "path", None)
+    return isinstance(path, Path) and not path.exists()
+
+
+def run_campaign(camp: Campaign, log=print, upto: str | None = None, force: str | None = None) -> dict:
     """Run the campaign's stages; write outputs into ``camp.output.dir``; return the result dict.
 
     Every stage result goes to ``<output dir>/stages/<stage>.json|.npz``;
     a stage whose inputs did not change since it was stored is read back
     instead of run (``result["stages"][name]["status"]`` is "ran" or
-    "reused"). See docs/architecture.md.
+    "reused"). See docs/campaign.md.
+
+    Parameters
+    ----------
+    camp : Campaign
+    log : callable (str)
+        Progress lines: ``[k/n] stage`` at each stage's start and its time at the end.
+    upto : str, optional
+        Stop after this stage (default: every stage). The outputs
+        (calibration.json, deck, figures) are written when the run reaches
+        cross-validation; before that the dict holds ``stages`` and ``upto``.
+    force : str, optional
+        Recompute this stage and every later one even when stored.
     """
     t_all = time.perf_counter()
     outdir = camp.resolve(camp.output.dir)
     store = StageStore(outdir / "stages")
+    names = campaign_stages(camp)
+    for what, n in (("upto", upto), ("force", force)):
+        if n is not None and n not in names:
+            raise CalibrationError(f"{what} {n!r}: this campaign's stages are {', '.join(names)}")
+    last = names.index(upto) if upto else len(names) - 1
+    forced = names.index(force) if force else len(names)
+    total = last + 1
     records: dict = {}
     timings: dict = {}
 
+    class _Done(Exception):
+        pass
+
     def stage(name, key, compute):
-        got = store.load(name, key)
-        if got is not None:
+        k = names.index(name)
+        got = None if k >= forced else store.load(name, key)
+        if got is not None and not _stale(got):
             records[name] = {"status": "reused", "fingerprint": key, "time_s": store.time_s(name)}
-            log(f"stage {name}: inputs unchanged, result read from {store.directory}")
-            return got
-        t0 = time.perf_counter()
-        res = compute()
-        dt = time.perf_counter() - t0
-        store.save(name, key, res, dt)
-        records[name] = {"status": "ran", "fingerprint": key, "time_s": dt}
-        return res
+            log(f"[{k + 1}/{total}] {name}: inputs unchanged, stored result reused ({store.directory})")
+        else:
+            log(f"[{k + 1}/{total}] {name} ...")
+            t0 = time.perf_counter()
+            got = compute()
+            dt = time.perf_counter() - t0
+            store.save(name, key, got, dt)
+            records[name] = {"status": "ran", "fingerprint": key, "time_s": dt}
+            log(f"[{k + 1}/{total}] {name}: done in {dt:.1f} s")
+        if k == last and k < names.index("crossvalidate"):
+            raise _Done  # stop before the outputs: they need every stage through cross-validation
+        return got
+
+    executor = _Executor(camp)
+    ctx = StageContext(camp, outdir, log, executor.get, names=names, last=last)
+    try:
+        try:
+            return _stages(camp, ctx, stage, records, timings, t_all)
+        finally:
+            executor.close()
+    except _Done:
+        return {"stages": records, "upto": names[last], "output_dir": str(outdir),
+                "time_s": time.perf_counter() - t_all}
+
+
+def _stages(camp, ctx, stage, records, timings, t_all):
+    """The stages in order (``stage(name, key, compute)`` runs or reuses one)."""
+    outdir = ctx.outdir
+    fk = front_keys(camp)
+    layout = camp.resolve(camp.layout.file) if camp.layout is not None else None
+    if camp.pretest is not None:
+        layout = stage("pretest", fk["pretest"], lambda: pretest_stage(camp, outdir, ctx.log)).path
+    imported = acquired = None
+    if camp.acquisition is not None:
+        plan = campaign_plan(camp, layout)
+        key = fingerprint(VERSION, "acquire", plan_inputs(camp, plan))
+        acquired = stage("acquire", key, lambda: acquire_stage(camp, plan, key, outdir, ctx.log))
+    if "import" in fk:
+        imported = stage("import", fk["import"], lambda: import_stage(camp, outdir, ctx.log))
+    camp = ctx.camp = resolved_runs(camp, imported, acquired)
+    ctx.results.update({"imported": imported, "acquired": acquired})
 
     t = time.perf_counter()
-    load = stage("load", load_key(camp), lambda: load_stage(camp, log))
+    load = stage("load", load_key(camp), lambda: load_stage(camp, ctx.log))
     timings["load_s"] = time.perf_counter() - t
     t = time.perf_counter()
-    pm, model = build_model(camp, load, log)  # every time: the report needs it, its fingerprint guards calibrate
+    pm, model = build_model(camp, load, ctx.log)  # every time: the report needs it, its fingerprint guards calibrate
+    ctx.pm, ctx.model = pm, model
     timings["model_s"] = time.perf_counter() - t
     keys = stage_keys(camp, model, records["load"]["fingerprint"])
     t = time.perf_counter()
-    ident = stage("identify", keys["identify"], lambda: identify_stage(camp, load.articles, log))
+    ident = stage("identify", keys["identify"], lambda: identify_stage(camp, load.articles, ctx.log))
     articles = ident.attached(load.articles)
+    ctx.articles = articles
     timings["identification_s"] = time.perf_counter() - t
     eq = stage("equalize", keys["equalize"], lambda: equalize_stage(camp, articles))
-    groups = stage("group", keys["group"], lambda: group_stage(camp, articles, eq, log))
+    groups = stage("group", keys["group"], lambda: group_stage(camp, articles, eq, ctx.log))
     outdir.mkdir(parents=True, exist_ok=True)
-    executor = _Executor(camp)
     bounds = (pm.lower, pm.upper)
-    try:
-        cal = stage("calibrate", keys["calibrate"],
-                    lambda: calibrate_stage(camp, model, articles, eq, groups, executor.get(), log))
-        timings["basis_s"] = cal.basis_s
-        val = stage("validate", keys["validate"], lambda: validate_stage(camp, articles, cal, bounds, log))
-        xval = stage("crossvalidate", keys["crossvalidate"],
-                     lambda: crossvalidate_stage(camp, articles, eq, cal, bounds, pm.parameters.names,
-                                                 executor.get(), log))
-    finally:
-        executor.close()
+    cal = stage("calibrate", keys["calibrate"],
+                lambda: calibrate_stage(camp, model, articles, eq, groups, ctx.executor(), ctx.log))
+    timings["basis_s"] = cal.basis_s
+    val = stage("validate", keys["validate"], lambda: validate_stage(camp, articles, cal, bounds, ctx.log))
+    ctx.results.update({"load": load, "identify": ident, "equalize": eq, "group": groups, "calibrate": cal,
+                        "validate": val})
+    xval = stage("crossvalidate", keys["crossvalidate"],
+                 lambda: crossvalidate_stage(camp, articles, eq, cal, bounds, pm.parameters.names,
+                                             ctx.executor(), ctx.log))
+    ctx.results["crossvalidate"] = xval
+    wanted = [s for s in LATE_STAGES if s.applies(camp) and ctx.names.index(s.name) <= ctx.last]
+
+    def run_late(spec):
+        key = fingerprint(VERSION, spec.name, [keys.get(r) or records.get(r, {}).get("fingerprint") for r in spec.reads],
+                          spec.settings(camp))
+        keys[spec.name] = key
+        ctx.results[spec.name] = stage(spec.name, key, lambda: spec.compute(ctx))
+
+    for spec in wanted:
+        if not spec.after_outputs:
+            run_late(spec)
     timings["total_s"] = time.perf_counter() - t_all
-    return write_outputs(camp, pm, articles, groups, cal, val, xval, timings, records, outdir, log)
+    out = write_outputs(camp, pm, articles, groups, cal, val, xval, timings, records, outdir, ctx.log)
+    ctx.outputs = out
+    for spec in wanted:
+        if spec.after_outputs:
+            run_late(spec)
+    out["stages"] = records
+    return out

@@ -28,10 +28,72 @@ class ModelSection(_Strict):
 
 
 class RunEntry(_Strict):
-    """One run file (HDF5, acquisition.runfile) of one test article."""
+    """One test article's data: a run file (HDF5, acquisition.runfile) or a UFF58 file to import."""
 
-    path: Path
+    path: Path | None = Field(None, description="run file (HDF5)")
+    uff: Path | None = Field(None, description="UFF58 FRF file, imported into <output dir>/runs/ (import stage)")
     article: str | None = Field(None, description="article label (default: the run file's article)")
+
+    @model_validator(mode="after")
+    def _one_source(self):
+        if (self.path is None) == (self.uff is None):
+            raise ValueError("give exactly one of path (run file) or uff (UFF58 file)")
+        return self
+
+
+class PretestSection(_Strict):
+    """Settings of ``frfcal pretest``: the pretest stage writes ``<output dir>/layout.json`` from the deck."""
+
+    sensors: int = Field(20, ge=1, description="number of sensors (a triax counts once)")
+    modes: int | None = Field(None, ge=1, description="target: the first N elastic modes (default 20)")
+    band_hz: tuple[float, float] | None = Field(None, description="target: elastic modes in [lo, hi] Hz")
+    mode_numbers: list[int] | None = Field(None, description="target: 1-based mode numbers")
+    direction: str | tuple[float, float, float] = Field("normal", description="normal, x, y, z or a vector")
+    triax: bool = Field(False, description="triaxial sensors (kept whole)")
+    candidates: list[int] | None = Field(None, description="candidate grids (default: all)")
+    pids: list[int] | None = Field(None, description="candidate grids of these property ids")
+    include: list[int] = Field(default_factory=list, description="grids that must carry a sensor")
+    exclude: list[int] = Field(default_factory=list, description="grids that must not carry a sensor")
+    min_distance_m: float = Field(0.0, ge=0, description="minimum sensor spacing, m")
+    drives: int = Field(1, ge=0, description="drive points to put in the layout")
+    shaker_candidates: int = Field(5, ge=1, description="ranked drive points to report")
+    free_drive: bool = Field(False, description="rank drive points over all candidates (default: collocated)")
+    drive_criterion: Literal["weakest", "adpr", "product"] = "weakest"
+    sensor_mass_g: float = Field(0.5, ge=0, description="mass of one sensor, g")
+    drive_mass_g: float = Field(5.0, ge=0, description="force sensor + stinger mass, g")
+    refine_automac: float | None = Field(None, gt=0, description="autoMAC refinement, decades of det(FIM) given up")
+    figures: bool = Field(True, description="write the layout and autoMAC figures beside the layout")
+
+    @model_validator(mode="after")
+    def _one_target(self):
+        given = [k for k in ("modes", "band_hz", "mode_numbers") if getattr(self, k) is not None]
+        if len(given) > 1:
+            raise ValueError(f"give one target of modes, band_hz, mode_numbers (got {', '.join(given)})")
+        if self.band_hz is not None and not 0 <= self.band_hz[0] < self.band_hz[1]:
+            raise ValueError(f"band_hz {list(self.band_hz)}: need 0 <= lo < hi")
+        return self
+
+
+class LayoutSection(_Strict):
+    """An existing layout file (instead of ``[pretest]``)."""
+
+    file: Path = Field(description="layout JSON (frfcal pretest, docs/layout.md)")
+
+
+class AcquisitionSection(_Strict):
+    """The acquire stage: a stepped-sine plan run by a driver into ``<output dir>/<dir>``."""
+
+    plan: Path | dict = Field(description="plan TOML file, or the plan inline as [acquisition.plan] "
+                              "(docs/acquisition.md); without layout/channels it uses the campaign's layout")
+    driver: Literal["sim", "visa", "ni"] = Field("sim", description="backend")
+    hardware: Path | None = Field(None, description="hardware TOML (needed for visa/ni, docs/hardware.md)")
+    dir: Path = Field(Path("runs"), description="run files, relative to the output directory")
+
+    @model_validator(mode="after")
+    def _hardware(self):
+        if self.driver != "sim" and self.hardware is None:
+            raise ValueError(f"driver {self.driver!r} needs hardware = \"HW.toml\" (docs/hardware.md)")
+        return self
 
 
 class ChannelsSection(_Strict):
@@ -216,7 +278,9 @@ class SimulationSection(_Strict):
 
 class ExecutionSection(_Strict):
     workers: int | None = Field(None, ge=1, description="local worker processes (default: all cores)")
-    scheduler: str | None = Field(None, description="Dask scheduler address, e.g. tcp://host:8786")
+    scheduler: str | None = Field(None, description="Dask: a scheduler address (tcp://host:8786), or \"local\" "
+                                  "for a LocalCluster of `workers` processes started on `host`")
+    host: str = Field("127.0.0.1", description="interface the local Dask cluster listens on (loopback by default)")
 
 
 class OutputSection(_Strict):
@@ -229,7 +293,10 @@ class Campaign(_Strict):
     """A complete, re-runnable calibration campaign."""
 
     model: ModelSection
-    run: list[RunEntry] = Field(min_length=1)
+    pretest: PretestSection | None = None
+    layout: LayoutSection | None = None
+    acquisition: AcquisitionSection | None = None
+    run: list[RunEntry] = Field(default_factory=list)
     channels: ChannelsSection
     band: BandSection
     calibration: CalibrationSection = CalibrationSection()
@@ -240,6 +307,17 @@ class Campaign(_Strict):
     execution: ExecutionSection = ExecutionSection()
     output: OutputSection = OutputSection()
     base_dir: Path = Field(Path("."), exclude=True)
+
+    @model_validator(mode="after")
+    def _sources(self):
+        if self.pretest is not None and self.layout is not None:
+            raise ValueError("give [pretest] (plan a layout) or [layout] file (use one), not both")
+        if not self.run and self.acquisition is None:
+            raise ValueError("no data: give [[run]] entries (path = run file, or uff = UFF58 file) "
+                             "or an [acquisition] section")
+        if self.run and self.acquisition is not None:
+            raise ValueError("give [[run]] entries or [acquisition] (whose run files are the runs), not both")
+        return self
 
     def resolve(self, path: Path | None) -> Path | None:
         if path is None:
@@ -276,6 +354,8 @@ def load_campaign(path) -> Campaign:
             data = tomllib.load(fh)
     except tomllib.TOMLDecodeError as exc:
         raise CalibrationError(f"{path}: not valid TOML: {exc}") from None
+    except FileNotFoundError:
+        raise CalibrationError(f"{path}: campaign file not found") from None
     if "base_dir" in data:
         raise CalibrationError(f"{path}: base_dir: unknown field")
     return campaign_from_dict(data, path.resolve().parent, str(path))

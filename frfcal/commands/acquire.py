@@ -16,6 +16,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--plot", action="store_true", help="live plot of the FRF while measuring (matplotlib)")
     parser.add_argument("--json", action="store_true", help="print one JSON object with the results")
+    from frfcal.commands.run import add_campaign_options
+
+    add_campaign_options(parser)  # with a campaign TOML as the first argument
 
 
 def _sim_factory(plan):
@@ -98,6 +101,11 @@ def _live_plot():
 
 
 def run(args) -> int:
+    from frfcal.commands.run import campaign_command, is_campaign_file
+
+    if is_campaign_file(args.plan):  # the campaign form: run the campaign up to this stage
+        args._campaign_path = args.plan
+        return campaign_command(args, "acquire")
     import json
     import signal
     import sys

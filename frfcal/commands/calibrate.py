@@ -17,6 +17,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scheduler", help="Dask scheduler address (tcp://host:8786)")
     parser.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     parser.add_argument("--quiet", action="store_true", help="no progress messages")
+    from frfcal.commands.run import add_campaign_options
+
+    add_campaign_options(parser)
 
 
 def _override(camp, args):
@@ -40,22 +43,22 @@ def _override(camp, args):
 
 def run(args) -> int:
     import json
-    import sys
 
-    from frfcal.campaign import json_default, load_campaign, run_campaign
+    from frfcal.campaign import json_default
+    from frfcal.commands.run import run_stage
 
-    camp = _override(load_campaign(args.campaign), args)
+    # every stage through cross-validation (what `frfcal calibrate` always did), stored stages reused;
     # progress goes to stdout, or to stderr with --json (stdout holds only the JSON object)
-    stream = sys.stderr if args.json else sys.stdout
-
-    def log(msg):
-        if not args.quiet:
-            print(msg, file=stream, flush=True)
-
-    res = run_campaign(camp, log=log)
+    camp, res = run_stage(args, "crossvalidate")
     if args.json:
         print(json.dumps(res, default=json_default))
         return 0
+    print_result(camp, res)
+    return 0
+
+
+def print_result(camp, res) -> None:
+    """The calibration result as a table per member (parameters, SDs, identifiability)."""
     for m in res["members"]:
         print(f"\n== {m['member']} ({', '.join(m['articles'])})")
         print(f"calibration SD (equalized test model, zeta0={100 * camp.calibration.zeta0:g} %)  "
@@ -88,4 +91,3 @@ def run(args) -> int:
         if "bdf" in m:
             print(f"calibrated deck: {m['bdf']}")
     print(f"\nresult: {res['result_file']}  ({res['timings']['total_s']:.1f} s)")
-    return 0

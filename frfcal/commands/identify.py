@@ -22,6 +22,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--block-rows", type=int, help="block rows q of the subspace data matrices (default: automatic)")
     parser.add_argument("--no-store", action="store_true", help="do not write the result into the run file")
     parser.add_argument("--json", action="store_true", help="print one JSON object (physical poles in Hz and zeta)")
+    from frfcal.commands.run import add_campaign_options
+
+    add_campaign_options(parser)  # with a campaign TOML as the first argument
 
 
 def _stabilization_orders(order: int) -> list[int]:
@@ -32,6 +35,11 @@ def _stabilization_orders(order: int) -> list[int]:
 
 
 def run(args: argparse.Namespace) -> int:
+    from frfcal.commands.run import campaign_command, is_campaign_file
+
+    if is_campaign_file(args.run):  # the campaign form: run the campaign up to this stage
+        args._campaign_path = args.run
+        return campaign_command(args, "identify")
     import json
     from pathlib import Path
 

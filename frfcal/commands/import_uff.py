@@ -22,20 +22,32 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="print one JSON object")
 
 
+def uff_to_run(uff, out, *, article=None, overwrite=False) -> dict:
+    """Import a UFF58 file into the run file ``out`` (parent created); what was written, as a dict.
+
+    The code of ``frfcal import-uff`` and of the campaign's import stage.
+    """
+    from acquisition._uff import import_uff
+
+    Path(out).parent.mkdir(parents=True, exist_ok=True)  # like every other --out of frfcal
+    r = import_uff(uff, out, article=article, overwrite=overwrite)
+    return {"path": str(out), "article": r.article, "quantity": r.quantity, "n_lines": r.n_lines,
+            "sensors": [c.name for c in r.sensors], "drives": [c.name for c in r.drives],
+            "sensor_grids": [c.grid for c in r.sensors], "drive_grids": [c.grid for c in r.drives],
+            "band_hz": [float(r.frequency_hz.min()), float(r.frequency_hz.max())]}
+
+
 def run(args) -> int:
     import json
 
-    from acquisition._uff import import_uff
-
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)  # like every other --out of frfcal
-    r = import_uff(args.uff, args.out, article=args.article, overwrite=args.force)
-    info = {"path": args.out, "article": r.article, "quantity": r.quantity, "n_lines": r.n_lines,
-            "sensors": [c.name for c in r.sensors], "drives": [c.name for c in r.drives],
-            "sensor_grids": [c.grid for c in r.sensors], "drive_grids": [c.grid for c in r.drives]}
+    full = uff_to_run(args.uff, args.out, article=args.article, overwrite=args.force)
+    info = {k: v for k, v in full.items() if k != "band_hz"}
+    info["path"] = args.out
     if args.json:
         print(json.dumps(info))
     else:
-        print(f"{args.out}: {r.n_lines} lines {r.frequency_hz.min():.3f}-{r.frequency_hz.max():.3f} Hz, "
-              f"{len(r.sensors)} x {len(r.drives)} {r.quantity}, article {r.article!r}")
-        print("references: " + ", ".join(c.name for c in r.drives))
+        lo, hi = full["band_hz"]
+        print(f"{args.out}: {info['n_lines']} lines {lo:.3f}-{hi:.3f} Hz, "
+              f"{len(info['sensors'])} x {len(info['drives'])} {info['quantity']}, article {info['article']!r}")
+        print("references: " + ", ".join(info["drives"]))
     return 0

@@ -52,9 +52,17 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-figures", action="store_true", help="do not write the PNG figures")
     parser.add_argument("--evaluate", metavar="LAYOUT.json",
                         help="do not plan: print the metrics of this existing layout for the target modes")
+    from frfcal.commands.run import add_campaign_options
+
+    add_campaign_options(parser)  # with a campaign TOML as the first argument
 
 
 def run(args) -> int:
+    from frfcal.commands.run import campaign_command, is_campaign_file
+
+    if is_campaign_file(args.model):  # the campaign form: run the campaign up to this stage
+        args._campaign_path = args.model
+        return campaign_command(args, "pretest")
     import json
     from pathlib import Path
 
