@@ -287,7 +287,7 @@ class SimulatedRun:
     wall_s: float
 
 
-def acquire_simulated(sim, plan, pm, out_dir, *, levels=None, log=print, progress: bool = False):
+def acquire_simulated(sim, plan, pm, out_dir, *, levels=None, resume: bool = True, log=print, progress: bool = False):
     """Sweep every article of ``plan`` at every force level on its simulated truth.
 
     Parameters
@@ -303,6 +303,9 @@ def acquire_simulated(sim, plan, pm, out_dir, *, levels=None, log=print, progres
     levels : mapping article -> sequence of float, optional
         Force levels (N peak) per article (default: every level of the plan for
         every article), e.g. the high level on a few articles only.
+    resume : bool
+        Keep completed run files of the same names (the caller guarantees the same settings);
+        interrupted ones are swept again from the start.
     log : callable
     progress : bool
         A progress bar per sweep.
@@ -314,7 +317,7 @@ def acquire_simulated(sim, plan, pm, out_dir, *, levels=None, log=print, progres
     import time
     from dataclasses import replace
 
-    from acquisition import ShakerModel, SimulatedLab
+    from acquisition import ShakerModel, SimulatedLab, read_run
     from acquisition._controller import plan_channels, run_sweep
     from acquisition._plan import plan_lines
 
@@ -343,9 +346,15 @@ def acquire_simulated(sim, plan, pm, out_dir, *, levels=None, log=print, progres
     for a, art in enumerate(articles):
         for j, level in enumerate(levels[art.name]):
             nl = art.nonlinearity(level)
+            path = out / f"{plan.name}_{art.name}_{drive.name}_{level:g}N.h5"
+            if resume and path.exists():
+                old = read_run(path)
+                if old.status == "completed":
+                    runs.append(SimulatedRun(art.name, float(level), path, nl is not None, old.n_lines, 0.0, 0.0))
+                    log(f"  {path.name}: already complete ({old.n_lines} lines)")
+                    continue
             lab = SimulatedLab(art.plant, drive_index=0, shaker=ShakerModel() if sim.shaker == "electrodynamic" else None,
                                noise_rms=sim.noise_rms, seed=int(sim.seed) * 7919 + 100 * a + j, nonlinearity=nl)
-            path = out / f"{plan.name}_{art.name}_{drive.name}_{level:g}N.h5"
             t0 = time.perf_counter()
             try:
                 res = run_sweep(lab, plan, path, sensors=sensors, drive=drive, level_n=level, article=art.name,
