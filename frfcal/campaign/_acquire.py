@@ -159,7 +159,7 @@ def _effect_terms(sim, pm):
         raise SimulationError(f"[simulation] effect: {exc}") from None
 
 
-def simulated_articles(sim, pm, articles, sensors, drives, *, data_hz, drive_level_n, log=print):
+def simulated_articles(sim, pm, articles, sensors, drives, *, data_hz, log=print):
     """Truth and plant of every article of the plan.
 
     Parameters
@@ -173,8 +173,6 @@ def simulated_articles(sim, pm, articles, sensors, drives, *, data_hz, drive_lev
         Channels with grid and direction (the layout).
     data_hz : (float, float)
         Swept range, Hz (the residual series holds to its top).
-    drive_level_n : float
-        Highest force level of the plan, N peak (sizes the loose part).
     log : callable
 
     Returns
@@ -240,7 +238,7 @@ def simulated_articles(sim, pm, articles, sensors, drives, *, data_hz, drive_lev
         plant = truth_plant(truth)
         loose = {}
         if sim.loose_part is not None and sim.loose_part.article == name:
-            loose = _loose_part(sim.loose_part, plant, (d_lo, d_hi), drive_level_n)
+            loose = _loose_part(sim.loose_part, plant, (d_lo, d_hi))
         elastic = plant.frequencies_hz
         in_range = elastic[(elastic >= d_lo) & (elastic <= d_hi)]
         log(f"  {name}: {len(elastic)} elastic modes to {sim.mode_factor * d_hi:.0f} Hz ({len(in_range)} in "
@@ -252,7 +250,7 @@ def simulated_articles(sim, pm, articles, sensors, drives, *, data_hz, drive_lev
     return tuple(out)
 
 
-def _loose_part(spec, plant, data_hz, level_n: float) -> dict:
+def _loose_part(spec, plant, data_hz) -> dict:
     """Mode and cubic coefficient of a loose part: the mode's frequency rises by ``shift`` at resonance at ``level_n``."""
     f = plant.frequencies_hz
     if spec.mode is not None:
@@ -269,8 +267,7 @@ def _loose_part(spec, plant, data_hz, level_n: float) -> dict:
     a = abs(plant.shapes_in[0, k]) * spec.from_level_n / (2 * plant.damping[k] * w**2)
     if a <= 0:
         raise SimulationError(f"[simulation] loose_part: the drive point does not move in mode {k + 1}")
-    beta = ((1 + spec.shift) ** 2 - 1) / (0.75 * a**2)
-    del level_n  # the strength is defined at from_level_n; higher levels rattle harder
+    beta = ((1 + spec.shift) ** 2 - 1) / (0.75 * a**2)  # w_eq = w (1 + shift) at amplitude a; more above it
     return {"loose_mode": k, "loose_beta": float(beta), "loose_from_level_n": float(spec.from_level_n)}
 
 
@@ -333,12 +330,11 @@ def acquire_simulated(sim, plan, pm, out_dir, *, levels=None, resume: bool = Tru
         {a: sorted(float(x) for x in levels.get(a, ())) for a in plan.ensemble.articles}
     if not all(levels.values()):
         raise SimulationError(f"levels: every article of the plan needs at least one force level, got {levels}")
-    top = max(max(v) for v in levels.values())
     log(f"simulated articles ({len(plan.ensemble.articles)}): truth from the deck, free-free, "
         f"{lines.size} planned lines {lines.min():.1f}-{lines.max():.1f} Hz, levels (N) "
         + ", ".join(f"{a} {v}" for a, v in levels.items()))
     articles = simulated_articles(sim, pm, plan.ensemble.articles, sensors, (drive,),
-                                  data_hz=(plan.lines.start_hz, plan.lines.stop_hz), drive_level_n=top, log=log)
+                                  data_hz=(plan.lines.start_hz, plan.lines.stop_hz), log=log)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     chans = tuple(replace(c, physical=f"sim/{k}") for k, c in enumerate(sensors)) + (replace(drive, physical="sim/force"),)
@@ -390,23 +386,39 @@ def runs_by_level(runs) -> dict:
     return {k: sorted(v) for k, v in out.items()}
 
 
-def level_checks(by_level, **options) -> dict:
+def level_checks(by_level, *, settle_tolerance: float | None = None, max_relative_noise: float = 0.05,
+                 **options) -> dict:
     """Level dependence (``calibration.level_dependence``) of every article measured at two or more levels.
 
     Parameters
     ----------
     by_level : dict
         :func:`runs_by_level` output.
+    settle_tolerance : float, optional
+        The sweeps' settle tolerance (relative FRF error the settle detector
+        leaves on a line; ``plan.settle.tolerance``). That error is not in the
+        per-line standard error (the block scatter after settling); the
+        difference of two runs can hold up to twice it, so the model-free check
+        allows ``scatter_delta = (2 tol)^2 / ln(10)^2`` (the SD of a 2 tol
+        relative difference). None: noise only.
+    max_relative_noise : float
+        Lines with more relative noise are left out of the model-free check
+        (antiresonances: a standard error from a few blocks is unreliable there).
     **options
         Passed to ``calibration.level_dependence`` (e.g. ``z_threshold``).
 
     Returns
     -------
-    dict article -> calibration.LevelDependence
+    dict article -> calibration.LevelDependence, or str
+        The reason when the check could not be made on that article's data
+        (e.g. a mode with too few lines), instead of failing the others.
     """
     from acquisition import read_run
-    from calibration import frf_level_from_run, level_dependence
+    from calibration import CalibrationError, frf_level_from_run, level_dependence
 
+    if settle_tolerance is not None:
+        options.setdefault("scatter_delta", (2.0 * float(settle_tolerance)) ** 2 / math.log(10.0) ** 2)
+    options["max_relative_noise"] = max_relative_noise
     out = {}
     for article, entries in by_level.items():
         if len(entries) < 2:
@@ -415,5 +427,8 @@ def level_checks(by_level, **options) -> dict:
         for level, path in entries:
             run = read_run(path)
             levels.append(frf_level_from_run(run, level=level))
-        out[article] = level_dependence(levels, **options)
+        try:
+            out[article] = level_dependence(levels, **options)
+        except CalibrationError as exc:
+            out[article] = f"not checked: {exc}"
     return out

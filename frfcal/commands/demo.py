@@ -28,6 +28,8 @@ ARTICLES = ("SF1", "SF2", "SF3", "SF4", "SF5")
 GAP_CLOSED = ("SF1", "SF2", "SF3")
 LOOSE = "SF5"
 LEVELS_N = (0.25, 1.0)
+#: relative FRF error the settle detector leaves per line (the level check allows it between runs)
+SETTLE_TOLERANCE = 3e-3
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -35,7 +37,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dof", type=int, default=5000, help="approximate model size in DOF (default 5000)")
     parser.add_argument("--band", type=float, nargs=2, default=(100.0, 400.0), metavar=("LO_HZ", "HI_HZ"),
                         help="calibration band, Hz (default 100 400, as in the paper)")
-    parser.add_argument("--starts", type=int, default=4, help="Latin-hypercube starts besides the nominal one (default 4)")
+    parser.add_argument("--starts", type=int, default=3, help="Latin-hypercube starts besides the nominal one (default 3)")
     parser.add_argument("--realizations", type=int, default=4, help="cross-validation realizations (default 4)")
     parser.add_argument("--workers", type=int, default=None, help="local worker processes (default: all cores)")
 
@@ -100,7 +102,7 @@ background_step = 0.01
 [acquisition.plan.force]
 levels_n = {json.dumps(list(LEVELS_N))}
 [acquisition.plan.settle]
-tolerance = 3e-3
+tolerance = {SETTLE_TOLERANCE:g}
 assumed_damping = 0.002
 [acquisition.plan.measure]
 blocks = 3
@@ -113,6 +115,7 @@ drive_v_max = 20.0          # and the shaker's force drops there (back-EMF): mor
 enabled = true
 lines_per_bandwidth = 3
 span_bandwidths = 2
+peak_ratio = 1.02           # the noise is low: any local maximum of three background lines is a peak to refine
 [acquisition.plan.ensemble]
 articles = {json.dumps(list(ARTICLES))}
 
@@ -147,6 +150,8 @@ high_hz = {hi:g}
 
 [calibration]
 starts = {starts}
+max_cycles = 2
+refine_cycles = 1
 ensemble = "group"
 n_groups = 2
 
@@ -204,7 +209,7 @@ def run(args) -> int:
     camp = load_campaign(campaign)
     res = run_campaign(camp, log=lambda m: print(m, flush=True))
     runs = runs_by_level(res_paths(out / "campaign" / "runs"))
-    checks = level_checks(runs)
+    checks = level_checks(runs, settle_tolerance=SETTLE_TOLERANCE)
 
     _step(f"summary ({time.perf_counter() - t_start:.0f} s)")
     print("stages: " + ", ".join(f"{k} {v['status']} ({v.get('time_s') or 0:.0f} s)" for k, v in res["stages"].items()))
@@ -219,9 +224,10 @@ def run(args) -> int:
             print(f"  hold-out channels: SD {v['sd_nominal']:.3g} (nominal) -> {v['sd_calibrated']:.3g} (calibrated); "
                   f"noise floor {v.get('sd_floor', float('nan')):.3g}; {v.get('verdict', '')}")
     for article, ld in checks.items():
-        print(f"level check {article} ({', '.join(f'{x:g} N' for x, _ in runs[article])}): "
-              + ("NONLINEAR (the FRF changes with force level beyond noise)" if ld.flagged else "linear"))
-    nonlinear = [a for a, ld in checks.items() if ld.flagged]
+        verdict = ld if isinstance(ld, str) else \
+            "NONLINEAR (the FRF changes with force level beyond noise)" if ld.flagged else "linear"
+        print(f"level check {article} ({', '.join(f'{x:g} N' for x, _ in runs[article])}): {verdict}")
+    nonlinear = [a for a, ld in checks.items() if not isinstance(ld, str) and ld.flagged]
     print(f"nonlinear article(s): {', '.join(nonlinear) or 'none'}")
     print("the effect the model lacks: the diagnose stage is not part of this build (its stage is not merged); "
           f"the truth: the gap is closed on {', '.join(GAP_CLOSED)}")
@@ -230,7 +236,8 @@ def run(args) -> int:
         "members": [{k: m.get(k) for k in ("member", "articles", "sd_calibration_nominal", "sd_calibration",
                                            "sd_raw_calibration_start", "sd_raw_calibration", "validation")}
                     for m in res.get("members", [])],
-        "level_checks": {a: ld.flagged for a, ld in checks.items()}, "nonlinear": nonlinear,
+        "level_checks": {a: ld if isinstance(ld, str) else ld.flagged for a, ld in checks.items()},
+        "nonlinear": nonlinear,
         "time_s": time.perf_counter() - t_start}, indent=1, default=str))
     return 0
 

@@ -54,7 +54,7 @@ def test_plant_is_the_synth_truth(model):
     _, pm = model
     sensors, drive = _channels(pm)
     sim = SimulationSection(mode_factor=1.5)
-    (art,) = simulated_articles(sim, pm, ["A1"], _specs(sensors), _specs([drive]), data_hz=DATA, drive_level_n=1.0,
+    (art,) = simulated_articles(sim, pm, ["A1"], _specs(sensors), _specs([drive]), data_hz=DATA,
                                 log=lambda *_: None)
     f = np.linspace(DATA[0], DATA[1], 3001)
     f = np.sort(np.concatenate([f, art.plant.frequencies_hz[(art.plant.frequencies_hz > DATA[0])
@@ -77,7 +77,7 @@ def test_simulated_lab_steady_state_is_the_plant_frf(model):
     _, pm = model
     sensors, drive = _channels(pm, n=4)
     (art,) = simulated_articles(SimulationSection(mode_factor=1.5), pm, ["A1"], _specs(sensors), _specs([drive]),
-                                data_hz=DATA, drive_level_n=1.0, log=lambda *_: None)
+                                data_hz=DATA, log=lambda *_: None)
     lab = SimulatedLab(art.plant, shaker=ShakerModel(), noise_rms=0.0, adc_bits=32)
     chans = [ChannelSpec(name=s["name"], role="response", quantity="acceleration", unit="m/s^2",
                          physical=f"sim/{k}") for k, s in enumerate(sensors)]
@@ -104,7 +104,8 @@ def _plan(pm, articles, levels):
         lines=dict(kind="bandwidth", start_hz=DATA[0], stop_hz=DATA[1], background_step=0.01, lines_per_bandwidth=3,
                    span_bandwidths=2),
         force=dict(levels_n=levels), settle=dict(tolerance=3e-3, assumed_damping=0.002),
-        measure=dict(blocks=3, n_harmonics=1), refine=dict(enabled=True, lines_per_bandwidth=3, span_bandwidths=2),
+        measure=dict(blocks=3, n_harmonics=1),
+        refine=dict(enabled=True, lines_per_bandwidth=3, span_bandwidths=2, peak_ratio=1.02),
         ensemble=dict(articles=articles)))
 
 
@@ -141,7 +142,7 @@ def test_runs_per_article_and_level(acquired):
 
 def test_level_dependence_flags_the_loose_article_only(acquired):
     _, _, _, _, runs, _ = acquired
-    checks = level_checks(runs_by_level(runs))
+    checks = level_checks(runs_by_level(runs), settle_tolerance=3e-3)
     assert set(checks) == {"A1", "A3"}
     assert checks["A3"].flagged, checks["A3"].to_dict()
     assert not checks["A1"].flagged, checks["A1"].to_dict()
@@ -184,10 +185,10 @@ def test_simulation_errors_name_the_field(model):
     sensors, drive = _channels(pm)
     with pytest.raises(SimulationError, match="loose_part.article 'B9'"):
         simulated_articles(SimulationSection(loose_part=dict(article="B9", from_level_n=4.0)), pm, ["A1"],
-                           _specs(sensors), _specs([drive]), data_hz=DATA, drive_level_n=4.0)
+                           _specs(sensors), _specs([drive]), data_hz=DATA)
     with pytest.raises(SimulationError, match="offsets: unknown parameter"):
         simulated_articles(SimulationSection(offsets={"nope": 0.1}), pm, ["A1"], _specs(sensors), _specs([drive]),
-                           data_hz=DATA, drive_level_n=1.0)
+                           data_hz=DATA)
     from calibration import CalibrationError
 
     with pytest.raises(CalibrationError, match="effect 'g': kind 'spring' needs pairs"):
