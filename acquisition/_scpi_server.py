@@ -29,7 +29,7 @@ Faults are injected with :meth:`LoopbackLab.inject`: ``"timeout"`` (the
 query is never answered), ``"garble"`` (the reply is noise), ``"error"`` (an
 entry is pushed on the generator's error queue), ``"drop"`` (the connection
 is closed). Servers are bounded: they stop by themselves after
-``lifetime_s`` and never bind anything but 127.0.0.1.
+``lifetime_s`` and bind 127.0.0.1 unless another ``host`` is named.
 """
 
 from __future__ import annotations
@@ -155,6 +155,9 @@ class LoopbackLab:
     seed : int
     lifetime_s : float
         Wall-clock seconds after which the servers stop by themselves.
+    host : str
+        Interface the instruments listen on: loopback (127.0.0.1) unless
+        another address is named (a lab reachable from other machines).
     """
 
     def __init__(
@@ -170,8 +173,10 @@ class LoopbackLab:
         relock_cycles: float = 0.0,
         seed: int = 0,
         lifetime_s: float = 600.0,
+        host: str = "127.0.0.1",
     ):
         self.plant = plant
+        self.host = str(host)
         self.clock = clock if clock is not None else VirtualClock()
         self.shaker_n_per_v = float(shaker_n_per_v)
         self.shaker_corner_hz = float(shaker_corner_hz)
@@ -206,9 +211,9 @@ class LoopbackLab:
 
     # ------------------------------------------------------------ lifecycle
     def start(self) -> "LoopbackLab":
-        """Bind every instrument to a free port on 127.0.0.1 and serve in daemon threads."""
+        """Bind every instrument to a free port on ``host`` (127.0.0.1) and serve in daemon threads."""
         for name in ["generator", *self.lockins]:
-            server = _InstrumentServer(("127.0.0.1", 0), _Handler)
+            server = _InstrumentServer((self.host, 0), _Handler)
             server.lab = self
             server.instrument = name
             self._servers[name] = server
@@ -245,9 +250,13 @@ class LoopbackLab:
     def port(self, instrument: str) -> int:
         return self._servers[instrument].server_address[1]
 
+    def addresses(self) -> dict:
+        """``{instrument: (address, port)}`` every server is bound to."""
+        return {name: tuple(srv.server_address[:2]) for name, srv in self._servers.items()}
+
     def resource(self, instrument: str) -> str:
-        """VISA resource string of an instrument, ``TCPIP::127.0.0.1::PORT::SOCKET``."""
-        return f"TCPIP::127.0.0.1::{self.port(instrument)}::SOCKET"
+        """VISA resource string of an instrument, ``TCPIP::<host>::PORT::SOCKET`` (host 127.0.0.1 by default)."""
+        return f"TCPIP::{self.host}::{self.port(instrument)}::SOCKET"
 
     @property
     def generator_resource(self) -> str:
@@ -696,7 +705,7 @@ def _plan_plant(plan):
 
 
 def serve_plan(plan, *, drive: str | None = None, clock=None, noise_v_per_rthz: float = 20e-9,
-               lifetime_s: float = 3600.0) -> tuple[LoopbackLab, str]:
+               lifetime_s: float = 3600.0, host: str = "127.0.0.1") -> tuple[LoopbackLab, str]:
     """Start a loopback lab for a plan and return it with the text of a matching hardware TOML file.
 
     One lock-in per response channel of the plan, one on the force sensor of
@@ -720,7 +729,8 @@ def serve_plan(plan, *, drive: str | None = None, clock=None, noise_v_per_rthz: 
                          f"{plant.n_out} outputs and {plant.n_in} inputs")
     shaker = ShakerModel() if plan.sim.shaker == "electrodynamic" else None
     lab = LoopbackLab(plant, clock=clock or WallClock(), shaker=shaker, noise_v_per_rthz=noise_v_per_rthz,
-                      drive_input=names.index(drive), lifetime_s=lifetime_s, seed=plan.sim.seed).start()
+                      drive_input=names.index(drive), lifetime_s=lifetime_s, seed=plan.sim.seed,
+                      host=host).start()
     text = ['driver = "visa"', "", "[visa]", f'generator = "{lab.generator_resource}"', "timeout_ms = 3000", ""]
     wiring = [(s, f"lockin_resp{k}") for k, s in enumerate(sensors)]
     wiring.append((drives[names.index(drive)], f"lockin_force{names.index(drive)}"))
@@ -746,16 +756,18 @@ def main(argv=None) -> int:
 
     ap = argparse.ArgumentParser(
         prog="python -m acquisition._scpi_server",
-        description="Serve a loopback generator and lock-ins on 127.0.0.1 answering from a plan's [sim] plant "
+        description="Serve a loopback generator and lock-ins on 127.0.0.1 (or --host) answering from a plan's [sim] plant "
                     "(wall clock), and write a hardware TOML file pointing at them.")
     ap.add_argument("plan", help="sweep plan TOML with a [sim] section")
     ap.add_argument("--hardware-out", required=True, help="hardware TOML file to write")
     ap.add_argument("--drive", help="drive point the shaker is on (default: the plan's first)")
     ap.add_argument("--lifetime-s", type=float, default=3600.0, help="stop after this many seconds (default 3600)")
     ap.add_argument("--noise-v-per-rthz", type=float, default=20e-9, help="sensor noise density, V/sqrt(Hz)")
+    ap.add_argument("--host", default="127.0.0.1",
+                    help="interface to listen on (default 127.0.0.1: loopback only; name another to serve a network)")
     args = ap.parse_args(argv)
     lab, text = serve_plan(load_plan(args.plan), drive=args.drive, noise_v_per_rthz=args.noise_v_per_rthz,
-                           lifetime_s=args.lifetime_s)
+                           lifetime_s=args.lifetime_s, host=args.host)
     out = Path(args.hardware_out)
     tmp = out.with_name(out.name + ".tmp")
     tmp.write_text(text)

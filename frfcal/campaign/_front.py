@@ -190,6 +190,29 @@ def _set_aside(directory: Path, why: str, log) -> None:
     log(f"acquire: {directory} {why}: moved to {target}")
 
 
+def _run_safely(plan, make, runs: Path, channels):
+    """:func:`acquisition.run_plan` with SIGTERM taking the Ctrl-C path (drive ramped down, run file closed);
+    an abort becomes one error line saying that the completed lines are kept."""
+    import signal
+    import threading
+
+    from acquisition import AcquisitionAbort, DriverError, run_plan
+
+    def _term(signum, frame):
+        raise KeyboardInterrupt
+
+    main = threading.current_thread() is threading.main_thread()
+    old = signal.signal(signal.SIGTERM, _term) if main else None
+    try:
+        return run_plan(plan, make, runs, progress=False, driver_channels=channels)
+    except (AcquisitionAbort, DriverError) as exc:
+        raise CalibrationError(f"acquire: aborted ({type(exc).__name__}: {exc}); drive ramped to zero, every "
+                               f"completed line is kept in {runs}: run the same command again to resume") from None
+    finally:
+        if main:
+            signal.signal(signal.SIGTERM, old)
+
+
 def acquire_stage(camp: Campaign, plan, key: str, outdir: Path, log=print) -> RunFiles:
     """Run the plan into ``<outdir>/<[acquisition] dir>``; resume an interrupted acquisition of the same settings.
 
@@ -200,8 +223,6 @@ def acquire_stage(camp: Campaign, plan, key: str, outdir: Path, log=print) -> Ru
     fingerprint, or run files without a marker) is moved aside to
     ``<dir>.superseded-N`` and the acquisition starts afresh.
     """
-    from acquisition import run_plan
-
     runs = outdir / camp.acquisition.dir
     marker = runs / ACQUIRE_MARKER
     if runs.exists():
@@ -218,7 +239,7 @@ def acquire_stage(camp: Campaign, plan, key: str, outdir: Path, log=print) -> Ru
     if camp.simulation is not None and camp.acquisition.driver == "sim":
         return _simulated_acquisition(camp, plan, runs, log)
     make, channels = driver_factory(camp, plan)
-    results = run_plan(plan, make, runs, progress=False, driver_channels=channels)
+    results = _run_safely(plan, make, runs, channels)
     bad = [r for r in results if r.status != "completed"]
     if bad:
         raise CalibrationError(f"acquire: {bad[0].path}: {bad[0].status}: run the stage again to resume")
@@ -250,7 +271,7 @@ def uff_entries(camp: Campaign) -> list:
     return [(i, e) for i, e in enumerate(camp.run) if e.uff is not None]
 
 
-def import_target(camp: Campaign, outdir: Path, index: int, entry: RunEntry) -> Path:
+def import_target(outdir: Path, entry: RunEntry) -> Path:
     """Run file an imported UFF58 entry becomes: ``<outdir>/runs/<article or file stem>.h5``."""
     return outdir / "runs" / f"{entry.article or Path(entry.uff).stem}.h5"
 
@@ -262,7 +283,7 @@ def import_stage(camp: Campaign, outdir: Path, log=print) -> RunFiles:
     paths, arts = [], []
     seen: dict = {}
     for i, e in uff_entries(camp):
-        out = import_target(camp, outdir, i, e)
+        out = import_target(outdir, e)
         if out in seen:
             raise CalibrationError(f"[[run]] {seen[out] + 1} and {i + 1} would both import into {out}: "
                                    "give them different article labels")
