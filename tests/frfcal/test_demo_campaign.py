@@ -176,6 +176,8 @@ def test_reduced_campaign_calibrates_to_the_noise_floor(acquired):
     idx = [names.index(c) for c in holdout]
     truth = art.truth.frf(f[sel])[:, idx]
     floor = float(np.mean(np.abs(np.log(truth / run.frf[sel][:, idx])) ** 2) / np.log(10) ** 2)
+    print(f"A1 hold-out SD {v['sd_nominal']:.3g} -> {v['sd_calibrated']:.3g}; noise floor {floor:.3g} "
+          f"({v['sd_calibrated'] / floor:.2f}x)")
     assert v["sd_calibrated"] < 5 * floor, (v, floor)
     assert v["sd_nominal"] > 100 * floor  # the paper's offsets are far outside the noise
 
