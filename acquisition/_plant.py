@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from labdata import FRF_QUANTITIES, quantity_power
+from labdata import FRF_QUANTITIES, quantity_factor, quantity_power
 
 QUANTITIES = FRF_QUANTITIES
 
@@ -52,11 +52,26 @@ class ModalPlant:
         Mass-normalized mode shapes at the drive points, m/sqrt(kg).
     quantity : {"accelerance", "mobility", "receptance"}
         What the outputs measure (acceleration m/s^2, velocity m/s, displacement m).
+    rigid_out : (n_out, n_rigid) float or None
+        Mass-normalized rigid-body mode shapes (0 Hz, free-free) at the sensors, m/sqrt(kg).
+    rigid_in : (n_in, n_rigid) float or None
+        The same at the drive points.
+    residual : (n_terms, n_out, n_in) float or None
+        Receptance of the modes above the kept ones as the series
+        ``sum_j (residual_shift + w^2)^j residual[j]``, m/N (``frfcal.synth.ArticleTruth.residual``).
+    residual_shift : float
+        Shift s of that series, rad^2/s^2.
 
     Notes
     -----
-    Receptance :math:`H(\\omega) = \\sum_r \\phi_{o,r}\\phi_{i,r}^T/(\\omega_r^2-\\omega^2+2i\\zeta_r\\omega_r\\omega)`;
+    Receptance :math:`H(\\omega) = \\sum_r \\phi_{o,r}\\phi_{i,r}^T/(\\omega_r^2-\\omega^2+2i\\zeta_r\\omega_r\\omega)`
+    + rigid-body and higher-mode terms (:meth:`feedthrough`);
     mobility = iw x receptance, accelerance = -w^2 x receptance.
+    The rigid-body modes (receptance :math:`-\\phi_o\\phi_i^T/\\omega^2`, the
+    accelerance mass line) and the higher modes are frequency-dependent
+    feedthrough terms, not states: a free-free structure has no stable
+    state-space form, and the higher modes respond quasi-instantaneously. The
+    simulated lab applies them at the drive frequency to the delivered force.
     Use :meth:`from_state_space` for a general ``(A, B, C, D)`` model.
     """
 
@@ -65,6 +80,10 @@ class ModalPlant:
     shapes_out: np.ndarray
     shapes_in: np.ndarray
     quantity: str = "accelerance"
+    rigid_out: np.ndarray | None = None
+    rigid_in: np.ndarray | None = None
+    residual: np.ndarray | None = None
+    residual_shift: float = 0.0
     _poles: np.ndarray | None = None
     _bz: np.ndarray | None = None
     _cz: np.ndarray | None = None
@@ -115,6 +134,57 @@ class ModalPlant:
         object.__setattr__(self, "_cz", cz)
         object.__setattr__(self, "_d", d)
         object.__setattr__(self, "_cdrive", np.concatenate([pi, pi], axis=1) * res[None, :])
+        self._check_feedthrough(po.shape[0], pi.shape[0])
+
+    def _check_feedthrough(self, n_out: int, n_in: int) -> None:
+        """Validate and store the rigid-body and higher-mode terms (see the class notes)."""
+        if (self.rigid_out is None) != (self.rigid_in is None):
+            raise PlantError("give both rigid_out and rigid_in, or neither")
+        if self.rigid_out is not None:
+            ro = np.asarray(self.rigid_out, dtype=float).reshape(n_out, -1)
+            ri = np.asarray(self.rigid_in, dtype=float)
+            if ri.ndim != 2 or ri.shape != (n_in, ro.shape[1]):
+                raise PlantError(f"rigid_in must be ({n_in}, {ro.shape[1]}) like rigid_out, got {ri.shape}")
+            if not (np.all(np.isfinite(ro)) and np.all(np.isfinite(ri))):
+                raise PlantError("rigid_out/rigid_in hold non-finite values")
+            object.__setattr__(self, "rigid_out", ro)
+            object.__setattr__(self, "rigid_in", ri)
+        if self.residual is not None:
+            r = np.asarray(self.residual, dtype=float)
+            if r.ndim != 3 or r.shape[1:] != (n_out, n_in) or r.shape[0] < 1:
+                raise PlantError(f"residual must be (n_terms, {n_out}, {n_in}), got {r.shape}")
+            if not np.all(np.isfinite(r)):
+                raise PlantError("residual holds non-finite values")
+            if r.shape[0] > 1 and not (np.isfinite(self.residual_shift) and self.residual_shift > 0):
+                raise PlantError(f"a residual series needs residual_shift > 0 (rad^2/s^2), got {self.residual_shift}")
+            object.__setattr__(self, "residual", r)
+            object.__setattr__(self, "residual_shift", float(self.residual_shift))
+
+    @property
+    def has_feedthrough(self) -> bool:
+        """True when rigid-body or higher-mode terms are present."""
+        return self.rigid_out is not None or self.residual is not None
+
+    def feedthrough(self, frequency_hz) -> np.ndarray:
+        """Rigid-body plus higher-mode FRF of the plant's quantity, ``(n_f, n_out, n_in)`` complex SI.
+
+        Receptance ``-phi_o phi_i^T / w^2`` per rigid mode plus
+        ``sum_j (s + w^2)^j residual[j]``, times iw (mobility) or -w^2 (accelerance).
+        Zero when the plant has neither.
+        """
+        f = np.atleast_1d(np.asarray(frequency_hz, dtype=float))
+        out = np.zeros((f.size, self.n_out, self.n_in), dtype=complex)
+        if not self.has_feedthrough:
+            return out
+        if np.any(f <= 0):
+            raise PlantError("the rigid-body/higher-mode feedthrough is defined for frequencies > 0 Hz")
+        w = 2 * np.pi * f
+        if self.rigid_out is not None:
+            out += (-1.0 / w**2)[:, None, None] * (self.rigid_out @ self.rigid_in.T)[None]
+        if self.residual is not None:
+            powers = (self.residual_shift + w[:, None] ** 2) ** np.arange(self.residual.shape[0])[None, :]
+            out += np.einsum("fj,joi->foi", powers, self.residual)
+        return quantity_factor(self.quantity, w)[:, None, None] * out
 
     # ------------------------------------------------------------------ ctors
     @classmethod
@@ -191,11 +261,13 @@ class ModalPlant:
         return self._poles, self._bz, self._cz, self._d
 
     def frf(self, frequency_hz) -> np.ndarray:
-        """Exact steady-state FRF of the plant's quantity, ``(n_f, n_out, n_in)`` complex SI."""
+        """Exact steady-state FRF of the plant's quantity (feedthrough included), ``(n_f, n_out, n_in)`` complex SI."""
         f = np.atleast_1d(np.asarray(frequency_hz, dtype=float))
         s = 2j * np.pi * f
         g = 1.0 / (s[:, None] - self._poles[None, :])  # (n_f, n_s)
         h = np.einsum("os,fs,si->foi", self._cz, g, self._bz) + self._d[None]
+        if self.has_feedthrough:
+            h = h + self.feedthrough(f)
         return h
 
     def state_space(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

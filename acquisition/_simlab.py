@@ -162,6 +162,10 @@ class SimulatedLab:
                 raise SimLabError(f"nonlinearity needs a modal plant and a mode index in range, got mode {nonlinearity.mode}")
             self._omega_eq = 2 * np.pi * plant.frequencies_hz[nonlinearity.mode]
         self.nonlinearity = nonlinearity
+        if plant.has_feedthrough and plant.quantity == "mobility":
+            raise SimLabError("a plant with rigid-body/higher-mode feedthrough must be accelerance or receptance "
+                              "(the mobility feedthrough is a 90-degree phase shift, not a real gain)")
+        self._ft_cache: tuple[float, np.ndarray] | None = None
         self._gain_ideal = gain_n_per_v
         if plant._abcd is not None and plant.drive_point_form() is not None:
             self._cdrive_physical = plant._cdrive_physical
@@ -384,7 +388,18 @@ class SimulatedLab:
             n -= m
         if not ys:
             return np.zeros((self._C.shape[0], 0)), np.zeros(0)
-        return np.hstack(ys), np.concatenate(ds)
+        y = np.hstack(ys)
+        if self.plant.has_feedthrough:
+            # rigid-body and higher modes: a real gain at the drive frequency on the delivered force (last row)
+            y[: self.plant.n_out] += self._feedthrough()[:, None] * y[self.plant.n_out][None, :]
+        return y, np.concatenate(ds)
+
+    def _feedthrough(self) -> np.ndarray:
+        """(n_out,) real feedthrough of the plant at the present drive frequency from the driven input."""
+        if self._ft_cache is None or self._ft_cache[0] != self._freq:
+            h = self.plant.feedthrough(self._freq)[0, :, self.drive_index]
+            self._ft_cache = (self._freq, h.real.copy())
+        return self._ft_cache[1]
 
     def _sensor(self, y: np.ndarray, drive: np.ndarray, t0: float) -> tuple[np.ndarray, np.ndarray]:
         """Sensor chain: noise (EU), sensitivity to volts, clipping at the range (overload), ADC LSB."""

@@ -155,6 +155,12 @@ def plan_inputs(camp: Campaign, plan) -> dict:
         out["layout_sha256"] = file_hash(plan.resolve(plan.layout))
     if plan.sim is not None and plan.sim.model is not None:
         out["sim_model_sha256"] = file_hash(plan.resolve(plan.sim.model))
+    if camp.simulation is not None and camp.acquisition.driver == "sim":
+        # the simulated articles are the deck at their parameters: the deck and parameter file are inputs
+        bdf, units = deck(camp)
+        out["simulation"] = camp.simulation.model_dump(mode="json")
+        out["truth_deck"] = {"bdf_sha256": file_hash(bdf), "units": units,
+                             "parameters_sha256": file_hash(camp.resolve(camp.model.parameters))}
     return out
 
 
@@ -230,6 +236,8 @@ def acquire_stage(camp: Campaign, plan, key: str, outdir: Path, log=print) -> Ru
             log(f"acquire: resuming in {runs} (completed runs are kept, interrupted ones continue)")
     runs.mkdir(parents=True, exist_ok=True)
     marker.write_text(json.dumps({"fingerprint": key}))
+    if camp.simulation is not None and camp.acquisition.driver == "sim":
+        return _simulated_acquisition(camp, plan, runs, log)
     make, channels = driver_factory(camp, plan)
     results = _run_safely(plan, make, runs, channels)
     bad = [r for r in results if r.status != "completed"]
@@ -238,6 +246,21 @@ def acquire_stage(camp: Campaign, plan, key: str, outdir: Path, log=print) -> Ru
     for r in results:
         log(f"acquire: {r.path}: {r.n_lines} lines ({r.n_new_lines} new)")
     return RunFiles(tuple(Path(r.path) for r in results), tuple(None for _ in results))
+
+
+def _simulated_acquisition(camp: Campaign, plan, runs: Path, log) -> RunFiles:
+    """The acquire stage on the simulated articles of ``[simulation]`` (``frfcal.campaign._acquire``)."""
+    import femodel
+
+    from frfcal.campaign._acquire import SimulationError, acquire_simulated
+
+    bdf, units = deck(camp)
+    pm = femodel.parametric_model(camp.resolve(camp.model.parameters), bdf, units=units)
+    try:
+        _, done = acquire_simulated(camp.simulation, plan, pm, runs, log=lambda m: log(f"acquire: {m}"))
+    except SimulationError as exc:
+        raise CalibrationError(str(exc)) from None
+    return RunFiles(tuple(r.path for r in done), tuple(r.article for r in done))
 
 
 # ----------------------------------------------------------------------------- import
@@ -276,7 +299,13 @@ def import_stage(camp: Campaign, outdir: Path, log=print) -> RunFiles:
 def resolved_runs(camp: Campaign, imported: RunFiles | None, acquired: RunFiles | None) -> Campaign:
     """The campaign with every ``[[run]]`` a run file: imported entries replaced, or the acquired runs."""
     if acquired is not None:
-        runs = [RunEntry(path=Path(p).resolve(), article=a) for p, a in zip(acquired.paths, acquired.articles)]
+        # several force levels per article: the lowest is the calibration data (docs/campaign.md, levels);
+        # all levels stay in the acquire result for the nonlinearity check
+        from frfcal.campaign._acquire import runs_by_level
+
+        label = {str(Path(p)): a for p, a in zip(acquired.paths, acquired.articles)}
+        lowest = [entries[0][1] for entries in runs_by_level(acquired.paths).values()]
+        runs = [RunEntry(path=Path(p).resolve(), article=label.get(str(Path(p)))) for p in lowest]
     else:
         it = iter(imported.paths if imported is not None else ())
         runs = [RunEntry(path=Path(next(it)).resolve(), article=e.article) if e.uff is not None else e

@@ -192,6 +192,90 @@ class CrossValidationSection(_Strict):
     max_evaluations: int = Field(30, ge=2, description="residual evaluations per recalibration")
 
 
+class SimEffect(_Strict):
+    """An effect the FE model lacks, built into the truth of the named simulated articles.
+
+    ``kind = "spring"``: contact/joint springs of rate ``rate_n_per_m`` between
+    each grid pair of ``pairs`` on every translation of ``components`` (a closed
+    air gap: ``femodel.AddedSpring``). ``kind = "mass"``: a lumped mass
+    ``mass_kg`` on each grid of ``grids`` (``femodel.AddedMass``).
+    """
+
+    name: str = Field(description="effect name (the added term's parameter name in the truth model)")
+    kind: Literal["spring", "mass"]
+    articles: list[str] = Field(min_length=1, description="articles that have the effect (names of the plan's ensemble)")
+    pairs: list[tuple[int, int]] = Field(default_factory=list, description="spring: (grid, grid) pairs")
+    components: list[int] = Field(default_factory=lambda: [1, 2, 3], description="spring: translations 1..3 joined")
+    rate_n_per_m: float | None = Field(None, gt=0, description="spring: rate per DOF pair, N/m")
+    grids: list[int] = Field(default_factory=list, description="mass: grids carrying one mass each")
+    mass_kg: float | None = Field(None, gt=0, description="mass: lumped mass per grid, kg")
+
+    @model_validator(mode="after")
+    def _kind(self):
+        if self.kind == "spring":
+            if not self.pairs or self.rate_n_per_m is None:
+                raise ValueError(f"effect {self.name!r}: kind 'spring' needs pairs and rate_n_per_m")
+            if not set(self.components) <= {1, 2, 3} or not self.components:
+                raise ValueError(f"effect {self.name!r}: components must be translations among 1, 2, 3")
+        elif not self.grids or self.mass_kg is None:
+            raise ValueError(f"effect {self.name!r}: kind 'mass' needs grids and mass_kg")
+        return self
+
+
+class SimLoosePart(_Strict):
+    """A loose part on one article: a hardening cubic spring on one mode, engaged at the higher force levels.
+
+    The lab applies it by equivalent linearization (``acquisition.CubicSpring``);
+    its strength is given as the relative rise of the mode's frequency at
+    resonance under ``from_level_n``. Runs below ``from_level_n`` see the linear
+    article (the part rattles only when driven hard).
+    """
+
+    article: str = Field(description="the article with the loose part")
+    mode: int | None = Field(None, ge=1, description="elastic mode number (1 = first elastic mode of the truth); "
+                             "default: the in-band mode of the largest drive-point resonance")
+    shift: float = Field(0.005, gt=0, lt=0.2, description="relative frequency rise at resonance at from_level_n")
+    from_level_n: float = Field(gt=0, description="force level from which the part is engaged, N peak")
+
+
+class SimulationSection(_Strict):
+    """The simulated test articles of ``--driver sim`` (docs/campaign.md, [simulation]).
+
+    Each article of the plan's ensemble is the deck at its own parameters
+    (population offsets plus scatter), its own modal damping and the effects
+    listed for it, solved as in ``frfcal.synth`` (modes up to ``mode_factor``
+    x the sweep top, free-free rigid-body modes, the exact higher-mode
+    residual); the simulated lab sweeps that plant.
+    """
+
+    offsets: Literal["paper"] | dict[str, float] = Field(
+        "paper", description="population offsets of normalized p: 'paper' (the demo's Table 2.1 ratios) or {name = p}")
+    scatter: float = Field(0.003, ge=0, description="article rms scatter of p around the population (absolute in p)")
+    seed: int = Field(0, description="seed of the scatter, damping and sensor noise")
+    zeta_range: tuple[float, float] = Field((1e-3, 3e-3), description="modal damping range, log-uniform per mode "
+                                            "(fraction of critical)")
+    mode_factor: float = Field(3.0, ge=1.5, description="modes up to mode_factor x sweep top are modes; the rest the "
+                               "exact residual")
+    noise_rms: float = Field(1e-3, ge=0, description="sensor noise, engineering units rms (m/s^2; N on the force)")
+    shaker: Literal["electrodynamic", "ideal"] = Field("electrodynamic", description="simulated exciter")
+    effect: list[SimEffect] = Field(default_factory=list, description="effects the model lacks, per article")
+    loose_part: SimLoosePart | None = None
+
+    @field_validator("zeta_range")
+    @classmethod
+    def _zeta(cls, v):
+        if not 0 < v[0] <= v[1] < 0.5:
+            raise ValueError(f"zeta_range must be 0 < low <= high < 0.5, got {list(v)}")
+        return v
+
+    @model_validator(mode="after")
+    def _names(self):
+        names = [e.name for e in self.effect]
+        if len(set(names)) != len(names):
+            raise ValueError(f"effect names must be unique, got {names}")
+        return self
+
+
 class ExecutionSection(_Strict):
     workers: int | None = Field(None, ge=1, description="local worker processes (default: all cores)")
     scheduler: str | None = Field(None, description="Dask: a scheduler address (tcp://host:8786), or \"local\" "
@@ -219,6 +303,7 @@ class Campaign(_Strict):
     identification: IdentificationSection = IdentificationSection()
     validation: ValidationSection = ValidationSection()
     crossvalidation: CrossValidationSection = CrossValidationSection()
+    simulation: SimulationSection | None = None
     execution: ExecutionSection = ExecutionSection()
     output: OutputSection = OutputSection()
     base_dir: Path = Field(Path("."), exclude=True)

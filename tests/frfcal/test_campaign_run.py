@@ -495,7 +495,7 @@ def test_the_documented_campaign_files_are_valid():
 
     blocks = [tomllib.loads(b) for b in re.findall(r"```toml\n(.*?)```", (REPO / "docs" / "campaign.md").read_text(),
                                                    re.S)]
-    front, reference, example, inline = blocks
+    front, reference, example, inline, simulation = blocks
     assert [e.uff is not None for e in campaign_from_dict(reference).run] == [False, True]
     assert [str(e.uff) for e in campaign_from_dict(example).run] == ["data/A1.uff", "data/A2.uff"]
     acquiring = {k: v for k, v in example.items() if k != "run"}
@@ -504,6 +504,8 @@ def test_the_documented_campaign_files_are_valid():
     assert camp.acquisition.driver == "sim" and camp.pretest.sensors == 20 and not camp.run
     with pytest.raises(ValueError, match="not both"):
         campaign_from_dict({**acquiring, "run": example["run"]})
+    sim = campaign_from_dict({**acquiring, "simulation": simulation["simulation"]}).simulation  # the [simulation] block
+    assert sim.effect[0].kind == "spring" and sim.loose_part.article == "SF5"
 
 
 if __name__ == "__main__":  # the executor comparison in a fresh process (see _executor_comparison)
