@@ -19,6 +19,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from calibration import make_executor
+from frfcal.campaign._diagnose import diagnose_stage, write_diagnosis
 from frfcal.campaign._report import write_outputs
 from frfcal.campaign._schema import Campaign
 from frfcal.campaign._stages import (
@@ -33,7 +34,7 @@ from frfcal.campaign._stages import (
 )
 from frfcal.campaign._store import StageStore, file_hash, fingerprint
 
-STAGES = ("load", "identify", "equalize", "group", "calibrate", "validate", "crossvalidate")
+STAGES = ("load", "identify", "equalize", "group", "calibrate", "validate", "crossvalidate", "diagnose")
 VERSION = 1  # bump when a stage computes differently: every stored result is then stale
 
 
@@ -87,6 +88,8 @@ def stage_keys(camp: Campaign, model, load: str) -> dict:
                                  _section(camp, "calibration"), _section(camp, "validation", "mac_min"))
     k["validate"] = fingerprint(VERSION, "validate", k["calibrate"], _section(camp, "validation"))
     k["crossvalidate"] = fingerprint(VERSION, "crossvalidate", k["calibrate"], _section(camp, "crossvalidation"))
+    k["diagnose"] = fingerprint(VERSION, "diagnose", k["calibrate"], k["validate"], k["crossvalidate"],
+                                _section(camp, "diagnosis"), [e.level for e in camp.run])
     return k
 
 
@@ -109,8 +112,12 @@ class _Executor:
             close()
 
 
-def run_campaign(camp: Campaign, log=print) -> dict:
+def run_campaign(camp: Campaign, log=print, diagnose: bool = False) -> dict:
     """Run the campaign's stages; write outputs into ``camp.output.dir``; return the result dict.
+
+    ``diagnose=True`` (``frfcal diagnose``, ``frfcal run``) adds the diagnose
+    stage after cross-validation (skipped when ``[diagnosis] enabled = false``);
+    its result is under ``result["diagnosis"]`` and in ``diagnosis.json``.
 
     Every stage result goes to ``<output dir>/stages/<stage>.json|.npz``;
     a stage whose inputs did not change since it was stored is read back
@@ -160,7 +167,16 @@ def run_campaign(camp: Campaign, log=print) -> dict:
         xval = stage("crossvalidate", keys["crossvalidate"],
                      lambda: crossvalidate_stage(camp, articles, eq, cal, bounds, pm.parameters.names,
                                                  executor.get(), log))
+        diag = None
+        if diagnose and camp.diagnosis.enabled:
+            t = time.perf_counter()
+            diag = stage("diagnose", keys["diagnose"],
+                         lambda: diagnose_stage(camp, load, articles, cal, val, xval, log))
+            timings["diagnosis_s"] = time.perf_counter() - t
     finally:
         executor.close()
     timings["total_s"] = time.perf_counter() - t_all
-    return write_outputs(camp, pm, articles, groups, cal, val, xval, timings, records, outdir, log)
+    result = write_outputs(camp, pm, articles, groups, cal, val, xval, timings, records, outdir, log)
+    if diag is not None:
+        result["diagnosis"] = write_diagnosis(diag, outdir, log)
+    return result

@@ -32,6 +32,9 @@ class RunEntry(_Strict):
 
     path: Path
     article: str | None = Field(None, description="article label (default: the run file's article)")
+    level: float | None = Field(None, gt=0, description="excitation force level of the run, N (default: the median "
+                                "achieved force over its valid lines); runs of one article at several levels feed "
+                                "the nonlinearity gate of the diagnosis")
 
 
 class ChannelsSection(_Strict):
@@ -135,6 +138,25 @@ class ExecutionSection(_Strict):
     scheduler: str | None = Field(None, description="Dask scheduler address, e.g. tcp://host:8786")
 
 
+class DiagnosisSection(_Strict):
+    """The diagnose stage (docs/diagnosis.md): run by ``frfcal diagnose`` and ``frfcal run``, never by
+    ``frfcal calibrate``."""
+
+    enabled: bool = Field(True, description="run the diagnose stage in `frfcal run` (`frfcal diagnose` "
+                          "refuses a campaign with enabled = false)")
+    ratio_threshold: float = Field(2.0, gt=1, description="residual SD / (noise floor + test-to-test scatter) "
+                                   "above which the residual is significant (dimensionless)")
+    z_threshold: float = Field(5.0, gt=0, description="chi-square size of the residual above which it is "
+                               "significant, sigma")
+    shift_threshold: float = Field(1.0, gt=0, description="model-test frequency shift above which a mode is "
+                                   "flagged, half-power bandwidths (2 zeta f)")
+    nonlinearity_z: float = Field(5.0, gt=0, description="significance of a level, sweep-direction "
+                                  "difference above which it is flagged nonlinear, sigma")
+    thd_threshold: float = Field(0.05, gt=0, lt=1, description="total harmonic distortion above which a line is "
+                                 "distorted (fraction)")
+    figures_channels: int = Field(4, ge=1, description="FRF overlays at this many most affected channels")
+
+
 class OutputSection(_Strict):
     dir: Path = Field(Path("calibration-out"), description="output directory")
     figures: bool = True
@@ -152,6 +174,7 @@ class Campaign(_Strict):
     identification: IdentificationSection = IdentificationSection()
     validation: ValidationSection = ValidationSection()
     crossvalidation: CrossValidationSection = CrossValidationSection()
+    diagnosis: DiagnosisSection = DiagnosisSection()
     execution: ExecutionSection = ExecutionSection()
     output: OutputSection = OutputSection()
     base_dir: Path = Field(Path("."), exclude=True)

@@ -1,0 +1,471 @@
+"""The diagnose stage: is there anything to explain, is it nonlinear, which effect does the model lack?
+
+Flow per ensemble member (docs/diagnosis.md):
+
+1. **significance** (:func:`member_residual`): the calibrated model's residual on
+   the raw calibration and hold-out lines against the noise floor (per-line
+   standard errors, else the identification's fit residual) and the
+   test-to-test scatter of the member's articles
+   (:func:`calibration.residual_check`). Inside the floor: stop, "nothing to
+   explain".
+2. **nonlinearity gate** (:func:`nonlinearity_gate`): run files of the same
+   article at several force levels (level dependence), THD of the run files,
+   up/down sweeps at one level. Flagged: stop, "nonlinear"; no linear effect
+   is accepted.
+3. candidates and screening (when the kernels are present).
+
+The stage writes nothing; :func:`write_diagnosis` writes ``diagnosis.json``.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from calibration import (
+    CalibrationError,
+    FitData,
+    ModalDampingObjective,
+    ResidualItem,
+    antiresonances,
+    expected_from_std_error,
+    log_deviation,
+    mode_residuals,
+    residual_check,
+    scatter_sd,
+)
+from calibration._damping import mapped_damping
+from calibration._metric import LN10
+from frfcal.campaign._schema import Campaign
+from frfcal.campaign._stages import Article, identified_modes, pair_mask
+
+VERDICTS = ("nothing to explain", "nonlinear", "effect(s) found", "no effect accepted")
+
+
+# ----------------------------------------------------------------------------- residual
+
+
+def _channels(camp: Campaign) -> list:
+    return list(camp.channels.calibrate) + list(camp.channels.holdout)
+
+
+def model_frf(sur, p, article: Article, channels, damping, k: int, zeta0: float, mac_min: float, band):
+    """The calibrated model's FRF on the article's raw lines and ``channels`` (all values, no mask).
+
+    ``damping`` is the refinement's (zeta per article, p_ref) or None: then
+    the identified damping mapped by MAC at ``p``.
+    """
+    rows = [article.channels.index(n) for n in channels]
+    H = article.frf[:, rows]
+    d = FitData(article.freq_hz, H, tuple(channels), article.drives, article=article.name)
+    if damping is not None:
+        zeta, p_ref = damping[0][k], damping[1]
+    else:
+        modes = identified_modes(article)
+        fallback = float(np.median(modes.damping)) if len(modes.damping) else zeta0
+        zeta, p_ref = mapped_damping(sur, p, modes, fallback, mac_min, band)[0], p
+    eps = ModalDampingObjective(sur, [d], [zeta], p_ref, 0.0, article.quantity).deviation(p)[0]
+    return H * 10 ** eps.reshape(H.shape)
+
+
+def difference_noise(eps, window: int = 15) -> np.ndarray:
+    """Noise ``E|eps|^2`` per value from the differences of adjacent lines (difference-based estimate).
+
+    Measurement noise is independent from line to line; a model error is
+    correlated over neighbouring lines. The half squared difference of
+    adjacent residuals, ``|eps_k - eps_k+1|^2 / 2``, keeps the noise and
+    cancels most of a smooth model error; its running median over ``window``
+    lines of the pair, over ln 2 (exponential distribution), is the local
+    noise (robust to the few lines where a sharp misfit does not cancel).
+
+    Parameters
+    ----------
+    eps : (n_f, n_out, n_in) complex residual on ascending lines
+
+    Returns
+    -------
+    (n_f, n_out, n_in) float
+    """
+    from scipy.ndimage import uniform_filter1d
+
+    e = np.asarray(eps)
+    if e.shape[0] < 3:
+        return np.abs(e) ** 2
+    d = np.abs(np.diff(e, axis=0)) ** 2 / 2
+    d = np.concatenate([d, d[-1:]], axis=0)
+    return uniform_filter1d(d, size=min(window, d.shape[0]), axis=0, mode="nearest")
+
+
+def _expected(article: Article, channels, H, eps):
+    """(E|eps|^2 per value, source): the per-line standard errors, else a difference-based estimate.
+
+    Without standard errors (e.g. run files imported from UFF58), the noise
+    is :func:`difference_noise` of the residual: it needs neither the
+    identification (whose own misfit would pass for noise) nor a noise model.
+    """
+    rows = [article.channels.index(n) for n in channels]
+    if article.std_error is not None:
+        return expected_from_std_error(H, article.std_error[:, rows]), "per-line standard errors"
+    return difference_noise(eps), "adjacent-line differences of the residual (no standard errors)"
+
+
+def _ident_frf(article: Article, channels):
+    rows = [article.ident_channels.index(n) for n in channels]
+    ident = article.identification
+    n_in = ident.model.n_in
+
+    def frf(f):
+        H = ident.frf(f)[:, rows]
+        return H if n_in == len(article.drives) else H[:, :, :len(article.drives)]
+    return frf
+
+
+def _frequency_scatter(modes_per) -> list:
+    """Per article, per identified mode: standard deviation (Hz) of its frequency over the articles
+    (nearest mode within 5 % in each other article); zeros with one article."""
+    out = []
+    for a, ma in enumerate(modes_per):
+        s = np.zeros(len(ma.frequency_hz))
+        if len(modes_per) > 1:
+            for k, f in enumerate(ma.frequency_hz):
+                fs = [f]
+                for b, mb in enumerate(modes_per):
+                    if b != a and len(mb.frequency_hz):
+                        j = np.argmin(np.abs(mb.frequency_hz - f))
+                        if abs(mb.frequency_hz[j] / f - 1) < 0.05:
+                            fs.append(mb.frequency_hz[j])
+                s[k] = np.std(fs, ddof=1) if len(fs) > 1 else 0.0
+        out.append(s)
+    return out
+
+
+def member_residual(camp: Campaign, load, articles, member, cfg=None):
+    """Is there anything to explain for one calibrated member? (:func:`calibration.residual_check`).
+
+    Parameters
+    ----------
+    camp : Campaign ; load : LoadResult (channel/drive geometry for the drive points)
+    articles : identified articles ; member : MemberCalibration
+    cfg : DiagnosisSection (default: the campaign's)
+
+    Returns
+    -------
+    (ResidualCheck, list of per-article model FRFs on the raw lines and channels)
+    """
+    cfg = cfg or camp.diagnosis
+    chans = _channels(camp)
+    band = (camp.band.low_hz, camp.band.high_hz)
+    arts = [articles[i] for i in member.articles]
+    ref = member.refinement
+    damping = None if ref is None else (ref.zeta, ref.p_zeta)
+    items, models, sources, model_frfs, tests = [], [], set(), [], []
+    geo_c = {t.name: t for t in load.channels}
+    geo_d = {t.name: t for t in load.drives}
+    modes_per = [identified_modes(a) for a in arts]
+    scatter_hz = _frequency_scatter(modes_per)
+    mode_rows, anti = [], []
+    for k, a in enumerate(arts):
+        rows = [a.channels.index(n) for n in chans]
+        Ht = a.frf[:, rows]
+        Hm = model_frf(member.surrogate, member.p, a, chans, damping, k, camp.calibration.zeta0,
+                       camp.validation.mac_min, band)
+        model_frfs.append(Hm)
+        eps = log_deviation(Hm, Ht)
+        q, src = _expected(a, chans, Ht, eps)
+        sources.add(src)
+        mask = pair_mask(a, chans, a.freq_hz.size)
+        tests.append(Ht)
+        items.append(ResidualItem(a.name, a.freq_hz, eps, q, mask))
+        models.append(_ident_frf(a, chans))
+        mode_rows.extend(mode_residuals(member.surrogate, member.p, modes_per[k], a.name,
+                                        mac_min=camp.validation.mac_min, band_hz=band,
+                                        shift_threshold=cfg.shift_threshold, scatter_hz=scatter_hz[k]))
+        pairs = [(c, d) for c, n in enumerate(chans) for d, dn in enumerate(a.drives)
+                 if n in geo_c and dn in geo_d and geo_c[n].grid == geo_d[dn].grid
+                 and abs(float(np.dot(geo_c[n].direction, geo_d[dn].direction))) > 0.99]
+        anti.extend(antiresonances(a.name, a.freq_hz, Hm, Ht, pairs, chans, a.drives, mask=mask))
+    sc = scatter_sd([a.freq_hz for a in arts], tests, models, [it.expected for it in items],
+                    [it.mask for it in items])
+    check = residual_check(items, chans, arts[0].drives, scatter=sc, band_hz=band, modes=tuple(mode_rows),
+                           antiresonances=tuple(anti), ratio_threshold=cfg.ratio_threshold,
+                           z_threshold=cfg.z_threshold, floor_source=" / ".join(sorted(sources)))
+    return check, model_frfs
+
+
+# ----------------------------------------------------------------------------- nonlinearity
+
+
+def _sweep_order(time_s) -> str:
+    t = np.asarray(time_s, float)
+    if t.size > 1 and np.all(np.isfinite(t)):
+        dt = np.diff(t)
+        return "up" if np.all(dt > 0) else "down" if np.all(dt < 0) else "unknown"
+    return "unknown"
+
+
+@dataclass(frozen=True)
+class LevelRun:
+    """One run file of an article as the nonlinearity gate sees it.
+
+    article : str ; path : Path ; level : force level (N) ; level_source : "campaign" (``[[run]] level``)
+    or "run file" (median achieved force over the valid lines, mean over drives) ; sweep : "up"/"down"/"unknown"
+    """
+
+    article: str
+    path: Path
+    level: float
+    level_source: str
+    sweep: str
+
+
+def _frf_level(a: Article, lr: LevelRun, band):
+    from calibration import FRFLevel
+
+    ln = a.lines
+    f = np.asarray(ln.frequency_hz, float)
+    use = np.asarray(ln.valid, bool) & (f >= band[0]) & (f <= band[1])
+    se = None if ln.std_error is None else np.asarray(ln.std_error, float)[use]
+    if se is not None and not (np.all(np.isfinite(se)) and np.all(se > 0)):
+        se = None
+    return FRFLevel(f[use], np.asarray(ln.frf)[use], lr.level, se, "N", a.quantity, a.path.name, lr.sweep)
+
+
+def nonlinearity_gate(camp: Campaign, articles, log=print) -> dict:
+    """The nonlinearity checks per article name, from the campaign's run files.
+
+    Run files with the same article name are the same article: at two or more
+    distinct force levels (``[[run]] level``, N, else the run's median achieved
+    force; levels within 2 % are one level) they feed
+    :func:`calibration.level_dependence` on the identified modes in the band;
+    an up and a down sweep at one level feed :func:`calibration.sweep_direction`;
+    every run's THD (when the run file has it) feeds :func:`calibration.distortion`
+    (the run with the largest THD is reported).
+
+    Returns
+    -------
+    dict article name -> (Nonlinearity or None, tuple of LevelRun, tuple of str notes)
+    """
+    from acquisition.runfile import read_run
+
+    from calibration import distortion, level_dependence, nonlinearity, sweep_direction
+
+    cfg = camp.diagnosis
+    lo = camp.identification.low_hz or 0.8 * camp.band.low_hz
+    hi = camp.identification.high_hz or 1.25 * camp.band.high_hz
+    by_name: dict = {}
+    for i, a in enumerate(articles):
+        by_name.setdefault(a.name, []).append(i)
+    out = {}
+    for name, idx in by_name.items():
+        runs, dist, notes = [], [], []
+        for i in idx:
+            a, entry = articles[i], camp.run[i]
+            run = read_run(a.path)
+            ok = np.asarray(run.valid, bool)
+            if entry.level is not None:
+                lvl, src = float(entry.level), "campaign"
+            else:
+                fn = np.asarray(run.force_n, float)[ok]
+                lvl = float(np.median(np.mean(np.abs(fn), axis=1))) if fn.size else float("nan")
+                src = "run file"
+            runs.append(LevelRun(name, a.path, lvl, src, _sweep_order(np.asarray(run.time_s, float)[ok])))
+            thd = np.asarray(run.thd, float)
+            if thd.size and np.any(np.isfinite(thd) & (thd > 0)):
+                modal = a.identification.modal
+                dist.append(distortion(run.frequency_hz, thd, channels=[s.name for s in run.sensors]
+                                       + [d.name for d in run.drives], threshold=cfg.thd_threshold,
+                                       modes_hz=modal.frequency_hz, damping=modal.damping, label=a.path.name))
+        level = sweep = None
+        good = [k for k, r in enumerate(runs) if np.isfinite(r.level) and r.level > 0]
+        distinct = []
+        for k in sorted(good, key=lambda k: runs[k].level):
+            if not distinct or runs[k].level > 1.02 * runs[distinct[-1]].level:
+                distinct.append(k)
+        if len(distinct) >= 2:
+            a0 = articles[idx[distinct[0]]]
+            modal = a0.identification.modal
+            fm = [f for f in modal.frequency_hz if camp.band.low_hz <= f <= camp.band.high_hz]
+            try:
+                level = level_dependence([_frf_level(articles[idx[k]], runs[k], (lo, hi)) for k in distinct],
+                                         fm or None, z_threshold=cfg.nonlinearity_z)
+            except CalibrationError as exc:
+                notes.append(f"{name}: level dependence not evaluated: {exc}")
+        elif len(idx) > 1 or not dist:
+            notes.append(f"{name}: {len(distinct)} distinct force level(s): no level-dependence check")
+        ups = [k for k in good if runs[k].sweep == "up"]
+        downs = [k for k in good if runs[k].sweep == "down"]
+        pair = next(((u, d) for u in ups for d in downs if abs(runs[u].level / runs[d].level - 1) < 0.02), None)
+        if pair is not None:
+            try:
+                sweep = sweep_direction(*(_frf_level(articles[idx[k]], runs[k], (lo, hi)) for k in pair),
+                                        z_threshold=cfg.nonlinearity_z)
+            except CalibrationError as exc:
+                notes.append(f"{name}: sweep direction not evaluated: {exc}")
+        worst = max(dist, key=lambda d: (d.flagged, np.nanmax(d.max_thd))) if dist else None
+        verdict = None
+        if level is not None or worst is not None or sweep is not None:
+            verdict = nonlinearity(level, worst, sweep)
+        for n in notes:
+            log(n)
+        out[name] = (verdict, tuple(runs), tuple(notes))
+    return out
+
+
+# ----------------------------------------------------------------------------- the stage
+
+
+@dataclass(frozen=True)
+class ArticleGate:
+    """The nonlinearity gate of one article (all its run files).
+
+    nonlinearity : calibration.Nonlinearity or None (no check possible: one level,
+    no THD, no up/down pair) ; runs : tuple of LevelRun ; notes : why a check was not run
+    """
+
+    article: str
+    nonlinearity: object | None
+    runs: tuple
+    notes: tuple = ()
+
+    def to_dict(self) -> dict:
+        return {"article": self.article,
+                "nonlinearity": None if self.nonlinearity is None else self.nonlinearity.to_dict(),
+                "runs": [{"path": str(r.path), "level_n": r.level, "level_source": r.level_source,
+                          "sweep": r.sweep} for r in self.runs],
+                "notes": list(self.notes)}
+
+
+@dataclass(frozen=True)
+class MemberDiagnosis:
+    """One ensemble member's diagnosis.
+
+    Attributes
+    ----------
+    label : str ; articles : tuple of article names
+    verdict : one of VERDICTS ; reason : the verdict in one sentence
+    residual : calibration.ResidualCheck of the calibrated model
+    nonlinear_modes : tuple of dict (article, mode, frequency_hz, quantity, levels, values, ratio, z)
+    sd : dict, SD of the calibrated model (key "before") on calibration (raw lines), hold-out and
+        cross-validation, beside the floor; key "after" with an accepted effect
+    channels : tuple of str, the most affected channels (largest residual ratio first)
+    """
+
+    label: str
+    articles: tuple
+    verdict: str
+    reason: str
+    residual: object
+    nonlinear_modes: tuple = ()
+    sd: dict | None = None
+    channels: tuple = ()
+
+    def to_dict(self) -> dict:
+        return {"member": self.label, "articles": list(self.articles), "verdict": self.verdict,
+                "reason": self.reason, "residual": self.residual.to_dict(),
+                "nonlinear_modes": [dict(m) for m in self.nonlinear_modes], "sd": self.sd,
+                "most_affected_channels": list(self.channels)}
+
+
+@dataclass(frozen=True)
+class DiagnosisResult:
+    """The diagnose stage: the nonlinearity gate per article and the diagnosis per ensemble member."""
+
+    gates: tuple  # of ArticleGate
+    members: tuple  # of MemberDiagnosis
+
+    def to_dict(self) -> dict:
+        return {"gates": [g.to_dict() for g in self.gates], "members": [m.to_dict() for m in self.members]}
+
+
+def _sd_table(member, val, xval, check) -> dict:
+    """SD of the calibrated model on calibration (raw lines), hold-out, cross-validation, beside the floor."""
+    ref = member.refinement
+    v = val.validation if val is not None else None
+    cv = xval.crossvalidation if xval is not None else None
+    return {
+        "calibration_raw": None if ref is None else float(ref.sd_raw),
+        "calibration_equalized": float(member.cycle.sd),
+        "holdout": None if v is None else float(v.sd_calibrated),
+        "holdout_floor": None if v is None or v.sd_floor is None else float(v.sd_floor),
+        "crossvalidation_rse": None if cv is None else float(cv.rse),
+        "residual_all_channels": float(check.sd),
+        "floor": float(check.floor),
+        "floor_source": check.floor_source,
+        "scatter": float(check.scatter),
+    }
+
+
+def _nonlinear_modes(gate: ArticleGate) -> list:
+    nl = gate.nonlinearity
+    if nl is None:
+        return []
+    rows = [{"article": gate.article, "check": "level dependence", "mode": c.mode, "frequency_hz": c.frequency_hz,
+             "quantity": c.quantity, "levels_n": list(c.levels), "values": list(c.values), "ratio": c.ratio,
+             "z": c.z} for c in nl.modes]
+    if nl.distortion is not None:
+        for x in nl.distortion.lines:
+            rows.append({"article": gate.article, "check": "harmonic distortion", "mode": x.mode,
+                         "frequency_hz": x.frequency_hz, "channel": x.channel, "thd": x.thd, "relation": x.relation})
+    if nl.sweep is not None:
+        for b in nl.sweep.bands:
+            rows.append({"article": gate.article, "check": "sweep direction", "frequency_hz": b.peak_up_hz,
+                         "band_hz": [b.f_low_hz, b.f_high_hz], "z": b.max_z})
+    return rows
+
+
+def diagnose_stage(camp: Campaign, load, articles, cal, val, xval, log=print) -> DiagnosisResult:
+    """The diagnosis of every calibrated member: significance, then the nonlinearity gate (module docstring).
+
+    ``articles`` carry their identification; ``cal``, ``val``, ``xval`` are the
+    calibrate, validate and cross-validate results.
+    """
+    gates = tuple(ArticleGate(name, nl, runs, notes)
+                  for name, (nl, runs, notes) in nonlinearity_gate(camp, articles, log).items())
+    by_name = {g.article: g for g in gates}
+    out = []
+    for m, v, x in zip(cal.members, val.members, xval.members):
+        names = tuple(dict.fromkeys(articles[i].name for i in m.articles))
+        check, _ = member_residual(camp, load, articles, m)
+        for line in check.describe():
+            log(f"[{m.label}] {line}")
+        chans = tuple(c.label for c in sorted(check.channels, key=lambda c: -c.ratio))
+        sd = _sd_table(m, v, x, check)
+        flagged = [by_name[n] for n in names if by_name[n].nonlinearity is not None
+                   and by_name[n].nonlinearity.flagged]
+        nl_modes = tuple(r for g in flagged for r in _nonlinear_modes(g))
+        if not check.significant:
+            verdict, reason = "nothing to explain", f"the residual is inside the floor: {check.test}"
+            if flagged:
+                reason += "; the nonlinearity gate flags " + ", ".join(g.article for g in flagged) + " (reported)"
+        elif flagged:
+            verdict = "nonlinear"
+            what = "; ".join(
+                f"{r['article']}: {r['check']}" + (f" of mode {r['mode']} at {r['frequency_hz']:.5g} Hz"
+                                                   if r.get("mode") else f" at {r['frequency_hz']:.5g} Hz")
+                + (f" ({r['quantity']} x{r['ratio']:.3g} from {min(r['levels_n']):.3g} to "
+                   f"{max(r['levels_n']):.3g} N)" if r["check"] == "level dependence" else "")
+                for r in nl_modes) or "; ".join(g.article for g in flagged)
+            reason = (f"the residual is significant ({check.ratio:.3g} x the floor) and the test article behaves "
+                      f"nonlinearly: {what}; no linear effect is accepted in its place")
+        else:
+            verdict = "no effect accepted"
+            reason = (f"the residual is significant ({check.ratio:.3g} x the floor) and no nonlinearity is "
+                      "flagged; no candidate effect was screened")
+        log(f"[{m.label}] diagnosis: {verdict}: {reason}")
+        out.append(MemberDiagnosis(m.label, names, verdict, reason, check, nl_modes, sd, chans))
+    return DiagnosisResult(gates, tuple(out))
+
+
+def write_diagnosis(diag: DiagnosisResult, outdir: Path, log=print) -> dict:
+    """Write ``diagnosis.json`` into ``outdir``; return its content plus ``result_file``."""
+    from frfcal.campaign._report import json_default
+
+    d = diag.to_dict()
+    path = Path(outdir) / "diagnosis.json"
+    path.write_text(json.dumps(d, indent=1, default=json_default))
+    d["result_file"] = str(path)
+    log(f"wrote {path}")
+    return d
