@@ -375,7 +375,8 @@ def mode_residuals(sur: Surrogate, p, modes: IdentifiedModes, article: str = "",
     ----------
     sur, p : the calibrated surrogate and point
     modes : IdentifiedModes of one article (at named channels)
-    band_hz : (lo, hi), optional: only identified modes inside are compared
+    band_hz : (lo, hi), optional: only identified modes inside, and FE modes within 0.7 lo - 1.3 hi,
+        are compared
     shift_threshold : |shift| in half-power bandwidths ``2 zeta f`` above which a mode is significant
     mac_threshold : a paired mode with a MAC below this is significant (shape change)
     scatter_hz : (m,) test-to-test standard deviation of each identified frequency (Hz), optional;
@@ -387,11 +388,13 @@ def mode_residuals(sur: Surrogate, p, modes: IdentifiedModes, article: str = "",
     """
     lam, X = reduced_modes(sur, np.asarray(p, float))
     fe_hz = np.sqrt(np.clip(lam, 0, None)) / (2 * np.pi)
-    idx = np.flatnonzero(fe_hz > sur.rigid_hz)
-    rows = sur.output_index(modes.channels)
+    elastic = fe_hz > sur.rigid_hz
     keep = np.ones(len(modes.frequency_hz), bool)
-    if band_hz is not None:
+    if band_hz is not None:  # FE modes near the band only (as calibration._damping.mapped_damping)
+        elastic &= (fe_hz >= 0.7 * band_hz[0]) & (fe_hz <= 1.3 * band_hz[1])
         keep = (modes.frequency_hz >= band_hz[0]) & (modes.frequency_hz <= band_hz[1])
+    idx = np.flatnonzero(elastic)
+    rows = sur.output_index(modes.channels)
     tk = np.flatnonzero(keep)
     if not tk.size or not idx.size:
         return ()

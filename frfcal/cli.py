@@ -31,6 +31,7 @@ COMMANDS: tuple[tuple[str, str], ...] = (
     ("export-uff", "frfcal.commands.export_uff"),
     ("identify", "frfcal.commands.identify"),
     ("calibrate", "frfcal.commands.calibrate"),
+    ("diagnose", "frfcal.commands.diagnose"),
     ("demo", "frfcal.commands.demo"),
 )
 

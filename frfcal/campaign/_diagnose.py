@@ -210,13 +210,14 @@ def _sweep_order(time_s) -> str:
 class LevelRun:
     """One run file of an article as the nonlinearity gate sees it.
 
-    article : str ; path : Path ; level : force level (N) ; level_source : "campaign" (``[[run]] level``)
-    or "run file" (median achieved force over the valid lines, mean over drives) ; sweep : "up"/"down"/"unknown"
+    article : str ; path : Path ; level : force level (N), None when unknown ; level_source : "campaign"
+    (``[[run]] level``), "run file" (median achieved force over the valid lines, mean over drives) or
+    "unknown" (the run file holds no force) ; sweep : "up"/"down"/"unknown"
     """
 
     article: str
     path: Path
-    level: float
+    level: float | None
     level_source: str
     sweep: str
 
@@ -270,7 +271,7 @@ def nonlinearity_gate(camp: Campaign, articles, log=print) -> dict:
             else:
                 fn = np.asarray(run.force_n, float)[ok]
                 lvl = float(np.median(np.mean(np.abs(fn), axis=1))) if fn.size else float("nan")
-                src = "run file"
+                lvl, src = (lvl, "run file") if np.isfinite(lvl) and lvl > 0 else (None, "unknown")
             runs.append(LevelRun(name, a.path, lvl, src, _sweep_order(np.asarray(run.time_s, float)[ok])))
             thd = np.asarray(run.thd, float)
             if thd.size and np.any(np.isfinite(thd) & (thd > 0)):
@@ -279,7 +280,7 @@ def nonlinearity_gate(camp: Campaign, articles, log=print) -> dict:
                                        + [d.name for d in run.drives], threshold=cfg.thd_threshold,
                                        modes_hz=modal.frequency_hz, damping=modal.damping, label=a.path.name))
         level = sweep = None
-        good = [k for k, r in enumerate(runs) if np.isfinite(r.level) and r.level > 0]
+        good = [k for k, r in enumerate(runs) if r.level is not None]
         distinct = []
         for k in sorted(good, key=lambda k: runs[k].level):
             if not distinct or runs[k].level > 1.02 * runs[distinct[-1]].level:
@@ -293,8 +294,11 @@ def nonlinearity_gate(camp: Campaign, articles, log=print) -> dict:
                                          fm or None, z_threshold=cfg.nonlinearity_z)
             except CalibrationError as exc:
                 notes.append(f"{name}: level dependence not evaluated: {exc}")
-        elif len(idx) > 1 or not dist:
-            notes.append(f"{name}: {len(distinct)} distinct force level(s): no level-dependence check")
+        elif len(idx) == 1:
+            notes.append(f"{name}: one run file: no level-dependence check")
+        else:
+            notes.append(f"{name}: {len(idx)} run files at {len(distinct)} distinct known force level(s): "
+                         "no level-dependence check")
         ups = [k for k in good if runs[k].sweep == "up"]
         downs = [k for k in good if runs[k].sweep == "down"]
         pair = next(((u, d) for u in ups for d in downs if abs(runs[u].level / runs[d].level - 1) < 0.02), None)
@@ -437,7 +441,9 @@ def diagnose_stage(camp: Campaign, load, articles, cal, val, xval, log=print) ->
                    and by_name[n].nonlinearity.flagged]
         nl_modes = tuple(r for g in flagged for r in _nonlinear_modes(g))
         if not check.significant:
-            verdict, reason = "nothing to explain", f"the residual is inside the floor: {check.test}"
+            verdict = "nothing to explain"
+            reason = (f"the residual is inside the floor (SD {check.ratio:.3g} x the expected "
+                      f"{check.expected:.3g}, threshold {check.ratio_threshold:g}): no effect is looked for")
             if flagged:
                 reason += "; the nonlinearity gate flags " + ", ".join(g.article for g in flagged) + " (reported)"
         elif flagged:
