@@ -19,7 +19,13 @@ Geometry (millimetres; x rearward, y to the right, z up; LHS is y < 0)
 * weld seams as 12-15 mm shell strips with their own MAT1 where the cross
   members, arms and brackets are joined to the rails;
 * four bushing masses (CONM2) 40 mm above the rail ends, each attached by an
-  RBE3 to the top-skin nodes of an 80 x 80 mm corner patch.
+  RBE3 to the top-skin nodes of an 80 x 80 mm corner patch;
+* optionally (``gap_mm``) an air gap: a doubler sheet (PSHELL 21, t = 2.0,
+  steel) outside the LHS rail's outer web, x in [180, 380], z in [0, 50],
+  ``gap_mm`` from the web (y = -gap_mm), welded along its top edge only
+  through a flange of its own property in the top-skin plane (z = 50,
+  y in [-gap_mm, 0]); its other grids face web grids (same x, z) at exactly
+  ``gap_mm`` with no element between them.
 
 Every panel is a flat axis-aligned rectangle meshed on one global tensor
 grid, so meshes are conforming, quads are perfect rectangles (no warp, no
@@ -96,10 +102,21 @@ _BUSHINGS = (  # (x, y) of the patch centre, patch is +-40 mm in x and y
     (40.0, 40.0), (40.0, 560.0), (960.0, 40.0), (960.0, 560.0),
 )
 _BUSHING_HEIGHT = 40.0
+#: the optional doubler (air-gap variant): PSHELL id, thickness (mm), x range (mm)
+DOUBLER_PID = 21
+DOUBLER_T_MM = 2.0
+_X_DOUBLER = (180.0, 380.0)
+#: largest allowed gap (mm): the doubler stays inside the arm's 15 mm weld strip in y
+_GAP_MAX_MM = 10.0
 
 
-def _panels() -> list[tuple[int, float, tuple[float, float], tuple[float, float], int]]:
+def _panels(gap_mm: float | None = None) -> list[tuple[int, float, tuple[float, float], tuple[float, float], int]]:
     P = []
+    if gap_mm is not None:
+        # doubler sheet parallel to the LHS outer web (y = 0) at y = -gap, and its flange welded to the
+        # web/top-skin corner line (z = _H, y = 0): the flange is the only connection
+        P.append((1, -gap_mm, (0.0, _H), _X_DOUBLER, DOUBLER_PID))
+        P.append((2, _H, _X_DOUBLER, (-gap_mm, 0.0), DOUBLER_PID))
     for y0, y1 in ((0.0, 80.0), (520.0, 600.0)):
         # rail skins (z-normal: axes x, y)
         P.append((2, _H, (0.0, 1000.0), (y0, y1), 1))
@@ -170,10 +187,11 @@ class _Mesh:
     pids: np.ndarray  # (n_elem,)
     areas_mm2: np.ndarray  # (n_elem,)
     bushing_nodes: tuple  # 4 arrays of node indices (0-based)
+    gap_pairs: tuple = ()  # (doubler node, web node) index pairs (0-based) facing across the gap
 
 
-def _mesh(h: float, count_only: bool = False):
-    panels = _panels()
+def _mesh(h: float, count_only: bool = False, gap_mm: float | None = None):
+    panels = _panels(gap_mm)
     keys = _key_lines(panels)
     lines = [_lines(k, h) for k in keys]
     shape = tuple(len(g) for g in lines)
@@ -220,7 +238,13 @@ def _mesh(h: float, count_only: bool = False):
     for bx, by in _BUSHINGS:
         sel = top & (np.abs(xyz[:, 0] - bx) <= 40.0 + 1e-9) & (np.abs(xyz[:, 1] - by) <= 40.0 + 1e-9)
         bushing_nodes.append(np.flatnonzero(sel))
-    return _Mesh(xyz, quads, np.concatenate(pids), np.concatenate(areas), tuple(bushing_nodes))
+    pairs = ()
+    if gap_mm is not None:
+        on_doubler = np.isclose(xyz[:, 1], -gap_mm) & (xyz[:, 2] < _H - 1e-9) & \
+            (xyz[:, 0] >= _X_DOUBLER[0] - 1e-9) & (xyz[:, 0] <= _X_DOUBLER[1] + 1e-9)
+        where = {(x, z): i for i, (x, y, z) in enumerate(xyz.tolist()) if y == 0.0}
+        pairs = tuple((int(i), int(where[(xyz[i, 0], xyz[i, 2])])) for i in np.flatnonzero(on_doubler))
+    return _Mesh(xyz, quads, np.concatenate(pids), np.concatenate(areas), tuple(bushing_nodes), pairs)
 
 
 def _element_size_for(target_dof: int) -> float:
@@ -307,6 +331,11 @@ class SubframeExample:
         CQUAD4 elements.
     mass_kg : float
         Total mass (shells plus bushing masses).
+    gap_mm : float or None
+        The air gap of the doubler variant (None: no doubler).
+    gap_pairs : tuple of (int, int)
+        (doubler grid, web grid) id pairs facing each other across the gap,
+        exactly ``gap_mm`` apart along y; no element joins them. Empty without a gap.
     """
 
     bdf: Path
@@ -317,9 +346,12 @@ class SubframeExample:
     n_dof: int
     n_elements: int
     mass_kg: float
+    gap_mm: float | None = None
+    gap_pairs: tuple = ()
 
 
-def example_subframe(out_dir, target_dof: int = 5000, units: str = "mm-t-s") -> SubframeExample:
+def example_subframe(out_dir, target_dof: int = 5000, units: str = "mm-t-s", *,
+                     gap_mm: float | None = None) -> SubframeExample:
     """Write the subframe example deck ``subframe.bdf`` and ``subframe_params.toml``.
 
     Parameters
@@ -333,6 +365,12 @@ def example_subframe(out_dir, target_dof: int = 5000, units: str = "mm-t-s") -> 
     units : {"mm-t-s", "si"}
         Unit system of the written deck (mm, tonne, s, N, MPa; or m, kg, s,
         N, Pa). Both decks describe the same physics digit for digit.
+    gap_mm : float, optional
+        Add the doubler sheet (PSHELL 21) outside the LHS rail web with this
+        air gap, mm (0 < gap_mm < 10). The element size is the one of the deck
+        without it; a few mm-wide strips appear where the line y = -gap_mm
+        crosses the flange and the LHS arm's weld seam. None (default): the
+        deck is byte-identical to the one without the option.
 
     Returns
     -------
@@ -343,9 +381,13 @@ def example_subframe(out_dir, target_dof: int = 5000, units: str = "mm-t-s") -> 
         raise ValueError(f"example_subframe: units must be one of {sorted(_UNITS)}, got {units!r}")
     if not isinstance(target_dof, (int, np.integer)) or target_dof < 1000:
         raise ValueError(f"example_subframe: target_dof must be an integer >= 1000, got {target_dof!r}")
+    if gap_mm is not None:
+        gap_mm = float(gap_mm)
+        if not 0.0 < gap_mm < _GAP_MAX_MM:
+            raise ValueError(f"example_subframe: gap_mm must be in (0, {_GAP_MAX_MM}) mm, got {gap_mm!r}")
     sh = _UNITS[units]
     h = _element_size_for(int(target_dof))
-    mesh = _mesh(h)
+    mesh = _mesh(h, gap_mm=gap_mm)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     n_nodes = len(mesh.xyz_mm)
@@ -355,7 +397,9 @@ def example_subframe(out_dir, target_dof: int = 5000, units: str = "mm-t-s") -> 
         "$ frfcal example subframe: free-free welded steel subframe-like shell model\n"
         f"$ units: {units}; target DOF {int(target_dof)}; element size {h:.4g} mm\n"
         "$ 17 calibration parameters in subframe_params.toml (method paper, Table 2.1)\n"
-        "SOL 103\nCEND\nTITLE = FRFCAL EXAMPLE SUBFRAME\nMETHOD = 1\nBEGIN BULK\n"
+        + (f"$ air gap: doubler PSHELL {DOUBLER_PID} {gap_mm:g} mm outside the LHS rail web, welded along its "
+           "top edge only\n" if gap_mm is not None else "")
+        + "SOL 103\nCEND\nTITLE = FRFCAL EXAMPLE SUBFRAME\nMETHOD = 1\nBEGIN BULK\n"
         "EIGRL          1                      30\n"
     )
     # materials (small field is enough for these round numbers)
@@ -367,6 +411,9 @@ def example_subframe(out_dir, target_dof: int = 5000, units: str = "mm-t-s") -> 
     for pid, (name, t_mm, mid) in PROPERTIES.items():
         parts.append(f"$ PSHELL {pid}: {name}\n")
         parts.append(f"PSHELL  {pid:8d}{mid:8d}{_f8(t_mm, sh['length'])}{mid:8d}        {mid:8d}\n")
+    if gap_mm is not None:
+        parts.append(f"$ PSHELL {DOUBLER_PID}: doubler sheet and its flange (air-gap variant)\n")
+        parts.append(f"PSHELL  {DOUBLER_PID:8d}{1:8d}{_f8(DOUBLER_T_MM, sh['length'])}{1:8d}        {1:8d}\n")
     # grids: large field, digit-identical across unit systems
     xs = _f16(mesh.xyz_mm.ravel(), sh["length"])
     grid_lines = []
@@ -406,7 +453,7 @@ def example_subframe(out_dir, target_dof: int = 5000, units: str = "mm-t-s") -> 
     params = out / "subframe_params.toml"
     params.write_text(_params_toml(bdf.name, units))
 
-    t_mm = np.array([PROPERTIES[int(p)][1] for p in mesh.pids])
+    t_mm = np.array([DOUBLER_T_MM if int(p) == DOUBLER_PID else PROPERTIES[int(p)][1] for p in mesh.pids])
     rho = np.where(mesh.pids == 20, RHO_WELD_KG_M3, RHO_STEEL_KG_M3)
     mass = float(np.sum(mesh.areas_mm2 * t_mm * rho) * 1e-9) + float(sum(BUSHING_MASS_KG))
     return SubframeExample(
@@ -418,6 +465,8 @@ def example_subframe(out_dir, target_dof: int = 5000, units: str = "mm-t-s") -> 
         n_dof=6 * (n_nodes + len(_BUSHINGS)),
         n_elements=len(mesh.quads),
         mass_kg=mass,
+        gap_mm=gap_mm,
+        gap_pairs=tuple((a + 1, b + 1) for a, b in mesh.gap_pairs),
     )
 
 

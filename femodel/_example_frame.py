@@ -24,6 +24,12 @@ Geometry (millimetres; x forward, y to the left, z up)
   couple the in-plane and out-of-plane motions of the two flat parts (without
   them the scalar mounts and the planar beams would decouple them exactly).
 
+* optionally (``gap_mm``) an air gap: two bump-stop brackets (PBAR 4, steel
+  box 40 x 40 x 3) standing vertically on the cradle side members at the
+  grid nearest x = 900, each ending ``gap_mm`` below the ladder rail grid
+  above it, no element between tip and rail (a closed gap would carry load
+  along z as the mounts do).
+
 Every member is split into ``elements_per_member`` CBARs of equal length
 (the rails into that many per bay between cross members), so the geometry
 is the same at every density. Bar mass is lumped (half of rho A L per end,
@@ -86,6 +92,10 @@ SECTIONS: dict[int, tuple[str, int, tuple[float, float, float]]] = {
     2: ("ladder cross members, box 80 x 80 x 4", 1, (80.0, 80.0, 4.0)),
     3: ("cradle members, box 80 x 50 x 5", 2, (80.0, 50.0, 5.0)),
 }
+#: the bump-stop brackets of the air-gap variant (own PBAR, written only with ``gap_mm``)
+BUMP_STOP_PID = 4
+BUMP_STOP_SECTION = ("bump-stop brackets, box 40 x 40 x 3", 1, (40.0, 40.0, 3.0))
+_X_BUMP_STOP_MM = 900.0
 
 #: CONM2 ids
 ENGINE_CONM2 = (9001, 9002)
@@ -130,6 +140,11 @@ class FrameExample:
         Grids, grid DOF (6 per grid), CBARs and CELAS2 springs.
     mass_kg : float
         Total mass (bars plus CONM2), kg.
+    gap_mm : float or None
+        The air gap of the bump-stop variant (None: no bump stops).
+    gap_pairs : tuple of (int, int)
+        (bump-stop tip grid, rail grid) id pairs, exactly ``gap_mm`` apart
+        along z with no element between them. Empty without a gap.
     """
 
     bdf: Path
@@ -141,12 +156,14 @@ class FrameExample:
     n_elements: int
     n_springs: int
     mass_kg: float
+    gap_mm: float | None = None
+    gap_pairs: tuple = ()
 
     def __iter__(self):
         return iter((self.bdf, self.params))
 
 
-def _frame_mesh(n: int):
+def _frame_mesh(n: int, gap_mm: float | None = None):
     """Grid coordinates (mm), bars (grid index pairs, PBAR id) and named grid indices."""
     xyz: list[tuple[float, float, float]] = []
     index: dict[tuple[float, float, float], int] = {}
@@ -187,10 +204,24 @@ def _frame_mesh(n: int):
         "tank": nearest((_X_CROSS_MM[-1], 0.0, 0.0)),
         "mounts": [(index[(x, y, 0.0)], index[(x, y, z)]) for x, y in _CORNERS],
     }
+    if gap_mm is not None:
+        # a stub at the same element size as the members (the rails' bay length / n), ending gap_mm below the rail
+        h = (_X_CRADLE_MM[1] - _X_CRADLE_MM[0]) / n
+        n_stub = max(1, int(round((-z - gap_mm) / h)))
+        named["gap"] = []
+        for y in (-_Y_RAIL_MM, _Y_RAIL_MM):
+            base = nearest((_X_BUMP_STOP_MM, y, z))
+            x = xyz_a[base, 0]
+            rail = index[(x, y, 0.0)]  # the side member and the rail bay share their x grid
+            ids = [grid(x, y, -gap_mm if k == n_stub else z + (-gap_mm - z) * k / n_stub) for k in range(n_stub + 1)]
+            bars.extend((i, j, BUMP_STOP_PID) for i, j in zip(ids[:-1], ids[1:]))
+            named["gap"].append((ids[-1], rail))
+        xyz_a = np.array(xyz)
     return xyz_a, np.array(bars, dtype=np.int64), named
 
 
-def example_frame(out_dir, *, units: str = "si", elements_per_member: int = 6) -> FrameExample:
+def example_frame(out_dir, *, units: str = "si", elements_per_member: int = 6,
+                  gap_mm: float | None = None) -> FrameExample:
     """Write the frame example deck ``frame.bdf`` and ``frame_params.toml``.
 
     Parameters
@@ -204,6 +235,11 @@ def example_frame(out_dir, *, units: str = "si", elements_per_member: int = 6) -
     elements_per_member : int
         CBARs per member (>= 2). Grid DOF = 84 n - 12: 492 at the default
         6, 996 at 12, 1,416 at 17; 120 gives about 10,000.
+    gap_mm : float, optional
+        Add two bump-stop brackets (PBAR 4) on the cradle ending this far
+        below the rails, mm (0 < gap_mm < 50); their CBARs have about the
+        members' element length. None (default): the deck is byte-identical
+        to the one without the option.
 
     Returns
     -------
@@ -214,9 +250,16 @@ def example_frame(out_dir, *, units: str = "si", elements_per_member: int = 6) -
         raise ValueError(f"example_frame: units must be one of {sorted(_SHIFT)}, got {units!r}")
     if not isinstance(elements_per_member, (int, np.integer)) or elements_per_member < 2:
         raise ValueError(f"example_frame: elements_per_member must be an integer >= 2, got {elements_per_member!r}")
+    if gap_mm is not None:
+        gap_mm = float(gap_mm)
+        if not 0.0 < gap_mm < 50.0:
+            raise ValueError(f"example_frame: gap_mm must be in (0, 50) mm, got {gap_mm!r}")
     n = int(elements_per_member)
     sh = _SHIFT[units]
-    xyz, bars, named = _frame_mesh(n)
+    xyz, bars, named = _frame_mesh(n, gap_mm)
+    sections = dict(SECTIONS)
+    if gap_mm is not None:
+        sections[BUMP_STOP_PID] = BUMP_STOP_SECTION
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
 
@@ -224,14 +267,16 @@ def example_frame(out_dir, *, units: str = "si", elements_per_member: int = 6) -
         "$ frfcal example frame: free-free steel ladder frame with a spring-mounted aluminium cradle\n"
         f"$ units: {units}; {n} CBAR per member; default lumped mass (no PARAM,COUPMASS)\n"
         "$ 7 calibration parameters in frame_params.toml\n"
-        "SOL 103\nCEND\nTITLE = FRFCAL EXAMPLE FRAME\nMETHOD = 1\nBEGIN BULK\n"
+        + (f"$ air gap: bump-stop brackets PBAR {BUMP_STOP_PID} end {gap_mm:g} mm below the rails\n"
+           if gap_mm is not None else "")
+        + "SOL 103\nCEND\nTITLE = FRFCAL EXAMPLE FRAME\nMETHOD = 1\nBEGIN BULK\n"
         "EIGRL          1                      30\n"
     ]
     for mid, e, nu, rho in ((1, E_STEEL_PA, NU_STEEL, RHO_STEEL_KG_M3), (2, E_ALU_PA, NU_ALU, RHO_ALU_KG_M3)):
         e_s = _f16([e / 1e6], sh["stress"])[0]
         rho_s = _f16([rho * 1e-12], sh["density"])[0]
         parts.append(_large_card("MAT1", [f"{mid:16d}", e_s, "", f"{nu:16.4f}", rho_s]))
-    for pid, (name, mid, dims) in SECTIONS.items():
+    for pid, (name, mid, dims) in sections.items():
         A, I1, I2, J = _box(*dims)
         parts.append(f"$ PBAR {pid}: {name}\n")
         parts.append(_large_card("PBAR", [
@@ -242,9 +287,11 @@ def example_frame(out_dir, *, units: str = "si", elements_per_member: int = 6) -
     parts.append("".join(
         f"GRID*   {i + 1:16d}{'':16s}{xs[3 * i]}{xs[3 * i + 1]}\n*       {xs[3 * i + 2]}\n" for i in range(len(xyz))
     ))
-    # orientation vector +z for every bar: element y = basic z, so I1 is vertical bending
+    # orientation vector +z for every bar: element y = basic z, so I1 is vertical bending; the vertical
+    # bump stops (square section) take +x
     parts.append("".join(
-        f"CBAR    {e + 1:8d}{pid:8d}{a + 1:8d}{b + 1:8d}     0.0     0.0     1.0\n"
+        f"CBAR    {e + 1:8d}{pid:8d}{a + 1:8d}{b + 1:8d}"
+        + ("     1.0     0.0     0.0\n" if pid == BUMP_STOP_PID else "     0.0     0.0     1.0\n")
         for e, (a, b, pid) in enumerate(bars.tolist())
     ))
     parts.append("$ cradle mounts: three translational springs per corner, rail grid to cradle grid\n")
@@ -278,12 +325,13 @@ def example_frame(out_dir, *, units: str = "si", elements_per_member: int = 6) -
 
     length_mm = np.linalg.norm(xyz[bars[:, 1]] - xyz[bars[:, 0]], axis=1)
     mass = TANK_MASS_KG + 2 * ENGINE_MASS_KG
-    for pid, (_, mid, dims) in SECTIONS.items():
+    for pid, (_, mid, dims) in sections.items():
         rho = RHO_STEEL_KG_M3 if mid == 1 else RHO_ALU_KG_M3
         mass += float(np.sum(length_mm[bars[:, 2] == pid]) * _box(*dims)[0] * 1e-9 * rho)
     return FrameExample(
         bdf=bdf, params=params, units=units, elements_per_member=n, n_grids=len(xyz), n_dof=6 * len(xyz),
-        n_elements=len(bars), n_springs=12, mass_kg=mass,
+        n_elements=len(bars), n_springs=12, mass_kg=mass, gap_mm=gap_mm,
+        gap_pairs=tuple((a + 1, b + 1) for a, b in named.get("gap", ())),
     )
 
 

@@ -306,26 +306,11 @@ class ParametricModel:
         n_old, n_new = self.n_params, self.n_params + len(terms)
         parts = {"K": _widened(self.K, n_new), "M": _widened(self.M, n_new)}
         added = {"K": [], "M": []}
-        asm = self.assembly
-        fe = asm.model
-        amap = _selection_map(asm.T)
         for i, t in enumerate(terms):
             j = n_old + i
-            if isinstance(t, ElementFactor):
-                mats, a, b, r = _subset_terms(asm, self.parameters, t)
-                for m, ar, br, rr in zip(mats, a, b, r):
-                    if m.nnz:
-                        added[t.kind].append((m, _pad(ar, n_new), _pad(br, n_new), rr, j))
-                if not added[t.kind] or added[t.kind][-1][4] != j:
-                    raise ParameterError(f"{where}with_terms: element subset {t.name!r} has no {t.kind} terms")
-                continue
-            for kind, m_g in t.g_matrices(fe).items():
-                m = _to_aset(asm, amap, _canonical(m_g), drop_zeros=True)
-                m.eliminate_zeros()
-                if m.nnz == 0:
-                    raise ParameterError(f"{where}with_terms: term {t.name!r} acts only on constrained DOF")
-                zero = np.zeros(n_new)
-                added[kind].append((_canonical(m), zero, zero, 0.0, j))
+            for kind, parts_t in self._term_parts(t, "with_terms").items():
+                for m, ar, br, rr in parts_t:
+                    added[kind].append((m, _pad(ar, n_new), _pad(br, n_new), rr, j))
         out = {}
         for kind, (mats, a, b, r, lin) in parts.items():
             new = added[kind]
@@ -339,6 +324,104 @@ class ParametricModel:
         return replace(self, K=out["K"][0], M=out["M"][0], _kpat=out["K"][1], _mpat=out["M"][1],
                        nominal=np.concatenate([self.nominal, [float(t.nominal) for t in terms]]),
                        terms=self.terms + terms)
+
+    def _amap(self) -> np.ndarray:
+        """The g-set to a-set selection map of the assembly's T (computed once per model)."""
+        amap = self.__dict__.get("_amap_cache")
+        if amap is None:
+            amap = _selection_map(self.assembly.T)
+            object.__setattr__(self, "_amap_cache", amap)
+        return amap
+
+    def _term_parts(self, term, what: str) -> dict:
+        """The a-set pieces of one added term: {kind: [(matrix, a, b, ratio), ...]}.
+
+        ``matrix`` is canonical CSR (n_a, n_a); ``a``, ``b``, ``ratio`` are the
+        series/monomial exponents of the term's coefficient in the deck
+        parameters (zero rows for an added spring or mass, whose coefficient
+        is its own p alone). Shared by :meth:`with_terms` and
+        :meth:`term_derivative`, so both see the same matrices.
+        """
+        from femodel._terms import ElementFactor
+
+        where = f"{self.bdf}: " if self.bdf else ""
+        asm = self.assembly
+        out: dict = {}
+        if isinstance(term, ElementFactor):
+            mats, a, b, r = _subset_terms(asm, self.parameters, term)
+            pieces = [(m, ar, br, float(rr)) for m, ar, br, rr in zip(mats, a, b, r) if m.nnz]
+            if not pieces:
+                raise ParameterError(f"{where}{what}: element subset {term.name!r} has no {term.kind} terms")
+            return {term.kind: pieces}
+        zero = np.zeros(len(self.parameters))
+        for kind, m_g in term.g_matrices(asm.model).items():
+            m = _to_aset(asm, self._amap(), _canonical(m_g), drop_zeros=True)
+            m.eliminate_zeros()
+            if m.nnz == 0:
+                raise ParameterError(f"{where}{what}: term {term.name!r} acts only on constrained DOF")
+            out[kind] = [(_canonical(m), zero, zero, 0.0)]
+        return out
+
+    def term_derivative(self, term, p) -> dict:
+        """dK/dp_term and dM/dp_term of a term not (yet) in the model, at p_term = 0.
+
+        Equals ``self.with_terms([term]).dK(np.r_[p, 0], self.n_params)`` (and ``dM``)
+        without building the extended model: the term's a-set matrices are
+        formed as :meth:`with_terms` forms them, and for an element subset
+        weighted with their coefficients at ``p``.
+
+        Parameters
+        ----------
+        term : AddedSpring, AddedMass or ElementFactor
+        p : (n_params,) float
+            This model's normalized parameters.
+
+        Returns
+        -------
+        dict
+            {"K": csr (n_a, n_a) or None, "M": csr (n_a, n_a) or None}: N/m
+            (N m/rad) and kg (kg m^2) per unit p of the term; None where the
+            term has no such part (a spring has no M, a mass no K).
+
+        Raises
+        ------
+        ParameterError
+            Not a term family, a grid or element not in the deck, an element
+            subset overlapping one already in the model, or a term acting
+            only on constrained DOF.
+        """
+        from femodel._terms import TERM_FAMILIES, ElementFactor
+
+        where = f"{self.bdf}: " if self.bdf else ""
+        if not isinstance(term, TERM_FAMILIES):
+            raise ParameterError(f"{where}term_derivative: {term!r} is not one of "
+                                 f"{', '.join(c.__name__ for c in TERM_FAMILIES)}")
+        p = self._p(p)
+        if isinstance(term, ElementFactor):
+            mine = set(term.elements)
+            for t in self.terms:
+                if isinstance(t, ElementFactor) and mine.intersection(t.elements):
+                    e = min(mine.intersection(t.elements))
+                    raise ParameterError(f"{where}term_derivative: element {e} is in both {t.name!r} and "
+                                         f"{term.name!r} (element subsets must be disjoint)")
+        out = {"K": None, "M": None}
+        n0 = len(self.parameters)
+        for kind, pieces in self._term_parts(term, "term_derivative").items():
+            mats = [m for m, _, _, _ in pieces]
+            if isinstance(term, ElementFactor):
+                a = np.zeros((len(pieces), self.n_params))
+                b = np.zeros((len(pieces), self.n_params))
+                a[:, :n0] = np.array([x[1] for x in pieces])
+                b[:, :n0] = np.array([x[2] for x in pieces])
+                r = np.array([x[3] for x in pieces])
+                coef = SeriesAffineMatrix(tuple(mats), a, b, r).coefficients(p)
+            else:
+                coef = np.ones(len(mats))
+            total = mats[0] * coef[0]
+            for m, c in zip(mats[1:], coef[1:]):
+                total = total + m * c
+            out[kind] = sp.csr_matrix(total)
+        return out
 
 
 def _pad(row, n: int) -> np.ndarray:

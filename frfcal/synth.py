@@ -54,6 +54,7 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 
+from frfcal.effects import Effect, EffectError, resolve_articles
 from labdata import FRF_QUANTITIES, quantity_factor
 
 #: rigid-body threshold (Hz), as femodel's
@@ -305,7 +306,8 @@ class SynthCampaign:
         ``sigma_i`` (n_f, n_out, n_in), ``modes_hz_i``, ``zeta_i``; and
         ``p_true``, ``p_population``, ``articles``, ``parameter_names``,
         ``sensors``, ``drives``, ``band_hz``, ``data_hz``, ``noise_rel``
-        (n_articles, n_out), ``noise_floor_abs`` (n_articles, n_out, n_in).
+        (n_articles, n_out), ``noise_floor_abs`` (n_articles, n_out, n_in);
+        with effects also ``effects`` (a JSON string: the list of :attr:`effects`).
     articles : tuple of str
     p_true : (n_articles, n_params) float
         Normalized parameters of each article.
@@ -322,6 +324,12 @@ class SynthCampaign:
         Wall times, s: ``model`` (parametric model, 0 when one was passed),
         ``modes`` and ``residual`` (lists, per article), ``files`` (run, UFF and
         truth files). Load-dependent; for benchmarks.
+    effects : tuple of dict
+        The undeclared effects (:meth:`frfcal.effects.Effect.record`: family,
+        term, name, value, unit, grids/dofs or elements, description,
+        articles); empty without effects.
+    effect_terms : tuple of frfcal.effects.Effect
+        The same effects as objects (:meth:`article_effects`).
     """
 
     run_paths: tuple[Path, ...]
@@ -339,6 +347,8 @@ class SynthCampaign:
     parameters: Path | None = None
     units: str = "si"
     timings: dict = field(default_factory=dict, compare=False)
+    effects: tuple[dict, ...] = ()
+    effect_terms: tuple = field(default=(), compare=False)
     _cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     def truth(self) -> dict:
@@ -400,13 +410,28 @@ class SynthCampaign:
             raise SynthError(f"{self.truth_path}: no lines within {lo}-{hi} Hz")
         return float(np.mean(eps2) / np.log(10.0) ** 2)
 
-    def model_sd(self, p, article, channels=None, band_hz=None, signal_only: bool = True) -> float:
+    def article_effects(self, article) -> tuple:
+        """The :class:`frfcal.effects.Effect` objects an article (index or name) has."""
+        (i,) = self._selection(None, None, [article])[3]
+        return tuple(e for e in self.effect_terms if e.applies_to(i, self.articles[i]))
+
+    def model_sd(self, p, article, channels=None, band_hz=None, signal_only: bool = True, *, terms=(),
+                 values=()) -> float:
         """SD of the deck at normalized ``p`` *with the article's true damping* against its noisy data.
 
         The model is solved here exactly as the truth was (full-order modes,
         the same per-mode damping by mode index, the exact higher-mode series),
         so the only difference from :meth:`floor_sd` is p: this is the hold-out
         error of a calibrated p with the damping question taken out.
+
+        Without ``terms`` this is the calibration model, i.e. the deck WITHOUT
+        any undeclared effect. ``terms`` (femodel term objects) at physical
+        ``values`` (SI, or the factor 1 + p) extend it
+        (:meth:`femodel.ParametricModel.with_terms`): with the article's own
+        effects (:meth:`article_effects`) at their values and its p_true the
+        result is the floor of that article. Damping is taken by mode index
+        from the truth, so a model whose mode count below the cut differs
+        from the truth's (an effect lifting a rigid mode) gets it shifted.
         """
         import femodel
 
@@ -415,6 +440,15 @@ class SynthCampaign:
         if "pm" not in self._cache:
             self._cache["pm"] = femodel.parametric_model(self.parameters, self.bdf, units=self.units)
         pm = self._cache["pm"]
+        terms, values = tuple(terms), tuple(values)
+        if len(terms) != len(values):
+            raise SynthError(f"model_sd: {len(terms)} terms but {len(values)} values")
+        if terms:
+            key = ("pm",) + tuple(repr(t) for t in terms)
+            if key not in self._cache:
+                self._cache[key] = pm.with_terms(terms)
+            p = np.concatenate([np.asarray(p, float), [t.normalized(v) for t, v in zip(terms, values)]])
+            pm = self._cache[key]
         C = femodel.sensor_matrix(pm.assembly, [self.sensors[k].grid for k in idx],
                                   [self.sensors[k].direction for k in idx])
         B = femodel.sensor_matrix(pm.assembly, [c.grid for c in self.drives],
@@ -540,7 +574,7 @@ def synthesize(bdf, parameters, out_dir, *, sensors, drives, band_hz, units=None
                offsets=None, scatter: float = 0.003, zeta_range=(5e-4, 3e-3), noise_range=(0.005, 0.01),
                noise_floor: float = 1e-3, mode_factor: float = 3.0, data_hz=None, lines_per_bandwidth: float = 4,
                base_lines: int = 300, seed: int = 0, write_uff: bool = True, article_prefix: str = "A",
-               parametric=None) -> SynthCampaign:
+               parametric=None, effects=None) -> SynthCampaign:
     """Manufacture a test campaign (run files, UFF58, truth) from a deck at known parameters.
 
     Parameters
@@ -585,6 +619,18 @@ def synthesize(bdf, parameters, out_dir, *, sensors, drives, band_hz, units=None
         Articles are named ``<prefix>1``, ``<prefix>2``, ...
     parametric : femodel.ParametricModel, optional
         A parametric model of the same deck and parameters, to reuse.
+    effects : sequence of frfcal.effects.Effect (or of tuples of them), optional
+        Undeclared effects (docs/synth.md; tuples, as
+        :func:`frfcal.effects.standard_effects` gives them, are flattened): an article's truth is the model
+        extended by the terms of the effects it has
+        (:meth:`femodel.ParametricModel.with_terms`) at p_true and the
+        effects' values; the parameter file (the calibration model) lacks
+        them. Recorded in ``truth.npz`` (``effects``, JSON), in each run
+        file's plan (``effects``: those of that article) and on the result.
+        Modes that a spring to ground lifts from zero frequency (a
+        suspension or stinger mode) are taken to be the lowest elastic modes
+        and get the top of ``zeta_range``; the structure's modes keep their
+        damping by mode index.
 
     Returns
     -------
@@ -645,6 +691,28 @@ def synthesize(bdf, parameters, out_dir, *, sensors, drives, band_hz, units=None
     p_true = np.array([np.clip(p_pop + scatter * r.standard_normal(pm.n_params), 0.95 * pm.lower, 0.95 * pm.upper)
                        for r in art_rng])
     articles = tuple(f"{article_prefix}{i + 1}" for i in range(n_articles))
+    effects = tuple(e for item in (effects or ()) for e in ((item,) if isinstance(item, Effect) else tuple(item)))
+    try:
+        effect_keys = resolve_articles(effects, articles) if effects else [()] * n_articles
+    except EffectError as exc:
+        raise SynthError(str(exc)) from None
+    models = {(): pm}
+    n_rigid = {}
+
+    def model_of(key):
+        if key not in models:
+            try:
+                models[key] = pm.with_terms([effects[k].term for k in key])
+            except femodel.ParameterError as exc:
+                raise SynthError(f"effects: {exc}") from None
+        return models[key]
+
+    def rigid_count(key, p):  # only asked for models with springs to ground
+        if key not in n_rigid:
+            m = model_of(key)
+            n_rigid[key] = int(np.sum(modes_up_to(m.stiffness(p), m.mass(p), _RIGID_HZ, dofs=m.aset)[0]
+                                      .frequencies_hz == 0.0))
+        return n_rigid[key]
 
     rz = np.random.default_rng(s_zeta)
     zeta_pool = []  # population damping per elastic mode index, drawn as needed (deterministic order)
@@ -658,12 +726,20 @@ def synthesize(bdf, parameters, out_dir, *, sensors, drives, band_hz, units=None
     for a, r in enumerate(art_rng):
         variation = r.standard_normal(4096)  # one factor per mode index, independent of how many modes
 
-        def zeta_of_mode(n, variation=variation):
-            if n > variation.size:
-                raise SynthError(f"{n} elastic modes below the cut: more than the generator supports (4096)")
-            return population_zeta(n) * np.exp(_ZETA_SCATTER * variation[:n])
+        key = effect_keys[a]
+        pma = model_of(key)
+        pa = np.concatenate([p_true[a], [effects[k].p for k in key]])
+        lifted = 0
+        if any(_grounds(effects[k].term) for k in key):
+            lifted = max(0, rigid_count((), p_true[a]) - rigid_count(key, pa))
 
-        truths.append(article_truth(pm.stiffness(p_true[a]), pm.mass(p_true[a]), C, B, p_true[a],
+        def zeta_of_mode(n, variation=variation, lifted=lifted):
+            if n - lifted > variation.size:
+                raise SynthError(f"{n} elastic modes below the cut: more than the generator supports (4096)")
+            z = population_zeta(n - lifted) * np.exp(_ZETA_SCATTER * variation[:n - lifted])
+            return np.concatenate([np.full(lifted, float(zeta_range[1])), z]) if lifted else z
+
+        truths.append(article_truth(pma.stiffness(pa), pma.mass(pa), C, B, pa,
                                     f_cut_hz=mode_factor * hi, f_max_hz=d_hi, zeta_of_mode=zeta_of_mode,
                                     shift_hz=d_lo, dofs=pm.aset))
 
@@ -674,6 +750,7 @@ def synthesize(bdf, parameters, out_dir, *, sensors, drives, band_hz, units=None
                               physical=f"synth/{len(sensors) + i}", grid=c.grid, direction=c.direction)
                   for i, c in enumerate(drives)]
     n_out, n_in = len(sensors), len(drives)
+    records = [e.record(articles) for e in effects]
     t_files = time.perf_counter()
     npz: dict[str, np.ndarray] = {}
     runs, uffs = [], []
@@ -692,6 +769,8 @@ def synthesize(bdf, parameters, out_dir, *, sensors, drives, band_hz, units=None
         plan = {"generator": "frfcal.synth", "seed": int(seed), "article_index": a, "band_hz": [lo, hi],
                 "data_hz": [d_lo, d_hi], "n_lines": int(f.size), "p_true": p_true[a].tolist(),
                 "parameter_names": list(pm.parameters.names)}
+        if effects:
+            plan["effects"] = [records[k] for k in effect_keys[a]]
         path = out / f"{name}.h5"
         with create_run(path, article=name, sensors=sens_spec, drives=drive_spec, quantity="accelerance",
                         plan=plan, hardware={"driver": "frfcal.synth (synthetic truth data)"}, overwrite=True) as w:
@@ -712,6 +791,8 @@ def synthesize(bdf, parameters, out_dir, *, sensors, drives, band_hz, units=None
         "drives": np.array([c.name for c in drives]), "band_hz": np.array([lo, hi]),
         "data_hz": np.array([d_lo, d_hi]), "noise_rel": noise_rel, "noise_floor_abs": floor_abs,
     })
+    if effects:
+        npz["effects"] = np.array(json.dumps(records))
     truth_path = out / "truth.npz"
     np.savez_compressed(truth_path, **npz)
     timings = {"model": t_model if parametric is None else 0.0, "modes": [t.modes_time_s for t in truths],
@@ -724,4 +805,12 @@ def synthesize(bdf, parameters, out_dir, *, sensors, drives, band_hz, units=None
         p_population=p_pop, parameter_names=tuple(pm.parameters.names), sensors=sensors, drives=drives,
         band_hz=(lo, hi), data_hz=(d_lo, d_hi), bdf=Path(pm.bdf),
         parameters=Path(params_path) if params_path is not None else None, units=pm.units, timings=timings,
+        effects=tuple(records), effect_terms=effects,
     )
+
+
+def _grounds(term) -> bool:
+    """Whether a term is a spring with a pair to ground (it may lift rigid-body modes)."""
+    from femodel._terms import AddedSpring
+
+    return isinstance(term, AddedSpring) and any(d[2] == 0 for d in term.dofs)

@@ -21,6 +21,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "--units", choices=["mm-t-s", "si"], default=None,
         help="unit system of the written deck (default: mm-t-s for the subframe, si for the frame)",
     )
+    parser.add_argument(
+        "--gap-mm", type=float, default=None,
+        help="add a part with an air gap of this many mm (subframe: a doubler sheet outside the LHS rail web, "
+        "welded along its top edge only; frame: two bump-stop brackets on the cradle ending below the rails); "
+        "the facing grid pairs are printed",
+    )
     parser.add_argument("--out", default=".", help="output directory (default: current directory)")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of text")
 
@@ -30,7 +36,7 @@ def _subframe(args):
 
     if args.dof < 1000:
         raise ValueError(f"--dof must be at least 1000, got {args.dof}")
-    ex = example_subframe(args.out, target_dof=args.dof, units=args.units or "mm-t-s")
+    ex = example_subframe(args.out, target_dof=args.dof, units=args.units or "mm-t-s", gap_mm=args.gap_mm)
     params = [
         {"name": n, "card": c, "id": i, "ids": [i], "field": f, "lower": lo, "upper": hi, "description": d}
         for n, c, i, f, lo, hi, d in PAPER_PARAMETERS
@@ -47,7 +53,8 @@ def _frame(args):
 
     if args.elements_per_member < 2:
         raise ValueError(f"--elements-per-member must be at least 2, got {args.elements_per_member}")
-    ex = example_frame(args.out, units=args.units or "si", elements_per_member=args.elements_per_member)
+    ex = example_frame(args.out, units=args.units or "si", elements_per_member=args.elements_per_member,
+                       gap_mm=args.gap_mm)
     params = [
         {"name": n, "card": c, "id": ids[0], "ids": list(ids), "field": f, "lower": lo, "upper": hi, "description": d}
         for n, c, ids, f, lo, hi, _unit, d in FRAME_PARAMETERS
@@ -63,6 +70,10 @@ def run(args) -> int:
     import json
 
     ex, params, summary, text = (_subframe if args.structure == "subframe" else _frame)(args)
+    if ex.gap_mm is not None:
+        summary.update(gap_mm=ex.gap_mm, gap_pairs=[list(p) for p in ex.gap_pairs])
+        text += (f"\nair gap {ex.gap_mm:g} mm: {len(ex.gap_pairs)} facing grid pairs (no element joins them): "
+                 + " ".join(f"{a}-{b}" for a, b in ex.gap_pairs))
     if args.json:
         print(json.dumps({"structure": args.structure, "bdf": str(ex.bdf), "params": str(ex.params),
                           "units": ex.units, **summary, "parameters": params}))

@@ -1,0 +1,999 @@
+"""Candidate effects: new term families generated from a deck and the test set-up.
+
+After a calibration some deviation remains; the diagnosis looks for the
+effect the model lacks among *candidates*. Each candidate is one added term
+(:class:`~femodel.AddedSpring`, :class:`~femodel.AddedMass` or
+:class:`~femodel.ElementFactor`) with p = 0 the deck as it is, plus where it
+acts (grids, parts, centre, local element size) and a physical description.
+
+Families (registry :data:`CANDIDATE_FAMILIES`, extended with
+:func:`register_family`):
+
+======================== ===========================================================
+family                   generates
+======================== ===========================================================
+``sensor_mass``          one common mass on all sensor grids (AddedMass)
+``sensor_masses``        one mass per sensor grid (AddedMass)
+``shaker_attachment``    a mass at each drive grid (force sensor, stinger end)
+``stinger_spring``       a spring to ground at each drive grid along the drive axis
+``contact_spring``       springs between facing grids of different parts that no
+                         element joins, one candidate per patch of pairs
+``ground_spring``        a spring to ground at spread grids, per direction
+``lumped_mass``          an unmodelled mass at spread grids (not the sensor grids)
+``element_cluster``      stiffness (optionally mass) factor of a sub-region of a
+                         property group, clusters of a few element sizes
+======================== ===========================================================
+
+Geometry is SI inside (as :class:`~femodel.FEModel`); a candidate's
+``center`` and ``size`` are in the deck's length unit. docs/diagnosis.md
+("Candidate families") describes the rules, scales and options.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass, field
+from typing import Callable, Iterable
+
+import numpy as np
+import scipy.sparse as sp
+
+from femodel._model import FEModel, ModelError
+from femodel._params import ParameterError
+from femodel._terms import AddedMass, AddedSpring, ElementFactor
+
+#: Element cards whose property is a "part" (property group) of the structure.
+_LINE_CARDS = ("CBAR", "CBEAM", "CROD", "CONROD")
+_SHELL_CARDS = ("CQUAD4", "CTRIA3")
+_SOLID_CARDS = ("CTETRA", "CPYRAM", "CPENTA", "CHEXA")
+_STRUCTURAL_CARDS = _LINE_CARDS + _SHELL_CARDS + _SOLID_CARDS
+#: Corner-node count and the factor taking the mean corner-to-centroid distance of a regular solid to its edge.
+_SOLID_CORNERS = {"CTETRA": (4, 1.633), "CPYRAM": (5, 1.3), "CPENTA": (6, 1.309), "CHEXA": (8, 1.1547)}
+#: Properties an :class:`ElementFactor` can scale and write back (with MAT1 materials).
+_FACTOR_PROPERTIES = ("PSHELL", "PBAR", "PBARL", "PROD", "PSOLID")
+_MID_FIELDS = ("mid", "mid1", "mid2", "mid3")
+
+
+# ----------------------------------------------------------------------------
+# options and results
+# ----------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class CandidateOptions:
+    """How candidates are generated (validated; units in each field).
+
+    Attributes
+    ----------
+    contact_factor : float
+        Contact distance in local element sizes: facing grids closer than
+        ``contact_factor`` times the local element size (and than
+        ``contact_max_gap_m``) are candidate contact pairs. Default 1.5.
+    contact_max_gap_m : float
+        Absolute cap on the contact distance, m (default 0.01: an air gap
+        of a few mm that closes, whatever the mesh size).
+    contact_hops : int
+        Pairs whose grids are joined through at most this many elements
+        are already connected and skipped: 1 = an element holds both grids,
+        2 (default) = also pairs sharing a neighbouring grid (the first rows
+        beside a welded junction).
+    contact_axis_deg : float
+        A gap within this angle (deg) of a displacement axis gets a spring
+        on that component only; otherwise on x, y and z. Default 20.
+    contact_patch : float
+        Largest extent of one contact patch in local element sizes (pairs
+        linked within two element sizes form a patch, cut into cells of
+        this edge). Default 4.
+    contact_fraction : float
+        p = 1 of a contact spring is this fraction of the smaller K-diagonal
+        entry of the two grids at the sprung component (median over the
+        patch). Default 0.1.
+    cluster_size : float
+        Edge of an element cluster in element sizes of its property group
+        (voxel binning of element centroids). Default 3.
+    cluster_kinds : tuple of {"K", "M"}
+        Which factors the clusters get. Default ("K",): a local stiffness
+        change (weld, joint, damage, thickness) is the common unmodelled
+        effect; a local mass change is covered by ``lumped_mass``, and
+        doubling the clusters with nearly collinear mass twins would halve
+        the screening's discrimination.
+    factor_bounds : (float, float)
+        Bounds on p of an element-cluster factor 1 + p (-1 < lower < 0 <
+        upper). Default (-0.9, 3.0).
+    ground_components : tuple of int
+        Translational components (1..3, in each grid's displacement system)
+        of the ground springs. Default (1, 2, 3).
+    spread_grids : int
+        Number of grids, spread evenly over the structure (farthest-point
+        sampling: the extremes come first), that get ground springs and
+        lumped masses. Default 40.
+    f_ref_hz : float
+        p = 1 of a ground or stinger spring is total mass * (2 pi f_ref)^2,
+        N/m: the whole structure on that spring alone would bounce at
+        f_ref. Default 10 Hz.
+    lumped_mass_fraction : float
+        p = 1 of a lumped mass as a fraction of the total mass. Default 0.01.
+    sensor_mass_fraction : float
+        p = 1 of a sensor mass (per grid) as a fraction of the total mass.
+        Default 0.001.
+    attachment_mass_fraction : float
+        p = 1 of a shaker attachment mass as a fraction of the total mass.
+        Default 0.002.
+    upper : float
+        Upper bound on p of added springs and masses (lower bound 0).
+        Default 100.
+    max_per_family : int
+        At most this many candidates per family; more are subsampled
+        evenly in space (farthest-point sampling of their centres,
+        deterministic). Default 500.
+    """
+
+    contact_factor: float = 1.5
+    contact_max_gap_m: float = 0.01
+    contact_hops: int = 2
+    contact_axis_deg: float = 20.0
+    contact_patch: float = 4.0
+    contact_fraction: float = 0.1
+    cluster_size: float = 3.0
+    cluster_kinds: tuple = ("K",)
+    factor_bounds: tuple = (-0.9, 3.0)
+    ground_components: tuple = (1, 2, 3)
+    spread_grids: int = 40
+    f_ref_hz: float = 10.0
+    lumped_mass_fraction: float = 0.01
+    sensor_mass_fraction: float = 0.001
+    attachment_mass_fraction: float = 0.002
+    upper: float = 100.0
+    max_per_family: int = 500
+
+    def __post_init__(self) -> None:
+        def bad(name, why):
+            raise ParameterError(f"CandidateOptions.{name}: {why}, got {getattr(self, name)!r}")
+
+        for name in ("contact_factor", "contact_max_gap_m", "contact_patch", "contact_fraction", "cluster_size",
+                     "f_ref_hz", "lumped_mass_fraction", "sensor_mass_fraction", "attachment_mass_fraction",
+                     "upper"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0):
+                bad(name, "must be a positive finite number")
+        if not 0.0 < float(self.contact_axis_deg) < 90.0:
+            bad("contact_axis_deg", "must be in (0, 90) degrees")
+        for name, lo in (("contact_hops", 1), ("spread_grids", 1), ("max_per_family", 1)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
+                bad(name, f"must be an integer >= {lo}")
+        kinds = tuple(self.cluster_kinds)
+        if not kinds or not set(kinds) <= {"K", "M"} or len(set(kinds)) != len(kinds):
+            bad("cluster_kinds", "must be a non-empty subset of ('K', 'M')")
+        object.__setattr__(self, "cluster_kinds", kinds)
+        fb = tuple(self.factor_bounds)
+        if len(fb) != 2 or not all(isinstance(x, (int, float)) and math.isfinite(x) for x in fb) \
+                or not -1.0 < fb[0] < 0.0 < fb[1]:
+            bad("factor_bounds", "must be (lower, upper) with -1 < lower < 0 < upper")
+        object.__setattr__(self, "factor_bounds", (float(fb[0]), float(fb[1])))
+        comps = tuple(self.ground_components)
+        if not comps or not all(isinstance(c, (int, np.integer)) and c in (1, 2, 3) for c in comps) \
+                or len(set(comps)) != len(comps):
+            bad("ground_components", "must be distinct translational components among 1, 2, 3")
+        object.__setattr__(self, "ground_components", tuple(int(c) for c in comps))
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One candidate effect: an added term and where it acts.
+
+    Attributes
+    ----------
+    family : str
+        Registry name (:data:`CANDIDATE_FAMILIES`).
+    term : AddedSpring, AddedMass or ElementFactor
+        The term (unique name; p = 0 is the deck as it is; ``scale`` so that
+        a plausible magnitude is p ~ 1).
+    grids : tuple of int
+        Grid ids where it acts.
+    parts : tuple of str
+        Property groups involved, e.g. "PSHELL 12", "PBAR 3" (a grid's parts
+        are the properties of its structural elements).
+    center : (float, float, float)
+        Centroid in basic coordinates, deck length unit.
+    size : float
+        Local element size, deck length unit ("within two element sizes").
+    description : str
+        Physical description.
+    """
+
+    family: str
+    term: object
+    grids: tuple
+    parts: tuple
+    center: tuple
+    size: float
+    description: str
+
+    @property
+    def name(self) -> str:
+        return self.term.name
+
+    def to_dict(self) -> dict:
+        """JSON-able dict (the term as family, name, scale, unit, bounds and dofs | grids | elements)."""
+        t = self.term
+        term = {"family": type(t).__name__, "name": t.name, "unit": t.unit, "lower": float(t.lower),
+                "upper": float(t.upper)}
+        if isinstance(t, AddedSpring):
+            term.update(scale=float(t.scale), dofs=[list(d) for d in t.dofs])
+        elif isinstance(t, AddedMass):
+            term.update(scale=float(t.scale), grids=list(t.grids))
+        else:
+            term.update(scale=1.0, kind=t.kind, elements=list(t.elements))
+        return {"family": self.family, "name": t.name, "grids": list(self.grids), "parts": list(self.parts),
+                "center": [float(x) for x in self.center], "size": float(self.size),
+                "description": self.description, "term": term}
+
+
+@dataclass(frozen=True, eq=False)
+class CandidateContext:
+    """What a family generator sees: the model's geometry, topology, scales and the test set-up.
+
+    Built once by :func:`generate_candidates`; a user family reads it and
+    returns :class:`Candidate` objects (make them with :meth:`candidate`).
+
+    Attributes
+    ----------
+    model : FEModel
+        The deck (SI arrays, basic coordinates).
+    assembly : Assembly
+        Its nominal assembly (g-set terms, constraint transformation T).
+    options : CandidateOptions
+    sensors : tuple of int
+        Measured grid ids (distinct, in the given order).
+    drives : tuple of (int, (3,) float)
+        Drive grid and unit direction in basic.
+    length_m : float
+        Metres per deck length unit.
+    xyz : (n_grid, 3) float
+        Grid positions, basic, m (rows as ``model.grid_ids``).
+    element_ids : (n_el,) int
+        Every element with grids (all element tables, CONM2 and springs included).
+    element_cards : (n_el,) str
+        Their cards ("CQUAD4", "CBAR", "CELAS2", ...).
+    element_parts : (n_el,) str
+        Property label ("PSHELL 12", "PBARL 3", "CONROD") of structural
+        elements (bars, beams, rods, shells, solids); "" for the others.
+    element_grids : tuple of tuple of int
+        Grid ids of each element (ground entries dropped).
+    element_centers : (n_el, 3) float
+        Centroid of the corner grids, basic, m.
+    element_sizes : (n_el,) float
+        Length (lines), mean edge (shells), edge of the regular solid with
+        the same corner-to-centroid distance (solids), m; 0 for the others.
+    factorable : (n_el,) bool
+        Elements an :class:`ElementFactor` can scale (structural, property in
+        PSHELL/PBAR/PBARL/PROD/PSOLID with MAT1 materials, not already in an
+        element-subset term of the parametric model).
+    grid_parts : tuple of tuple of str
+        Parts of each grid (its structural elements' property labels).
+    grid_sizes : (n_grid,) float
+        Mean size of each grid's structural elements, m (the median of all
+        elements for a grid without any).
+    free : (n_grid, 6) bool
+        DOF not removed by single-point constraints.
+    stiffness_diagonal : (n_grid, 6) float
+        Diagonal of the nominal g-set stiffness (N/m, N m/rad; components in
+        each grid's displacement system).
+    total_mass : float
+        Rigid-body mass of the nominal model, kg.
+    used_names : frozenset of str
+        Parameter names of the parametric model (candidates must not reuse them).
+    cd_axes : (n_grid, 3, 3) float or None
+        Columns: each grid's displacement axes in basic; None when every
+        grid displaces in basic.
+    """
+
+    model: FEModel
+    assembly: object
+    options: CandidateOptions
+    sensors: tuple
+    drives: tuple
+    length_m: float
+    xyz: np.ndarray
+    element_ids: np.ndarray
+    element_cards: np.ndarray
+    element_parts: np.ndarray
+    element_grids: tuple
+    element_centers: np.ndarray
+    element_sizes: np.ndarray
+    factorable: np.ndarray
+    grid_parts: tuple
+    grid_sizes: np.ndarray
+    free: np.ndarray
+    stiffness_diagonal: np.ndarray
+    total_mass: float
+    used_names: frozenset = field(default_factory=frozenset)
+    cd_axes: np.ndarray | None = None
+
+    @property
+    def grid_ids(self) -> np.ndarray:
+        return self.model.grid_ids
+
+    @property
+    def connectivity(self) -> dict:
+        """{element id: grid ids}."""
+        return dict(zip(self.element_ids.tolist(), self.element_grids))
+
+    def grid_index(self, grids) -> np.ndarray:
+        """Rows of grid ids (ParameterError naming missing ids)."""
+        try:
+            return self.model.grid_index(grids, what="candidate grid")
+        except ModelError as exc:
+            raise ParameterError(str(exc)) from None
+
+    def grid_label(self, grid: int) -> str:
+        """"grid 40211 (PSHELL 12)"."""
+        parts = self.grid_parts[int(self.grid_index([grid])[0])]
+        return f"grid {int(grid)} ({', '.join(parts)})" if parts else f"grid {int(grid)}"
+
+    def deck_length(self, x_m):
+        """Metres to the deck's length unit."""
+        return np.asarray(x_m, dtype=float) / self.length_m
+
+    def spread(self, points, k: int) -> np.ndarray:
+        """Indices of ``k`` of ``points`` (n, 3) spread evenly (farthest-point sampling, deterministic).
+
+        Starts at the point farthest from the centroid, then repeatedly takes
+        the point farthest from those taken (ties: the lowest index), so the
+        extremes of the structure come first. Returns all indices when
+        n <= k, else k sorted indices.
+        """
+        pts = np.asarray(points, dtype=float)
+        n = pts.shape[0]
+        if n <= k:
+            return np.arange(n)
+        d = np.linalg.norm(pts - pts.mean(axis=0), axis=1)
+        taken = [int(np.argmax(d))]
+        dist = np.linalg.norm(pts - pts[taken[0]], axis=1)
+        for _ in range(k - 1):
+            i = int(np.argmax(dist))
+            taken.append(i)
+            np.minimum(dist, np.linalg.norm(pts - pts[i], axis=1), out=dist)
+        return np.sort(np.array(taken))
+
+    def candidate(self, family: str, term, grids, description: str, *, parts=None, points=None,
+                  size=None) -> Candidate:
+        """A :class:`Candidate` with location filled in from the grids.
+
+        ``parts`` default: the union of the grids' parts (sorted); ``points``
+        (m, basic) default: the grids' positions (centre = their mean);
+        ``size`` (m) default: the mean local element size of the grids.
+        """
+        grids = tuple(int(g) for g in grids)
+        idx = self.grid_index(grids)
+        if parts is None:
+            parts = sorted({p for i in idx for p in self.grid_parts[i]})
+        pts = self.xyz[idx] if points is None else np.atleast_2d(np.asarray(points, dtype=float))
+        s = float(np.mean(self.grid_sizes[idx])) if size is None else float(size)
+        center = tuple(float(x) for x in self.deck_length(pts.mean(axis=0)))
+        return Candidate(family, term, grids, tuple(parts), center, float(self.deck_length(s)), description)
+
+    def mm(self, x_m: float) -> str:
+        return f"{1000.0 * float(x_m):.3g} mm"
+
+
+# ----------------------------------------------------------------------------
+# context
+# ----------------------------------------------------------------------------
+
+
+def _property_labels(fe: FEModel) -> dict:
+    """{pid: label} over every property table ("PSHELL 12"; PBAR rows carry their source card)."""
+    labels = {}
+    for name, tab in fe.properties.items():
+        cards = tab.fields.get("card")
+        for r, pid in enumerate(tab.ids.tolist()):
+            labels[int(pid)] = f"{cards[r] if cards is not None else tab.card} {int(pid)}"
+    return labels
+
+
+def _factorable_pids(fe: FEModel) -> set:
+    mat1 = set(fe.materials["MAT1"].ids.tolist()) if "MAT1" in fe.materials else set()
+    ok = set()
+    for name, tab in fe.properties.items():
+        if tab.card not in _FACTOR_PROPERTIES:
+            continue
+        cards = tab.fields.get("card")
+        for r, pid in enumerate(tab.ids.tolist()):
+            if cards is not None and str(cards[r]) not in _FACTOR_PROPERTIES:
+                continue
+            mids = [int(tab.fields[f][r]) for f in _MID_FIELDS if f in tab.fields and int(tab.fields[f][r]) > 0]
+            if mids and all(m in mat1 for m in mids):
+                ok.add(int(pid))
+    return ok
+
+
+def _element_geometry(card: str, corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Centroids (n, 3) and sizes (n,) of elements from their corner positions (n, nc, 3), m."""
+    center = corners.mean(axis=1)
+    nc = corners.shape[1]
+    if card in _LINE_CARDS:
+        size = np.linalg.norm(corners[:, 1] - corners[:, 0], axis=1)
+    elif card in _SHELL_CARDS:
+        size = np.mean(np.linalg.norm(np.roll(corners, -1, axis=1) - corners, axis=2), axis=1)
+    elif card in _SOLID_CORNERS:
+        size = _SOLID_CORNERS[card][1] * np.mean(np.linalg.norm(corners - center[:, None], axis=2), axis=1)
+    else:
+        size = np.zeros(corners.shape[0]) if nc else np.zeros(0)
+    return center, size
+
+
+def candidate_context(model, *, sensors=(), drives=(), options: CandidateOptions | None = None) -> CandidateContext:
+    """Build the :class:`CandidateContext` of a model and a test set-up.
+
+    Parameters
+    ----------
+    model : FEModel or ParametricModel
+        A model from :func:`femodel.read_bdf` (assembled here) or a
+        parametric model (its nominal assembly is reused; elements already
+        in one of its element-subset terms are not factorable again).
+    sensors : iterable of int
+        Measured grid ids (repeats, e.g. a triaxial sensor, are merged).
+    drives : iterable of (int, (3,) float)
+        Drive grid ids and force directions in basic.
+    options : CandidateOptions, optional
+
+    Returns
+    -------
+    CandidateContext
+
+    Raises
+    ------
+    ParameterError
+        An unknown sensor or drive grid, a malformed drive direction, or a
+        model that is neither an FEModel nor a ParametricModel.
+    """
+    from femodel._assembly import assemble
+    from femodel._pattern import _selection_map
+    from femodel._sensors import mass_properties
+    from femodel._units import unit_system
+
+    options = CandidateOptions() if options is None else options
+    if not isinstance(options, CandidateOptions):
+        raise ParameterError(f"options must be a CandidateOptions, got {type(options).__name__}")
+    used = frozenset()
+    taken_elements: set = set()
+    if isinstance(model, FEModel):
+        fe = model
+        asm = assemble(fe)
+    elif hasattr(model, "assembly") and hasattr(model, "with_terms"):
+        asm = model.assembly
+        fe = asm.model
+        used = frozenset(model.names)
+        for t in model.terms:
+            if isinstance(t, ElementFactor):
+                taken_elements.update(t.elements)
+    else:
+        raise ParameterError(f"generate_candidates: model must be an FEModel or a ParametricModel, "
+                             f"got {type(model).__name__}")
+    where = f"{fe.path}: " if fe.path else ""
+    sensors = tuple(dict.fromkeys(int(g) for g in sensors))
+    try:
+        if sensors:
+            fe.grid_index(sensors, what="sensor grid")
+    except ModelError as exc:
+        raise ParameterError(str(exc)) from None
+    drv = []
+    for item in drives:
+        try:
+            g, d = item
+            d = np.asarray(d, dtype=float).reshape(3)
+        except (TypeError, ValueError):
+            raise ParameterError(f"{where}drives must be (grid, (dx, dy, dz)) pairs, got {item!r}") from None
+        n = float(np.linalg.norm(d))
+        if not (np.all(np.isfinite(d)) and n > 0):
+            raise ParameterError(f"{where}drive at grid {g}: direction {d.tolist()} must be finite and non-zero")
+        try:
+            fe.grid_index([int(g)], what="drive grid")
+        except ModelError as exc:
+            raise ParameterError(str(exc)) from None
+        drv.append((int(g), tuple(float(x) for x in d / n)))
+
+    labels = _property_labels(fe)
+    factor_pids = _factorable_pids(fe)
+    n_g = fe.n_grids
+    ids, cards, parts, egrids, centers, sizes, factorable = [], [], [], [], [], [], []
+    for key, tab in fe.elements.items():
+        if len(tab) == 0:
+            continue
+        card = tab.card
+        nodes = np.asarray(tab["nodes"], dtype=np.int64)
+        nc = _SOLID_CORNERS[card][0] if card in _SOLID_CORNERS else nodes.shape[1]
+        if card in _STRUCTURAL_CARDS and np.all(nodes[:, :nc] > 0):
+            corner_rows = fe.grid_index(nodes[:, :nc].ravel(), what=f"{card} grid").reshape(-1, nc)
+            c, s = _element_geometry(card, fe.xyz[corner_rows])
+            pids = np.asarray(tab.fields.get("pid", np.full(len(tab), -1)), dtype=np.int64)
+            part = np.array([card if card == "CONROD" else labels.get(int(p), f"{card} pid {int(p)}")
+                             for p in pids.tolist()], dtype=object)
+            fac = np.array([int(p) in factor_pids for p in pids.tolist()]) & (card != "CONROD")
+            fac &= ~np.isin(tab.ids, np.fromiter(taken_elements, dtype=np.int64, count=len(taken_elements)))
+        else:
+            rows = [[g for g in r if g > 0] for r in nodes.tolist()]
+            c = np.array([fe.xyz[fe.grid_index(r)].mean(axis=0) if r else np.zeros(3) for r in rows]).reshape(-1, 3)
+            s = np.zeros(len(tab))
+            part = np.full(len(tab), "", dtype=object)
+            fac = np.zeros(len(tab), dtype=bool)
+        ids.append(np.asarray(tab.ids, dtype=np.int64))
+        cards.append(np.full(len(tab), card, dtype=object))
+        parts.append(part)
+        egrids.extend(tuple(g for g in r if g > 0) for r in nodes.tolist())
+        centers.append(c)
+        sizes.append(s)
+        factorable.append(fac)
+    cat = (lambda xs, empty: np.concatenate(xs) if xs else empty)
+    element_ids = cat(ids, np.zeros(0, np.int64))
+    element_cards = cat(cards, np.zeros(0, object))
+    element_parts = cat(parts, np.zeros(0, object))
+    element_centers = cat(centers, np.zeros((0, 3)))
+    element_sizes = cat(sizes, np.zeros(0))
+    factorable_arr = cat(factorable, np.zeros(0, bool))
+
+    # parts and local size per grid, from the structural elements
+    structural = element_parts != ""
+    g_rows, p_rows, s_rows = [], [], []
+    part_names = sorted(set(element_parts[structural].tolist()))
+    part_index = {p: i for i, p in enumerate(part_names)}
+    for e in np.flatnonzero(structural):
+        r = fe.grid_index(egrids[e])
+        g_rows.append(r)
+        p_rows.append(np.full(r.size, part_index[element_parts[e]]))
+        s_rows.append(np.full(r.size, element_sizes[e]))
+    grid_parts_sets = [[] for _ in range(n_g)]
+    grid_sizes = np.zeros(n_g)
+    if g_rows:
+        gr, pr, sr = np.concatenate(g_rows), np.concatenate(p_rows), np.concatenate(s_rows)
+        for g, p in np.unique(np.column_stack([gr, pr]), axis=0).tolist():
+            grid_parts_sets[g].append(part_names[p])
+        cnt = np.bincount(gr, minlength=n_g)
+        tot = np.bincount(gr, weights=sr, minlength=n_g)
+        has = cnt > 0
+        grid_sizes[has] = tot[has] / cnt[has]
+        grid_sizes[~has] = float(np.median(element_sizes[structural]))
+    else:
+        positive = element_sizes[element_sizes > 0]
+        grid_sizes[:] = float(np.median(positive)) if positive.size else 1.0
+    grid_parts = tuple(tuple(sorted(p)) for p in grid_parts_sets)
+
+    amap = _selection_map(asm.T)
+    free = (amap != -1).reshape(n_g, 6)
+    kdiag = np.asarray(asm.stiffness_g().diagonal(), dtype=float).reshape(n_g, 6)
+    try:
+        total_mass = float(mass_properties(asm).mass)
+    except ModelError as exc:
+        raise ParameterError(f"{where}candidates need the structure's mass: {exc}") from None
+    return CandidateContext(
+        model=fe, assembly=asm, options=options, sensors=sensors, drives=tuple(drv),
+        length_m=float(unit_system(fe.units).length_m), xyz=np.asarray(fe.xyz, dtype=float),
+        element_ids=element_ids, element_cards=element_cards, element_parts=element_parts,
+        element_grids=tuple(egrids), element_centers=element_centers, element_sizes=element_sizes,
+        factorable=factorable_arr, grid_parts=grid_parts, grid_sizes=grid_sizes, free=free,
+        stiffness_diagonal=kdiag, total_mass=total_mass, used_names=used,
+        cd_axes=fe.cd_axes() if np.any(fe.cd != 0) else None)
+
+
+# ----------------------------------------------------------------------------
+# families
+# ----------------------------------------------------------------------------
+
+
+def _slug(label: str) -> str:
+    return re.sub(r"[^A-Za-z0-9]", "", label) or "x"
+
+
+_AXES = "xyz"
+
+
+def _movable(ctx: CandidateContext, grids) -> tuple:
+    """The grids with at least one free translation (a mass on a clamped grid does nothing)."""
+    grids = tuple(grids)
+    if not grids:
+        return ()
+    ok = np.any(ctx.free[ctx.grid_index(grids), :3], axis=1)
+    return tuple(g for g, k in zip(grids, ok.tolist()) if k)
+
+
+def sensor_mass_family(ctx: CandidateContext):
+    """One common mass on every sensor grid (accelerometers of one type): p = 1 is
+    ``sensor_mass_fraction`` of the total mass on each grid. Clamped sensor grids are left out."""
+    g = _movable(ctx, ctx.sensors)
+    if not g:
+        return
+    scale = ctx.options.sensor_mass_fraction * ctx.total_mass
+    term = AddedMass("sensor_mass", g, scale, 0.0, ctx.options.upper,
+                     f"one sensor mass on each of the {len(g)} measured grids")
+    yield ctx.candidate("sensor_mass", term, g,
+                        f"sensor mass {scale:.3g} kg x p on each of the {len(g)} measured grids "
+                        f"({', '.join(str(x) for x in g[:6])}{', ...' if len(g) > 6 else ''})")
+
+
+def sensor_masses_family(ctx: CandidateContext):
+    """One mass per sensor grid (a heavier sensor or cable clamp): p = 1 is
+    ``sensor_mass_fraction`` of the total mass."""
+    scale = ctx.options.sensor_mass_fraction * ctx.total_mass
+    for g in _movable(ctx, ctx.sensors):
+        term = AddedMass(f"sensor_mass_g{g}", (g,), scale, 0.0, ctx.options.upper, f"sensor mass at grid {g}")
+        yield ctx.candidate("sensor_masses", term, (g,),
+                            f"sensor mass {scale:.3g} kg x p at sensor {ctx.grid_label(g)}")
+
+
+def shaker_attachment_family(ctx: CandidateContext):
+    """A mass at each drive grid (force sensor, stinger end, adhesive): p = 1 is
+    ``attachment_mass_fraction`` of the total mass."""
+    scale = ctx.options.attachment_mass_fraction * ctx.total_mass
+    for g in _movable(ctx, dict.fromkeys(g for g, _ in ctx.drives)):
+        term = AddedMass(f"shaker_mass_g{g}", (g,), scale, 0.0, ctx.options.upper,
+                         f"shaker attachment mass at drive grid {g}")
+        yield ctx.candidate("shaker_attachment", term, (g,),
+                            f"shaker attachment mass {scale:.3g} kg x p at drive {ctx.grid_label(g)}")
+
+
+def _ground_scale(ctx: CandidateContext) -> float:
+    return ctx.total_mass * (2.0 * np.pi * ctx.options.f_ref_hz) ** 2
+
+
+def _local_axis(ctx: CandidateContext, row: int, direction) -> tuple[int, float]:
+    """Component (1..3, in the grid's displacement system) nearest a basic direction, and |cos| to it."""
+    lam = ctx.cd_axes[row] if ctx.cd_axes is not None else np.eye(3)
+    local = lam.T @ np.asarray(direction, dtype=float)
+    c = int(np.argmax(np.abs(local)))
+    return c + 1, float(abs(local[c]) / max(np.linalg.norm(local), 1e-300))
+
+
+def stinger_spring_family(ctx: CandidateContext):
+    """A spring to ground at each drive grid along the drive's dominant axis (stinger and
+    shaker suspension): p = 1 is total mass * (2 pi f_ref)^2."""
+    scale = _ground_scale(ctx)
+    seen = set()
+    for g, d in ctx.drives:
+        row = int(ctx.grid_index([g])[0])
+        c, _ = _local_axis(ctx, row, d)
+        if (g, c) in seen or not ctx.free[row, c - 1]:
+            continue
+        seen.add((g, c))
+        term = AddedSpring(f"stinger_g{g}_{_AXES[c - 1]}", ((g, c, 0, 0),), scale, 0.0, ctx.options.upper,
+                           f"stinger spring at drive grid {g}, component {c}")
+        yield ctx.candidate("stinger_spring", term, (g,),
+                            f"stinger/shaker spring to ground {scale:.3g} N/m x p at drive {ctx.grid_label(g)} "
+                            f"along {_AXES[c - 1]}")
+
+
+def _structural_rows(ctx: CandidateContext) -> np.ndarray:
+    return np.flatnonzero(np.array([bool(p) for p in ctx.grid_parts]))
+
+
+def ground_spring_family(ctx: CandidateContext):
+    """Springs to ground (suspension, fixture) at ``spread_grids`` grids spread over the
+    structure, one candidate per grid and component: p = 1 is total mass * (2 pi f_ref)^2."""
+    rows = _structural_rows(ctx)
+    rows = rows[np.any(ctx.free[rows][:, [c - 1 for c in ctx.options.ground_components]], axis=1)]
+    rows = rows[ctx.spread(ctx.xyz[rows], ctx.options.spread_grids)]
+    scale = _ground_scale(ctx)
+    for r in rows.tolist():
+        g = int(ctx.grid_ids[r])
+        for c in ctx.options.ground_components:
+            if not ctx.free[r, c - 1]:
+                continue
+            term = AddedSpring(f"ground_g{g}_{_AXES[c - 1]}", ((g, c, 0, 0),), scale, 0.0, ctx.options.upper,
+                               f"spring to ground at grid {g}, component {c}")
+            yield ctx.candidate("ground_spring", term, (g,),
+                                f"spring to ground {scale:.3g} N/m x p at {ctx.grid_label(g)} along {_AXES[c - 1]}")
+
+
+def lumped_mass_family(ctx: CandidateContext):
+    """An unmodelled lumped mass at ``spread_grids`` grids spread over the structure
+    (sensor grids excluded): p = 1 is ``lumped_mass_fraction`` of the total mass."""
+    rows = _structural_rows(ctx)
+    rows = rows[np.any(ctx.free[rows, :3], axis=1) & ~np.isin(ctx.grid_ids[rows], list(ctx.sensors))]
+    rows = rows[ctx.spread(ctx.xyz[rows], ctx.options.spread_grids)]
+    scale = ctx.options.lumped_mass_fraction * ctx.total_mass
+    for r in rows.tolist():
+        g = int(ctx.grid_ids[r])
+        term = AddedMass(f"mass_g{g}", (g,), scale, 0.0, ctx.options.upper, f"lumped mass at grid {g}")
+        yield ctx.candidate("lumped_mass", term, (g,), f"lumped mass {scale:.3g} kg x p at {ctx.grid_label(g)}")
+
+
+def element_cluster_family(ctx: CandidateContext):
+    """Stiffness (``cluster_kinds``) factors 1 + p of sub-regions of each property group with
+    MAT1 material: element centroids binned into cubes of ``cluster_size`` element sizes.
+
+    The clusters of a group are disjoint and cover its factorable elements.
+    """
+    o = ctx.options
+    fac = np.flatnonzero(ctx.factorable)
+    parts = ctx.element_parts[fac]
+    for part in sorted(set(parts.tolist())):
+        els = fac[parts == part]
+        edge = o.cluster_size * float(np.median(ctx.element_sizes[els]))
+        pts = ctx.element_centers[els]
+        keys = np.floor((pts - pts.min(axis=0)) / edge).astype(np.int64)
+        _, inv = np.unique(keys, axis=0, return_inverse=True)
+        inv = inv.ravel()
+        for n in range(inv.max() + 1):
+            sel = els[inv == n]
+            eids = tuple(int(e) for e in ctx.element_ids[sel])
+            grids = sorted({g for e in sel for g in ctx.element_grids[e]})
+            size = float(np.median(ctx.element_sizes[sel]))
+            c = ctx.deck_length(ctx.element_centers[sel].mean(axis=0))
+            for kind in o.cluster_kinds:
+                what = "stiffness" if kind == "K" else "mass"
+                term = ElementFactor(f"cluster_{_slug(part)}_{n + 1}_{kind}", eids, kind, o.factor_bounds[0],
+                                     o.factor_bounds[1], f"{what} of {len(eids)} elements of {part}")
+                yield ctx.candidate(
+                    "element_cluster", term, grids,
+                    f"{what} of {len(eids)} {part} elements ({ctx.element_cards[sel[0]]} {eids[0]}"
+                    f"{'..' + str(eids[-1]) if len(eids) > 1 else ''}) around ({c[0]:.4g}, {c[1]:.4g}, {c[2]:.4g}) "
+                    f"deck units, {edge / size:.2g} element sizes across, times 1 + p",
+                    parts=(part,), points=ctx.element_centers[sel], size=size)
+
+
+def _incidence(ctx: CandidateContext) -> sp.csr_matrix:
+    """Grid x connector incidence (elements, RBE2, RBE3, MPC equations), (n_grid, n_conn)."""
+    fe = ctx.model
+    groups = [g for g in ctx.element_grids]
+    groups += [(r.gn,) + tuple(r.gm) for r in fe.rbe2]
+    groups += [(r.refgrid,) + tuple(g for _, _, gs in r.groups for g in gs) for r in fe.rbe3]
+    groups += [tuple(g for g, _, _ in terms) for _, terms in fe.mpc]
+    rows = np.concatenate([fe.grid_index(g) for g in groups if g]) if groups else np.zeros(0, np.int64)
+    cols = np.repeat(np.arange(len(groups)), [len(g) for g in groups])
+    m = sp.csr_matrix((np.ones(rows.size), (rows, cols)), shape=(fe.n_grids, max(len(groups), 1)))
+    m.data[:] = 1.0
+    return m
+
+
+def _adjacency(ctx: CandidateContext, inc: sp.csr_matrix) -> sp.csr_matrix:
+    """Grid adjacency (n_grid, n_grid): cliques of connectors of up to 27 grids, stars of larger ones."""
+    sizes = np.asarray(inc.sum(axis=0)).ravel()
+    small = sp.csr_matrix(inc[:, np.flatnonzero(sizes <= 27)])
+    adj = small @ small.T
+    big = np.flatnonzero(sizes > 27)
+    if big.size:
+        cols = inc.tocsc()
+        r, c = [], []
+        for j in big.tolist():
+            g = cols.indices[cols.indptr[j]:cols.indptr[j + 1]]
+            r += [g[0]] * (g.size - 1) + g[1:].tolist()
+            c += g[1:].tolist() + [g[0]] * (g.size - 1)
+        adj = adj + sp.csr_matrix((np.ones(len(r)), (r, c)), shape=adj.shape)
+    adj = sp.csr_matrix(adj)
+    adj.data[:] = 1.0
+    return adj
+
+
+def contact_pairs(ctx: CandidateContext) -> np.ndarray:
+    """Candidate contact pairs: (n_pairs, 2) grid rows (i < j).
+
+    Both grids belong to exactly one part (a grid of two parts is a
+    junction), the parts differ, the distance is within
+    min(``contact_factor`` x local size, ``contact_max_gap_m``) of either
+    grid, no connector holds both (and, with ``contact_hops`` = 2, no grid
+    is a neighbour of both), and both grids' displacement systems agree
+    (a scalar spring between equal components is then a physical spring).
+    """
+    from scipy.spatial import cKDTree
+
+    o = ctx.options
+    single = np.flatnonzero(np.array([len(p) == 1 for p in ctx.grid_parts], dtype=bool))
+    single = single[np.any(ctx.free[single, :3], axis=1)]
+    if single.size < 2:
+        return np.zeros((0, 2), np.int64)
+    radius = np.minimum(o.contact_max_gap_m, o.contact_factor * ctx.grid_sizes[single])
+    tree = cKDTree(ctx.xyz[single])
+    found = tree.query_ball_point(ctx.xyz[single], r=radius, return_sorted=False)
+    counts = np.fromiter((len(f) for f in found), dtype=np.int64, count=single.size)
+    a = np.repeat(np.arange(single.size), counts)
+    b = np.fromiter((j for f in found for j in f), dtype=np.int64, count=int(counts.sum()))
+    a, b = single[a], single[b]
+    keep = a < b
+    a, b = a[keep], b[keep]
+    part_of = np.array([p[0] if len(p) == 1 else "" for p in ctx.grid_parts], dtype=object)
+    keep = part_of[a] != part_of[b]
+    a, b = a[keep], b[keep]
+    # the union over the two grids' radii: a pair found from either side once
+    pairs = np.unique(np.column_stack([np.minimum(a, b), np.maximum(a, b)]), axis=0)
+    if pairs.size == 0:
+        return np.zeros((0, 2), np.int64)
+    inc = _incidence(ctx)
+    joined = np.asarray(inc[pairs[:, 0]].multiply(inc[pairs[:, 1]]).sum(axis=1)).ravel() > 0
+    if o.contact_hops >= 2:
+        adj = _adjacency(ctx, inc)
+        reach = adj
+        for _ in range(o.contact_hops - 2):
+            reach = sp.csr_matrix(reach @ adj)
+        joined |= np.asarray(adj[pairs[:, 0]].multiply(reach[pairs[:, 1]]).sum(axis=1)).ravel() > 0
+    pairs = pairs[~joined]
+    if ctx.cd_axes is not None:
+        lam = ctx.cd_axes
+        same = np.all(np.abs(lam[pairs[:, 0]] - lam[pairs[:, 1]]) < 1e-6, axis=(1, 2))
+        pairs = pairs[same]
+    return pairs
+
+
+def contact_spring_family(ctx: CandidateContext):
+    """Contact springs between facing grids of different parts that no element joins.
+
+    Pairs (:func:`contact_pairs`) of the same two parts linked within two
+    element sizes form a patch, cut into cells of ``contact_patch`` element
+    sizes; each patch is one candidate: one common rate on every pair, on
+    the gap component when the gap lies within ``contact_axis_deg`` of an
+    axis, else on x, y and z. p = 1 is ``contact_fraction`` of the smaller
+    K-diagonal entry of the two grids (median over the patch).
+    """
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    o = ctx.options
+    pairs = contact_pairs(ctx)
+    if pairs.size == 0:
+        return
+    part_of = [p[0] for p in ctx.grid_parts]
+    keyset = {}
+    for k, (i, j) in enumerate(pairs.tolist()):
+        keyset.setdefault(tuple(sorted((part_of[i], part_of[j]))), []).append(k)
+    cos_tol = math.cos(math.radians(o.contact_axis_deg))
+    kd = ctx.stiffness_diagonal
+    for (pa, pb), members in sorted(keyset.items()):
+        pr = pairs[members]
+        mid = 0.5 * (ctx.xyz[pr[:, 0]] + ctx.xyz[pr[:, 1]])
+        psize = np.maximum(ctx.grid_sizes[pr[:, 0]], ctx.grid_sizes[pr[:, 1]])
+        h = float(np.median(psize))
+        links = cKDTree(mid).query_pairs(r=2.0 * h, output_type="ndarray")
+        graph = sp.csr_matrix((np.ones(len(links)), (links[:, 0], links[:, 1])), shape=(len(pr), len(pr)))
+        _, comp = connected_components(graph, directed=False)
+        cell = np.floor((mid - mid.min(axis=0)) / (o.contact_patch * h)).astype(np.int64)
+        _, patch = np.unique(np.column_stack([comp, cell]), axis=0, return_inverse=True)
+        patch = patch.ravel()
+        order = sorted(range(patch.max() + 1), key=lambda q: int(ctx.grid_ids[pr[patch == q]].min()))
+        for n, q in enumerate(order):
+            sel = pr[patch == q]
+            # orient each pair part a -> part b for the description
+            sel = np.array([(i, j) if part_of[i] == pa else (j, i) for i, j in sel.tolist()])
+            gap = ctx.xyz[sel[:, 1]] - ctx.xyz[sel[:, 0]]
+            dist = np.linalg.norm(gap, axis=1)
+            dofs, rates = [], []
+            comps_used = set()
+            for (i, j), v, d in zip(sel.tolist(), gap, dist):
+                if d > 0:
+                    c, cos = _local_axis(ctx, i, v / d)
+                    comps = (c,) if cos >= cos_tol else (1, 2, 3)
+                else:
+                    comps = (1, 2, 3)
+                for c in comps:
+                    if not (ctx.free[i, c - 1] or ctx.free[j, c - 1]):
+                        continue
+                    dofs.append((int(ctx.grid_ids[i]), c, int(ctx.grid_ids[j]), c))
+                    comps_used.add(c)
+                    kk = [x for x in (kd[i, c - 1], kd[j, c - 1]) if x > 0]
+                    if kk:
+                        rates.append(min(kk))
+            if not dofs or not rates:
+                continue
+            scale = o.contact_fraction * float(np.median(rates))
+            gi, gj = int(ctx.grid_ids[sel[0, 0]]), int(ctx.grid_ids[sel[0, 1]])
+            axes = ",".join(_AXES[c - 1] for c in sorted(comps_used))
+            name = f"contact_{_slug(pa)}_{_slug(pb)}_{n + 1}"
+            term = AddedSpring(name, tuple(dofs), scale, 0.0, o.upper,
+                               f"contact springs between {pa} and {pb}")
+            if len(sel) == 1:
+                text = (f"contact springs ({axes}) {scale:.3g} N/m x p between {ctx.grid_label(gi)} and "
+                        f"{ctx.grid_label(gj)}, {ctx.mm(dist[0])} apart")
+            else:
+                listed = ", ".join(f"{int(ctx.grid_ids[i])}-{int(ctx.grid_ids[j])}" for i, j in sel[:4].tolist())
+                text = (f"contact springs ({axes}) {scale:.3g} N/m x p on {len(sel)} grid pairs between {pa} and "
+                        f"{pb} ({listed}{', ...' if len(sel) > 4 else ''}), "
+                        f"{ctx.mm(dist.min())} to {ctx.mm(dist.max())} apart")
+            grids = tuple(sorted(set(ctx.grid_ids[sel.ravel()].tolist())))
+            yield ctx.candidate("contact_spring", term, grids, text, parts=(pa, pb),
+                                points=np.vstack([ctx.xyz[sel[:, 0]], ctx.xyz[sel[:, 1]]]),
+                                size=float(np.median(np.maximum(ctx.grid_sizes[sel[:, 0]],
+                                                                ctx.grid_sizes[sel[:, 1]]))))
+
+
+# ----------------------------------------------------------------------------
+# registry and entry point
+# ----------------------------------------------------------------------------
+
+#: Registered families: name -> generator(ctx: CandidateContext) -> iterable of Candidate.
+CANDIDATE_FAMILIES: dict[str, Callable[[CandidateContext], Iterable[Candidate]]] = {
+    "sensor_mass": sensor_mass_family,
+    "sensor_masses": sensor_masses_family,
+    "shaker_attachment": shaker_attachment_family,
+    "stinger_spring": stinger_spring_family,
+    "contact_spring": contact_spring_family,
+    "ground_spring": ground_spring_family,
+    "lumped_mass": lumped_mass_family,
+    "element_cluster": element_cluster_family,
+}
+
+_FAMILY_NAME = re.compile(r"^[a-z][a-z0-9_]*$")
+
+
+def register_family(name: str, generator, *, replace: bool = False) -> None:
+    """Add a candidate family to :data:`CANDIDATE_FAMILIES`.
+
+    Parameters
+    ----------
+    name : str
+        Lower-case identifier (``[a-z][a-z0-9_]*``); the family of every
+        candidate the generator yields.
+    generator : callable
+        ``generator(ctx: CandidateContext) -> iterable of Candidate``; build
+        candidates with :meth:`CandidateContext.candidate`, give each term a
+        name no other candidate uses.
+    replace : bool
+        Allow replacing a registered family of that name.
+
+    Raises
+    ------
+    ParameterError
+        A bad name, a non-callable generator, or a taken name without
+        ``replace``.
+    """
+    if not isinstance(name, str) or not _FAMILY_NAME.match(name):
+        raise ParameterError(f"register_family: name {name!r} must match [a-z][a-z0-9_]*")
+    if not callable(generator):
+        raise ParameterError(f"register_family {name!r}: generator must be callable, got {type(generator).__name__}")
+    if name in CANDIDATE_FAMILIES and not replace:
+        raise ParameterError(f"register_family: family {name!r} is already registered (pass replace=True)")
+    CANDIDATE_FAMILIES[name] = generator
+
+
+def generate_candidates(model, *, sensors=(), drives=(), families=None,
+                        options: CandidateOptions | None = None) -> tuple[Candidate, ...]:
+    """Candidate effects of a model and a test set-up, family by family.
+
+    Parameters
+    ----------
+    model : FEModel or ParametricModel
+        The deck (:func:`femodel.read_bdf`) or a parametric model (its
+        assembly is reused; candidate names avoid its parameter names).
+    sensors : iterable of int
+        Measured grid ids.
+    drives : iterable of (int, (3,) float)
+        Drive grids and force directions (basic).
+    families : iterable of str, optional
+        Registered family names (default: all of :data:`CANDIDATE_FAMILIES`,
+        in registry order).
+    options : CandidateOptions, optional
+
+    Returns
+    -------
+    tuple of Candidate
+        Grouped by family in the order asked; at most
+        ``options.max_per_family`` per family (spread evenly in space).
+
+    Raises
+    ------
+    ParameterError
+        An unknown family (the message lists the known ones), unknown
+        sensor/drive grids, a generator yielding something else than a
+        Candidate of its family, or a repeated term name.
+    """
+    names = list(CANDIDATE_FAMILIES) if families is None else list(families)
+    unknown = [f for f in names if f not in CANDIDATE_FAMILIES]
+    if unknown:
+        raise ParameterError(f"unknown candidate families {unknown}; known: {', '.join(CANDIDATE_FAMILIES)}")
+    ctx = candidate_context(model, sensors=sensors, drives=drives, options=options)
+    out: list[Candidate] = []
+    seen = set(ctx.used_names)
+    for fam in dict.fromkeys(names):
+        got = list(CANDIDATE_FAMILIES[fam](ctx) or ())
+        for c in got:
+            if not isinstance(c, Candidate) or c.family != fam:
+                raise ParameterError(f"candidate family {fam!r} yielded {c!r:.120}, not a Candidate of family {fam!r}")
+        if len(got) > ctx.options.max_per_family:
+            centers = np.array([c.center for c in got], dtype=float)
+            got = [got[i] for i in ctx.spread(centers, ctx.options.max_per_family)]
+        for c in got:
+            if c.term.name in seen:
+                raise ParameterError(f"candidate family {fam!r}: term name {c.term.name!r} is already used")
+            seen.add(c.term.name)
+        out.extend(got)
+    return tuple(out)
+

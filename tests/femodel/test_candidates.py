@@ -1,0 +1,353 @@
+"""Candidate effects generated from a deck and a test set-up; term derivatives without rebuilding the model."""
+
+from __future__ import annotations
+
+import json
+from collections import Counter
+
+import numpy as np
+import pytest
+
+from femodel import (
+    CANDIDATE_FAMILIES,
+    AddedMass,
+    CandidateOptions,
+    ParameterError,
+    ParameterSet,
+    Parameter,
+    candidate_context,
+    example_frame,
+    example_subframe,
+    generate_candidates,
+    parametric_model,
+    read_bdf,
+    register_family,
+)
+
+from ._decks import frame_deck
+
+H = 0.01  # mesh spacing of the gap deck, m
+GAP = 0.002  # the air gap, m
+
+
+def gap_deck(path):
+    """Two steel plates (PSHELL 1 at z = 0, PSHELL 2 at z = 2 mm) overlapping on 3 x 3 facing grids.
+
+    Plate A: grids 1..12 at x = 0..30 mm, y = 0..20 mm. Plate B: grids
+    101..112 at x = 10..40 mm, same y, z = 2 mm. Three of the nine facing
+    pairs are joined: (2, 101) by a CELAS2, (6, 105) by a CELAS1 (PELAS 9),
+    (12, 111) by an RBE2. A CBAR (PBAR 3) hangs off grid 4 away from plate
+    B: grid 4 is a PSHELL 1 / PBAR 3 junction, so (4, 103) is no contact
+    candidate either. No element joins the other five. SI.
+    """
+    lines = ["SOL 103", "CEND", "BEGIN BULK", "MAT1,1,2.1+11,,0.3,7850.", "PSHELL,1,1,0.002,1,,1",
+             "PSHELL,2,1,0.0015,1,,1", "PBAR,3,1,1.0-5,1.0-10,1.0-10,2.0-10", "PELAS,9,1.0+5"]
+    ga = {}
+    gb = {}
+    for j in range(3):
+        for i in range(4):
+            ga[i, j] = 1 + i + 4 * j
+            gb[i, j] = 101 + i + 4 * j
+            lines.append(f"GRID,{ga[i, j]},,{i * H!r},{j * H!r},0.")
+            lines.append(f"GRID,{gb[i, j]},,{(i + 1) * H!r},{j * H!r},{GAP!r}")
+    eid = 1
+    for g, pid in ((ga, 1), (gb, 2)):
+        for j in range(2):
+            for i in range(3):
+                lines.append(f"CQUAD4,{eid},{pid},{g[i, j]},{g[i + 1, j]},{g[i + 1, j + 1]},{g[i, j + 1]}")
+                eid += 1
+    lines.append(f"GRID,50,,{3 * H + 0.05!r},0.,-0.05")
+    lines.append("CBAR,20,3,4,50,0.,1.,0.")
+    lines.append("CELAS2,30,1.0+5,2,3,101,3")
+    lines.append("CELAS1,31,9,6,1,105,1")
+    lines.append("RBE2,32,111,123456,12")
+    lines.append("ENDDATA")
+    path.write_text("\n".join(lines) + "\n")
+    facing = {(ga[i + 1, j], gb[i, j]) for i in range(3) for j in range(3)}
+    joined = {(2, 101), (6, 105), (12, 111)}
+    assert joined < facing and (4, 103) in facing
+    return path, facing - joined - {(4, 103)}, joined
+
+
+@pytest.fixture(scope="module")
+def frame_pm(tmp_path_factory):
+    ex = example_frame(tmp_path_factory.mktemp("frame"))
+    return parametric_model(ex.params)
+
+
+@pytest.fixture(scope="module")
+def shell_pm(tmp_path_factory):
+    ex = example_subframe(tmp_path_factory.mktemp("sf1500"), target_dof=1500)
+    return parametric_model(ex.params)
+
+
+def _setup(pm, n_sensors=10):
+    g = pm.assembly.model.grid_ids
+    sensors = [int(x) for x in g[:: max(1, g.size // n_sensors)][:n_sensors]]
+    return sensors, [(sensors[1], (0.1, 0.2, -1.0))]
+
+
+def _contact_pairs(c):
+    return {(min(g1, g2), max(g1, g2)) for g1, _, g2, _ in c.term.dofs}
+
+
+def _element_sets(fe):
+    return [set(int(x) for x in row if x > 0) for tab in fe.elements.values() for row in np.asarray(tab["nodes"])]
+
+
+def test_gap_deck_contact_finds_exactly_the_unjoined_facing_pairs_of_single_part_grids(tmp_path):
+    path, expected, joined = gap_deck(tmp_path / "gap.bdf")
+    fe = read_bdf(path)
+    cands = generate_candidates(fe, families=["contact_spring"])
+    assert len(cands) == 1
+    c = cands[0]
+    assert _contact_pairs(c) == {(min(a, b), max(a, b)) for a, b in expected}
+    assert not _contact_pairs(c) & joined
+    # the gap is along z: one spring per pair on component 3
+    assert {(d[1], d[3]) for d in c.term.dofs} == {(3, 3)}
+    assert c.parts == ("PSHELL 1", "PSHELL 2")
+    assert "2 mm" in c.description and "PSHELL 1" in c.description and "PSHELL 2" in c.description
+    # location: the middle of the five pairs' grids, at most two element sizes off
+    pts = np.array([fe.xyz[fe.grid_index([g])[0]] for g in c.grids])
+    assert np.linalg.norm(np.array(c.center) - pts.mean(axis=0)) < 1e-12
+    assert c.size == pytest.approx(H, rel=0.02)
+    # p = 1 is a tenth of the smaller K diagonal at the sprung DOF (median over pairs)
+    ctx = candidate_context(fe)
+    kd = [min(ctx.stiffness_diagonal[fe.grid_index([a])[0], 2], ctx.stiffness_diagonal[fe.grid_index([b])[0], 2])
+          for a, b in expected]
+    assert c.term.scale == pytest.approx(0.1 * np.median(kd), rel=1e-12)
+
+
+def test_gap_deck_contact_distance_cap_and_patches(tmp_path):
+    path, expected, _ = gap_deck(tmp_path / "gap.bdf")
+    fe = read_bdf(path)
+    assert generate_candidates(fe, families=["contact_spring"],
+                               options=CandidateOptions(contact_max_gap_m=0.0019)) == ()
+    # patches of at most one element size: the five pairs split, each pair in exactly one patch
+    small = generate_candidates(fe, families=["contact_spring"], options=CandidateOptions(contact_patch=1.0))
+    assert len(small) > 1
+    pairs = [p for c in small for p in _contact_pairs(c)]
+    assert len(pairs) == len(set(pairs)) == len(expected)
+    # one-hop exclusion only: the same pairs (none of them shares a neighbour grid across the plates)
+    one = generate_candidates(fe, families=["contact_spring"], options=CandidateOptions(contact_hops=1))
+    assert _contact_pairs(one[0]) == _contact_pairs(generate_candidates(fe, families=["contact_spring"])[0])
+
+
+@pytest.mark.parametrize("which", ["frame", "shell"])
+def test_contact_springs_never_join_grids_an_element_already_joins(which, frame_pm, shell_pm, tmp_path):
+    pm = frame_pm if which == "frame" else shell_pm
+    cands = generate_candidates(pm, families=["contact_spring"])
+    sets = _element_sets(pm.assembly.model)
+    for c in cands:
+        for a, b in _contact_pairs(c):
+            assert not any(a in s and b in s for s in sets), (c.name, a, b)
+    # the frame's members meet at shared grids: nothing faces anything within the contact distance
+    if which == "frame":
+        assert cands == ()
+
+
+def test_clusters_partition_each_property_group(shell_pm, frame_pm):
+    for pm in (shell_pm, frame_pm):
+        ctx = candidate_context(pm)
+        cands = generate_candidates(pm, families=["element_cluster"])
+        by_part: dict = {}
+        for c in cands:
+            assert len(c.parts) == 1 and c.term.kind == "K"
+            by_part.setdefault(c.parts[0], []).append(set(c.term.elements))
+        for part, sets in by_part.items():
+            union = set().union(*sets)
+            assert sum(len(s) for s in sets) == len(union)  # disjoint
+            want = set(ctx.element_ids[ctx.factorable & (ctx.element_parts == part)].tolist())
+            assert union == want  # cover
+        assert set(by_part) == set(ctx.element_parts[ctx.factorable].tolist())
+        # a cluster spans about cluster_size element sizes: no element centre farther than sqrt(3) * 3 sizes
+        for c in cands:
+            rows = np.flatnonzero(np.isin(ctx.element_ids, c.term.elements))
+            span = np.ptp(ctx.element_centers[rows], axis=0)
+            assert np.all(span <= 3.0 * np.median(ctx.element_sizes[rows]) * 1.5 + 1e-12)
+
+
+def test_cluster_mass_kind_and_bounds_by_option(frame_pm):
+    opts = CandidateOptions(cluster_kinds=("K", "M"), factor_bounds=(-0.5, 2.0))
+    cands = generate_candidates(frame_pm, families=["element_cluster"], options=opts)
+    kinds = Counter(c.term.kind for c in cands)
+    assert kinds["K"] == kinds["M"] > 0
+    assert all((c.term.lower, c.term.upper) == (-0.5, 2.0) for c in cands)
+
+
+def test_setup_families_at_the_given_grids(frame_pm):
+    sensors, drives = _setup(frame_pm)
+    cands = generate_candidates(frame_pm, sensors=sensors + [sensors[0]], drives=drives)
+    fam = {f: [c for c in cands if c.family == f] for f in CANDIDATE_FAMILIES}
+    total = candidate_context(frame_pm).total_mass
+    assert total == pytest.approx(131.28608, rel=1e-6)  # FrameExample.mass_kg
+    (common,) = fam["sensor_mass"]
+    assert common.term.grids == tuple(sensors) and common.term.scale == pytest.approx(1e-3 * total)
+    assert [c.term.grids for c in fam["sensor_masses"]] == [(g,) for g in sensors]
+    (shaker,) = fam["shaker_attachment"]
+    assert shaker.term.grids == (drives[0][0],)
+    (stinger,) = fam["stinger_spring"]
+    # drive direction (0.1, 0.2, -1): dominant axis z, grounded spring, p = 1 bounces the frame at 10 Hz
+    assert stinger.term.dofs == ((drives[0][0], 3, 0, 0),)
+    assert stinger.term.scale == pytest.approx(total * (2 * np.pi * 10.0) ** 2)
+    assert all(c.term.grids[0] not in sensors for c in fam["lumped_mass"])
+    assert len(fam["lumped_mass"]) == 40 and len(fam["ground_spring"]) == 3 * 40
+    # the spread reaches the frame's extremes: x range of the ground-spring grids = the deck's
+    fe = frame_pm.assembly.model
+    gx = np.array([c.center[0] for c in fam["ground_spring"]])
+    assert gx.min() == pytest.approx(fe.xyz[:, 0].min()) and gx.max() == pytest.approx(fe.xyz[:, 0].max())
+    for c in cands:
+        if c.term.absolute:  # added springs and masses: [0, 100]; element factors keep factor_bounds
+            assert (c.term.lower, c.term.upper) == (0.0, 100.0)
+        back = json.loads(json.dumps(c.to_dict()))
+        assert back["name"] == c.name and back["family"] == c.family and back["grids"] == list(c.grids)
+
+
+@pytest.mark.parametrize("which", ["frame", "shell"])
+def test_every_candidate_builds_and_its_derivative_is_the_with_terms_one(which, frame_pm, shell_pm):
+    pm = frame_pm if which == "frame" else shell_pm
+    sensors, drives = _setup(pm)
+    cands = generate_candidates(pm, sensors=sensors, drives=drives,
+                                options=CandidateOptions(spread_grids=8, max_per_family=25))
+    assert len({c.name for c in cands}) == len(cands)
+    rng = np.random.default_rng(3)
+    p = rng.uniform(-0.1, 0.1, pm.n_params)
+    for c in cands:
+        d = pm.term_derivative(c.term, p)
+        ext = pm.with_terms([c.term])
+        q = np.r_[p, 0.0]
+        for kind, fn in (("K", ext.dK), ("M", ext.dM)):
+            ref = fn(q, pm.n_params)
+            if d[kind] is None:
+                assert abs(ref).max() == 0.0, (c.name, kind)
+            else:
+                assert d[kind].shape == ref.shape
+                assert abs(ref - d[kind]).max() <= 1e-14 * abs(ref).max(), (c.name, kind)
+        # an element factor's derivative at p is its elements' matrices at p: K(p) changes by it
+        if hasattr(c.term, "kind"):
+            assert d["K" if c.term.kind == "M" else "M"] is None
+
+
+def test_term_derivative_of_element_factor_scales_with_the_deck_parameters(frame_pm):
+    c = generate_candidates(frame_pm, families=["element_cluster"])[0]
+    p0 = np.zeros(frame_pm.n_params)
+    d0 = frame_pm.term_derivative(c.term, p0)["K"]
+    # the factor's K is linear in E of its material: dK/dp_factor at E (1 + 0.2) is 1.2 times the nominal one
+    names = frame_pm.names
+    j = [i for i, n in enumerate(names) if n.startswith("E_")]
+    p1 = p0.copy()
+    p1[j] = 0.2
+    d1 = frame_pm.term_derivative(c.term, p1)["K"]
+    assert abs(d1 - 1.2 * d0).max() <= 1e-12 * abs(d0).max()
+
+
+def test_generic_deck_with_every_card_and_cylindrical_displacement_systems(tmp_path):
+    path = frame_deck(tmp_path / "all.bdf", cd_cyl=True, spc=True)
+    fe = read_bdf(path)
+    params = ParameterSet((Parameter("E1", "MAT1", (1,), "E", -0.2, 0.2),))
+    pm = parametric_model(params, path)
+    cands = generate_candidates(pm, sensors=[1, 9, 13], drives=[(13, (1.0, 0.0, 0.0))],
+                                options=CandidateOptions(spread_grids=6))
+    fams = Counter(c.family for c in cands)
+    # grid 1 is clamped: no sensor mass there
+    assert fams["sensor_masses"] == 2 and fams["stinger_spring"] == 1 and fams["element_cluster"] > 0
+    # CONROD, CELAS, CBUSH, CONM2 are never in an element factor; the PBEAML has no write-back copy
+    ctx = candidate_context(pm)
+    clustered = {e for c in cands if c.family == "element_cluster" for e in c.term.elements}
+    cards = dict(zip(ctx.element_ids.tolist(), ctx.element_cards.tolist()))
+    assert {cards[e] for e in clustered} <= {"CBAR", "CROD"}
+    p = np.zeros(pm.n_params)
+    for c in cands:
+        pm.with_terms([c.term])  # builds: no constrained-only term, no unknown grid
+        pm.term_derivative(c.term, p)
+    # grids 1 and 2 are clamped: no ground spring or lumped mass there
+    assert not {g for c in cands if c.family in ("ground_spring", "lumped_mass") for g in c.grids} & {1, 2}
+    assert fe.n_grids == 14
+
+
+def test_counts_on_the_5k_shell(tmp_path):
+    ex = example_subframe(tmp_path, target_dof=5000)
+    pm = parametric_model(ex.params)
+    sensors, drives = _setup(pm, n_sensors=24)
+    cands = generate_candidates(pm, sensors=sensors, drives=drives)
+    fams = Counter(c.family for c in cands)
+    assert 200 <= len(cands) <= 2000
+    assert fams["element_cluster"] >= 100 and fams["sensor_masses"] == 24 and fams["ground_spring"] == 120
+    ctx = candidate_context(pm)
+    # clusters of three element sizes: about (group extent / 3 h) cells per group, far fewer than elements
+    n_fac = int(ctx.factorable.sum())
+    assert fams["element_cluster"] < n_fac / 3
+    # the cap spreads evenly and deterministically
+    capped = generate_candidates(pm, sensors=sensors, drives=drives, options=CandidateOptions(max_per_family=30))
+    assert max(Counter(c.family for c in capped).values()) == 30
+    again = generate_candidates(pm, sensors=sensors, drives=drives, options=CandidateOptions(max_per_family=30))
+    assert [c.name for c in capped] == [c.name for c in again]
+
+
+def test_registry_user_family_and_errors(frame_pm, monkeypatch):
+    monkeypatch.setattr("femodel._candidates.CANDIDATE_FAMILIES", dict(CANDIDATE_FAMILIES))
+    from femodel import _candidates
+
+    def heavy_corner(ctx):
+        """A 1 kg-per-unit-p mass at the grid with the largest x."""
+        r = int(np.argmax(ctx.xyz[:, 0]))
+        g = int(ctx.grid_ids[r])
+        yield ctx.candidate("heavy_corner", AddedMass("corner_mass", (g,), 1.0), (g,), f"mass at {ctx.grid_label(g)}")
+
+    register_family("heavy_corner", heavy_corner)
+    assert "heavy_corner" in _candidates.CANDIDATE_FAMILIES
+    (c,) = generate_candidates(frame_pm, families=["heavy_corner"])
+    assert c.family == "heavy_corner" and c.center[0] == pytest.approx(frame_pm.assembly.model.xyz[:, 0].max())
+    frame_pm.with_terms([c.term])
+    with pytest.raises(ParameterError, match="already registered"):
+        register_family("heavy_corner", heavy_corner)
+    register_family("heavy_corner", heavy_corner, replace=True)
+    with pytest.raises(ParameterError, match="must match"):
+        register_family("Bad Name", heavy_corner)
+    with pytest.raises(ParameterError, match="callable"):
+        register_family("notcallable", 3)
+    with pytest.raises(ParameterError, match=r"unknown candidate families \['nope'\].*contact_spring"):
+        generate_candidates(frame_pm, families=["nope"])
+
+    def wrong(ctx):
+        yield from heavy_corner(ctx)
+
+    register_family("wrong", wrong)
+    with pytest.raises(ParameterError, match="not a Candidate of family 'wrong'"):
+        generate_candidates(frame_pm, families=["wrong"])
+
+    def clash(ctx):
+        g = int(ctx.grid_ids[0])
+        yield ctx.candidate("clash", AddedMass(frame_pm.names[0], (g,), 1.0), (g,), "clash")
+
+    register_family("clash", clash)
+    with pytest.raises(ParameterError, match="already used"):
+        generate_candidates(frame_pm, families=["clash"])
+
+
+@pytest.mark.parametrize("kwargs, field", [
+    (dict(contact_factor=-1.0), "contact_factor"),
+    (dict(contact_max_gap_m=float("nan")), "contact_max_gap_m"),
+    (dict(contact_hops=0), "contact_hops"),
+    (dict(contact_axis_deg=90.0), "contact_axis_deg"),
+    (dict(cluster_kinds=("K", "X")), "cluster_kinds"),
+    (dict(factor_bounds=(0.1, 2.0)), "factor_bounds"),
+    (dict(ground_components=(4,)), "ground_components"),
+    (dict(spread_grids=2.5), "spread_grids"),
+    (dict(max_per_family=0), "max_per_family"),
+    (dict(f_ref_hz=True), "f_ref_hz"),
+])
+def test_options_validated_with_the_field_named(kwargs, field):
+    with pytest.raises(ParameterError, match=f"CandidateOptions.{field}"):
+        CandidateOptions(**kwargs)
+
+
+def test_setup_errors_name_the_grid(frame_pm):
+    with pytest.raises(ParameterError, match=r"sensor grid \[99999\]"):
+        generate_candidates(frame_pm, sensors=[1, 99999])
+    with pytest.raises(ParameterError, match="drive grid"):
+        generate_candidates(frame_pm, drives=[(99998, (0, 0, 1))])
+    with pytest.raises(ParameterError, match="non-zero"):
+        generate_candidates(frame_pm, drives=[(1, (0, 0, 0))])
+    with pytest.raises(ParameterError, match="FEModel or a ParametricModel"):
+        generate_candidates("frame.bdf")
