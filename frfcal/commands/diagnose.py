@@ -36,14 +36,14 @@ def print_diagnosis(d: dict, out) -> None:
         print(f"verdict: {m['verdict'].upper()}", file=out)
         print(f"  {m['reason']}", file=out)
         print(f"is there anything to explain: {r['test']}", file=out)
-        print(f"{'place':<28}{'SD':>11}{'expected':>11}{'ratio':>8}{'sigma':>8}", file=out)
+        print(f"{'place':<28}{'SD':>11}{'expected':>11}{'ratio':>8}{'sigma':>10}", file=out)
         for p in r["ranked"][:10]:
             if p["kind"] == "mode":
                 print(f"mode {p['mode']} {p['test_hz']:.5g} Hz ({p['article']}): model {p['model_hz']:.5g} Hz, "
                       f"{p['shift_bandwidths']:+.2f} half-power bandwidths, MAC {p['mac']:.3f}", file=out)
             else:
                 print(f"{p['kind'] + ' ' + p['label']:<28}{p['sd']:11.3g}{p['expected']:11.3g}{p['ratio']:8.3g}"
-                      f"{p['z']:8.3g}", file=out)
+                      f"{p['z']:10.3g}", file=out)
         for x in m["nonlinear_modes"]:
             what = f"mode {x['mode']} " if x.get("mode") else ""
             extra = ""
