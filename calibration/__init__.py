@@ -1,6 +1,16 @@
 """calibration layer (see ARCHITECTURE.md)."""
 
 from calibration._crossval import CrossValidation, cross_validate, split_halves
+from calibration._diagnose import (
+    CandidateCheck,
+    CandidateTerm,
+    Screening,
+    candidate_jacobian,
+    extend_with_candidates,
+    extended_model,
+    screen,
+    shifted_solver,
+)
 from calibration._ensemble import Grouping, group_articles, grouping, pairwise_sd
 from calibration._errors import CalibrationError
 from calibration._extend import extended_surrogate
@@ -92,6 +102,14 @@ __all__ = [
     "octave_bands",
     "residual_check",
     "scatter_sd",
+    "CandidateCheck",
+    "CandidateTerm",
+    "Screening",
+    "candidate_jacobian",
+    "extend_with_candidates",
+    "extended_model",
+    "screen",
+    "shifted_solver",
     "ModalDampingObjective",
     "Refinement",
     "RefineStage",

@@ -1,0 +1,700 @@
+"""Screening of candidate effects against the residual of a calibrated model (issue 14).
+
+A candidate effect (a sensor mass, a contact spring, a spring to ground, a
+stiffness or mass factor on a few elements, ...) enters the parametric model
+as one new term with a normalized magnitude c (c = 0: the model as it is).
+What this module needs of a candidate is the derivative of the full-order
+stiffness and mass with respect to c at the calibrated point,
+:class:`CandidateTerm` (dK, dM; local sparse matrices).
+
+Linear screening (:func:`screen`)
+---------------------------------
+On the equalized (smooth) metric of :class:`calibration.Objective`, with the
+real stacked residual r (2N,) at the calibrated p (re-fitted first on the
+same data), the Jacobian J_p of the existing parameters and the candidate's
+first-order sensitivity j_c = dr/dc at c = 0, the score of a candidate is the
+fraction of the residual it explains *beyond what the existing parameters
+re-fitted with it explain*: with P the orthogonal projection on range(J_p)
+(the residual is already weighted as the objective weights it),
+
+    r' = (I - P) r,   j' = (I - P) j_c,
+    c* = -(j'.r') / |j'|^2 clipped to [lower, upper],
+    explained = (-2 c* j'.r' - c*^2 |j'|^2) / |r|^2,
+
+the decrease of the linearized square deviation when c and p move together
+(for an unclipped c*: (j'.r')^2 / (|j'|^2 |r|^2)). A spring or mass whose
+best c* is negative is clipped to 0 and explains nothing.
+
+j_c is exact to first order and costs no full-size work: the reduced model
+on the basis T (modes and the static corrections of the drives and sensors)
+represents the drive responses U = T x and the adjoint sensor responses, so
+dH/dc = -Y^T (dK - w^2 dM) U needs only the rows of T at the few DOF the
+candidate touches: in the reduced modes X at p, with Phi_c = T[rows] X,
+
+    A_c = Phi_c^T dK_loc Phi_c,  B_c = Phi_c^T dM_loc Phi_c  (m x m),
+
+and the exact derivative of the modally damped reduced FRF (the formula of
+:func:`calibration.surrogate_frf_jacobian`, damping following the modes) for
+these A_c, B_c. Candidates are processed in chunks whose scratch arrays stay
+below ``chunk_bytes``.
+
+Nonlinear check
+---------------
+An effect that moves modes by several half-power bandwidths makes the
+log-ratio metric strongly nonlinear in c. The top ``n_check`` candidates are
+therefore re-fitted: the surrogate is extended by the static corrections of
+the candidate's loads (:func:`extend_with_candidates`, through
+:func:`calibration.extended_surrogate`) and [p, c] is minimized from
+[p, c*] (optionally through damping-continuation stages), giving the SD
+after the fit and the explained fraction 1 - SD_new / SD_baseline.
+
+Significance
+------------
+For a residual that is white noise, (j'.r')^2 / |j'|^2 is |r'|^2 / (n - k)
+times a chi-square variable with one degree of freedom (n real residuals, k
+the rank of J_p); a random direction explains |r'|^2 / ((n - k) |r|^2) on
+average. A candidate is *significant* when its explained fraction exceeds
+that times the chi-square quantile at ``alpha / (n_candidates n_stages)``
+(Bonferroni over the candidates and the damping stages). A residual that is
+model error, not noise, is correlated over lines, and so is the error of an
+equalized target resynthesized from identified modes: then the test says
+only that the candidate explains more than white noise would, and the
+decision belongs to acceptance (:func:`accept`: hold-out and
+cross-validation beyond their scatter, the noise floor).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+
+from calibration._errors import CalibrationError
+from calibration._extend import extended_surrogate
+from calibration._fit import Objective, StartOutcome, check_bounds, run_start, value_weights
+from calibration._metric import LN10
+from calibration._surrogate import (
+    FRFModel,
+    Surrogate,
+    _factor,
+    _shifted,
+    modal_omegas,
+    quantity_factor,
+    reduced_modes,
+)
+
+
+@dataclass(frozen=True)
+class CandidateTerm:
+    """What the screening kernels need of one candidate effect.
+
+    Parameters
+    ----------
+    name : str
+        Candidate name (the name of its model term).
+    dK, dM : (n, n) sparse or None
+        dK/dc and dM/dc at the calibrated point on the model's independent
+        DOF (N/m and kg per unit c), c the candidate's normalized magnitude
+        (the p of its term; c = 0 is the model without it). At least one.
+    lower, upper : float
+        Bounds on c (>= 0 for springs and masses; factor terms may be
+        negative; > -1 in any case).
+    """
+
+    name: str
+    dK: object
+    dM: object
+    lower: float
+    upper: float
+    rows: np.ndarray = field(init=False, repr=False, compare=False)
+    local: tuple = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        mats = {}
+        for kind, A in (("dK", self.dK), ("dM", self.dM)):
+            if A is None:
+                continue
+            A = sp.csr_matrix(A, dtype=float, copy=True)  # never touch the caller's arrays (a shared pattern)
+            if A.shape[0] != A.shape[1]:
+                raise CalibrationError(f"candidate {self.name!r}: {kind} is {A.shape}, not square")
+            A.eliminate_zeros()
+            mats[kind] = A
+        if not mats or all(A.nnz == 0 for A in mats.values()):
+            raise CalibrationError(f"candidate {self.name!r}: neither dK nor dM has a non-zero entry")
+        shapes = {A.shape for A in mats.values()}
+        if len(shapes) > 1:
+            raise CalibrationError(f"candidate {self.name!r}: dK and dM shapes differ {sorted(shapes)}")
+        lo, hi = float(self.lower), float(self.upper)
+        if not (np.isfinite(lo) and np.isfinite(hi) and -1.0 < lo < hi):
+            raise CalibrationError(f"candidate {self.name!r}: bounds need -1 < lower < upper, got [{lo}, {hi}]")
+        rows = np.unique(np.concatenate([np.concatenate([np.flatnonzero(np.diff(A.indptr)),
+                                                         np.unique(A.indices)]) for A in mats.values()]))
+        local = tuple(None if kind not in mats else sp.csr_matrix(mats[kind][rows][:, rows])
+                      for kind in ("dK", "dM"))
+        object.__setattr__(self, "dK", mats.get("dK"))
+        object.__setattr__(self, "dM", mats.get("dM"))
+        object.__setattr__(self, "lower", lo)
+        object.__setattr__(self, "upper", hi)
+        object.__setattr__(self, "rows", rows)
+        object.__setattr__(self, "local", local)
+
+    @property
+    def size(self) -> int:
+        return int(self.rows.size)
+
+
+def _bytes_per_candidate(m: int, n_f: int, n_out: int, n_in: int, n_res: int) -> int:
+    """Scratch bytes of one candidate in :func:`_candidate_block` (complex W, T3, dH; real J column)."""
+    return 16 * n_f * n_in * (3 * m + 3 * n_out + 2 * n_out) + 8 * 2 * n_res
+
+
+class _Modal:
+    """The reduced modal quantities at p that every candidate's derivative shares, per data set."""
+
+    def __init__(self, sur: Surrogate, basis: np.ndarray, p, data, zeta: float, quantity: str):
+        self.obj = Objective(sur, data, zeta, quantity)
+        lam, X = reduced_modes(sur, p)
+        self.X = X
+        om, rigid = modal_omegas(lam, sur.rigid_hz)
+        self.om = om
+        osum = om[:, None] + om[None, :]
+        both = rigid[:, None] & rigid[None, :]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            self.rho = np.where(both, 0.0, 2 * zeta / osum)
+            self.sig = np.where(both, 0.0, 2 * zeta * om[:, None] * om[None, :] / osum)
+        self.sets = []
+        for d, oi, ii in zip(self.obj.data, self.obj._out, self.obj._in):
+            w = 2 * np.pi * d.freq_hz
+            r = 1.0 / (om[None, :] ** 2 - w[:, None] ** 2 + 1j * w[:, None] * (2 * zeta * om)[None, :])
+            q = quantity_factor(w, quantity)
+            u = sur.outputs[oi] @ X  # (n_out, m)
+            v = X.T @ sur.inputs[:, ii]  # (m, n_in)
+            H = np.einsum("om,fm,mi->foi", u, r * q[:, None], v, optimize=True)
+            self.sets.append((d, w, r, q, u, v, H))
+        self.sqrt_w = value_weights(self.obj.data)
+        self.n_values = self.obj.n_values
+        self.m = X.shape[1]
+
+
+def _modal_matrices(modal: _Modal, basis: np.ndarray, cands) -> tuple[np.ndarray, np.ndarray]:
+    """A_c, B_c = (T[rows] X)^T dK_loc, dM_loc (T[rows] X) for every candidate: (n_c, m, m) each."""
+    m = modal.m
+    A = np.zeros((len(cands), m, m))
+    Bm = np.zeros((len(cands), m, m))
+    for k, c in enumerate(cands):
+        Phi = basis[c.rows] @ modal.X  # (rows, m)
+        dK, dM = c.local
+        if dK is not None:
+            A[k] = Phi.T @ (dK @ Phi)
+        if dM is not None:
+            Bm[k] = Phi.T @ (dM @ Phi)
+    return A, Bm
+
+
+def _candidate_block(modal: _Modal, basis: np.ndarray, cands) -> np.ndarray:
+    """Real stacked Jacobian d r / d c of the objective's residual for a chunk of candidates: (2N, n_c)."""
+    A, Bm = _modal_matrices(modal, basis, cands)
+    nc, m = A.shape[0], modal.m
+    R = modal.rho[None] * A + modal.sig[None] * Bm
+    mats = np.concatenate([A, Bm, R], axis=0).reshape(3 * nc * m, m)
+    cols = []
+    for d, w, r, q, u, v, H in modal.sets:
+        n_f, n_in = w.size, v.shape[1]
+        vr = np.ascontiguousarray((r.T[:, :, None] * v[:, None, :]).reshape(m, n_f * n_in))
+        W = (mats @ vr.view(float)).view(complex).reshape(3 * nc, m, n_f, n_in)
+        W *= r.T[None, :, :, None]
+        T3 = (u @ W.reshape(3 * nc, m, -1).view(float)).view(complex)  # (3 nc, n_out, n_f * n_in)
+        del W
+        T3 = T3.reshape(3, nc, -1, n_f, n_in)
+        wf = w[None, None, :, None]
+        dH = (-T3[0] + wf**2 * T3[1] - 1j * wf * T3[2]) * q[None, None, :, None]  # (c, o, f, i)
+        de = dH.transpose(0, 2, 1, 3) / (H[None] * LN10)  # (c, f, o, i)
+        cols.append(de[:, d.mask] if d.mask is not None else de.reshape(nc, -1))
+    de = np.concatenate(cols, axis=1)  # (n_c, N)
+    if modal.sqrt_w is not None:
+        de = de * modal.sqrt_w[None, :]
+    return np.concatenate([de.real, de.imag], axis=1).T / np.sqrt(modal.n_values)
+
+
+def _chunks(modal: _Modal, n_c: int, chunk_bytes: float) -> int:
+    per = max(_bytes_per_candidate(modal.m, d.freq_hz.size, u.shape[0], v.shape[1], modal.n_values)
+              for d, w, r, q, u, v, H in modal.sets)
+    return int(max(1, min(n_c, chunk_bytes // per)))
+
+
+def candidate_jacobian(sur: Surrogate, basis, p, data, zeta: float, candidates, *, quantity: str = "accelerance",
+                       chunk_bytes: float = 2.5e8) -> np.ndarray:
+    """First-order sensitivity of the objective's residual to every candidate at c = 0.
+
+    Parameters
+    ----------
+    sur : Surrogate
+        The calibrated model's surrogate.
+    basis : (n, r) ndarray
+        Its basis T (as returned by :func:`calibration.build_surrogate`).
+    p : (n_p,) normalized parameters of the existing model.
+    data : sequence of FitData
+        Equalized test FRFs (as :class:`calibration.Objective` takes them).
+    zeta : float
+        Uniform model damping (= the equalization damping of ``data``).
+    candidates : sequence of CandidateTerm
+    quantity : str
+        FRF quantity of the data.
+    chunk_bytes : float
+        Scratch memory bound of one chunk of candidates (bytes).
+
+    Returns
+    -------
+    (2N, n_c) ndarray
+        d r / d c_k, r the real stacked weighted residual of
+        :meth:`calibration.Objective.evaluate` (same rows).
+    """
+    cands = _checked(candidates, basis, sur)
+    modal = _Modal(sur, basis, np.asarray(p, float), data, zeta, quantity)
+    step = _chunks(modal, len(cands), chunk_bytes)
+    return np.hstack([_candidate_block(modal, basis, cands[i:i + step]) for i in range(0, len(cands), step)])
+
+
+def _checked(candidates, basis, sur) -> list:
+    cands = list(candidates)
+    if not cands:
+        raise CalibrationError("screening needs at least one candidate")
+    basis = np.asarray(basis)
+    if basis.ndim != 2 or basis.shape[1] != sur.size:
+        raise CalibrationError(f"basis is {basis.shape}, expected (n, {sur.size}) for this surrogate")
+    names = [c.name for c in cands]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise CalibrationError(f"candidate names repeated: {dup}")
+    for c in cands:
+        if not isinstance(c, CandidateTerm):
+            raise CalibrationError(f"candidates must be CandidateTerm, got {type(c).__name__}")
+        n = (c.dK if c.dK is not None else c.dM).shape[0]
+        if n != basis.shape[0]:
+            raise CalibrationError(f"candidate {c.name!r} acts on {n} DOF, the basis has {basis.shape[0]}")
+    return cands
+
+
+# ----------------------------------------------------------------------------- extension by candidates
+
+
+def _with_linear_terms(A, new_mats: list, n_new: int):
+    """An ExtendedAffineMatrix: the terms of ``A`` (any affine kind) then ``c_j * D_j`` for (D_j, j) in new_mats."""
+    from femodel import ExtendedAffineMatrix
+
+    t = len(A.matrices)
+    a = np.zeros((t + len(new_mats), n_new))
+    a[:t, :A.n_params] = A.exponents
+    b = a.copy()
+    series = getattr(A, "series_exponents", None)
+    ratio = np.zeros(t + len(new_mats))
+    if series is not None:
+        b[:t, :A.n_params] = series
+        ratio[:t] = np.asarray(A.series_ratio, float)
+    lin = -np.ones(t + len(new_mats), dtype=np.int64)
+    old_lin = getattr(A, "linear", None)
+    if old_lin is not None:
+        lin[:t] = np.asarray(old_lin, dtype=np.int64)
+    for k, (_, j) in enumerate(new_mats):
+        lin[t + k] = j
+    mats = tuple(A.matrices) + tuple(D for D, _ in new_mats)
+    return ExtendedAffineMatrix(mats, a, b, ratio, lin)
+
+
+def extended_model(model: FRFModel, candidates) -> FRFModel:
+    """The model with every candidate as a term ``c dK`` / ``c dM`` linear in a new parameter c.
+
+    The derivative matrices are the candidates' at the calibrated point, so
+    this is the first-order form of the candidate terms in c with the
+    existing parameters' dependence of the term (e.g. of an element-subset
+    factor on E) frozen there; :meth:`femodel.ParametricModel.with_terms`
+    gives the exact one.
+    """
+    cands = list(candidates)
+    n_old = model.n_params
+    n_new = n_old + len(cands)
+    newK = [(c.dK, n_old + k) for k, c in enumerate(cands) if c.dK is not None]
+    newM = [(c.dM, n_old + k) for k, c in enumerate(cands) if c.dM is not None]
+    return FRFModel(
+        _with_linear_terms(model.K, newK, n_new),
+        _with_linear_terms(model.M, newM, n_new),
+        model.inputs,
+        model.outputs,
+        input_names=model.input_names,
+        output_names=model.output_names,
+        parameter_names=tuple(model.parameter_names) + tuple(c.name for c in cands),
+    )
+
+
+def shifted_solver(model: FRFModel, p, shift_hz: float):
+    """``solve(F) = (K(p) + s M(p))^-1 F``, s = (2 pi shift_hz)^2: one factorization to share between extensions."""
+    if not shift_hz > 0:
+        raise CalibrationError(f"shift_hz must be > 0, got {shift_hz}")
+    s = (2 * np.pi * float(shift_hz)) ** 2
+    return _factor(_shifted(model.stiffness(p), model.mass(p), s, model.factor_cache), model.factor_cache)
+
+
+def extend_with_candidates(sur: Surrogate, basis, model, candidates, *, shift_hz: float | None = None,
+                           solve=None) -> tuple[Surrogate, np.ndarray]:
+    """Extend a surrogate by candidate terms (the static corrections of their loads), for a re-fit of [p, c].
+
+    Parameters
+    ----------
+    sur : Surrogate
+    basis : (n, r) ndarray, its basis
+    model : FRFModel
+        Either the model of ``sur`` (the candidates enter through
+        :func:`extended_model`, linear in c with their derivatives at the
+        calibrated point) or an already extended model whose last
+        ``len(candidates)`` parameters are the candidates (e.g. from
+        :meth:`femodel.ParametricModel.with_terms`: exact in c and p).
+    candidates : sequence of CandidateTerm
+    shift_hz, solve
+        As :func:`calibration.extended_surrogate` (``solve`` at ``sur.p_basis``,
+        e.g. from :func:`shifted_solver`, is shared between calls).
+
+    Returns
+    -------
+    (Surrogate, (n, r + k) ndarray)
+        The extended surrogate (parameters: the existing ones, then one per
+        candidate) and its basis.
+    """
+    cands = list(candidates)
+    if model.n_params == sur.n_params:
+        model = extended_model(model, cands)
+    elif model.n_params != sur.n_params + len(cands):
+        raise CalibrationError(f"model has {model.n_params} parameters: expected the surrogate's {sur.n_params} "
+                               f"or {sur.n_params + len(cands)} with the {len(cands)} candidates")
+    return extended_surrogate(sur, basis, model, shift_hz=shift_hz, solve=solve)
+
+
+# ----------------------------------------------------------------------------- screening
+
+
+@dataclass(frozen=True)
+class CandidateCheck:
+    """Nonlinear re-fit of [p, c] with one candidate on its extended surrogate.
+
+    Attributes
+    ----------
+    name : str
+    index : int, position in the screened candidates
+    c : float, fitted normalized magnitude
+    p : (n_p,) re-fitted existing parameters
+    sd : float, square deviation after the fit (same data as the baseline)
+    explained : float, 1 - sd / sd_baseline
+    converged : bool
+    time_s : float, extension and fit
+    """
+
+    name: str
+    index: int
+    c: float
+    p: np.ndarray
+    sd: float
+    explained: float
+    converged: bool
+    time_s: float
+
+    def to_dict(self) -> dict:
+        return {"name": self.name, "index": self.index, "c": self.c, "p": self.p.tolist(), "sd": self.sd,
+                "explained": self.explained, "converged": self.converged, "time_s": self.time_s}
+
+
+@dataclass(frozen=True)
+class Screening:
+    """Outcome of :func:`screen`.
+
+    Attributes
+    ----------
+    names : tuple of str, the candidates in input order
+    stage_zeta : (n_s,) damping of the screening stages (continuation stages, then the final one)
+    stage_explained : (n_s, n_c) linear explained fraction of every stage's residual
+    stage_sd : (n_s,) baseline SD of every stage (existing parameters re-fitted)
+    explained : (n_c,) the candidate's best linear explained fraction over the stages
+    c_linear : (n_c,) linearized magnitude c* (clipped to the bounds) at that stage
+    significant : (n_c,) bool, explained above the noise threshold at some stage
+    noise_explained : (n_s,) expected explained fraction of a random direction if the residual were white noise
+    threshold : (n_s,) significance thresholds on the stages' explained fractions
+    checks : tuple of CandidateCheck, the nonlinear re-fits of the top candidates (best first)
+    order : (n_c,) int
+        Ranking: the checked candidates by their nonlinear explained
+        fraction, then the others by the linear one.
+    p_start : (n_p,) the given p ; sd_start : float, SD there (final data)
+    p_baseline : (n_p,) p re-fitted alone on the final data ; sd_baseline : float, SD there
+    n_residuals : int, real residuals of the final stage (2 x compared complex values)
+    rank_p : int, numerical rank of the existing parameters' Jacobian
+    timings_s : dict, wall time of the steps
+    """
+
+    names: tuple
+    stage_zeta: np.ndarray
+    stage_explained: np.ndarray
+    stage_sd: np.ndarray
+    explained: np.ndarray
+    c_linear: np.ndarray
+    significant: np.ndarray
+    noise_explained: np.ndarray
+    threshold: np.ndarray
+    checks: tuple
+    order: np.ndarray
+    p_start: np.ndarray
+    sd_start: float
+    p_baseline: np.ndarray
+    sd_baseline: float
+    n_residuals: int
+    rank_p: int
+    timings_s: dict
+
+    @property
+    def best(self) -> str:
+        """Name of the top-ranked candidate."""
+        return self.names[int(self.order[0])]
+
+    def check(self, name: str) -> CandidateCheck | None:
+        """The nonlinear check of a candidate, None if it was not checked."""
+        for c in self.checks:
+            if c.name == name:
+                return c
+        return None
+
+    def to_dict(self) -> dict:
+        return {
+            "candidates": [{"name": n, "explained": float(e), "c_linear": float(c), "significant": bool(s),
+                            "stage_explained": self.stage_explained[:, i].tolist()}
+                           for i, (n, e, c, s) in enumerate(zip(self.names, self.explained, self.c_linear,
+                                                                self.significant))],
+            "ranking": [self.names[i] for i in self.order],
+            "checks": [c.to_dict() for c in self.checks],
+            "stage_zeta": self.stage_zeta.tolist(),
+            "stage_sd": self.stage_sd.tolist(),
+            "noise_explained": self.noise_explained.tolist(),
+            "threshold": self.threshold.tolist(),
+            "sd_start": self.sd_start,
+            "sd_baseline": self.sd_baseline,
+            "p_baseline": self.p_baseline.tolist(),
+            "n_residuals": self.n_residuals,
+            "rank_p": self.rank_p,
+            "timings_s": dict(self.timings_s),
+        }
+
+
+def _fit(objs, x0, lower, upper, max_nfev: int, xtol: float = 1e-8) -> StartOutcome:
+    return run_start((list(objs), x0, lower, upper, max_nfev, xtol))
+
+
+@dataclass(frozen=True)
+class _Linear:
+    """Linear scores of one screening stage."""
+
+    p: np.ndarray
+    sd: float
+    explained: np.ndarray
+    c: np.ndarray
+    noise: float
+    n_res: int
+    rank: int
+
+
+def _linear_stage(sur, basis, p0, sd0, data, zeta, quantity, cands, chunk_bytes) -> _Linear:
+    """Explained fractions and linearized magnitudes of every candidate at (p0, zeta) on ``data``."""
+    obj = Objective(sur, data, zeta, quantity)
+    r, Jp = obj.evaluate(p0)
+    rr = float(r @ r)
+    U, s, _ = np.linalg.svd(Jp / np.maximum(np.linalg.norm(Jp, axis=0), np.finfo(float).tiny)[None, :],
+                            full_matrices=False)
+    rank = int(np.sum(s > 1e-10 * s[0])) if s.size and s[0] > 0 else 0
+    Q = U[:, :rank]
+    r_perp = r - Q @ (Q.T @ r)
+    modal = _Modal(sur, basis, p0, data, zeta, quantity)
+    step = _chunks(modal, len(cands), chunk_bytes)
+    dot = np.zeros(len(cands))
+    nn = np.zeros(len(cands))
+    for i in range(0, len(cands), step):
+        J = _candidate_block(modal, basis, cands[i:i + step])
+        J -= Q @ (Q.T @ J)
+        dot[i:i + step] = J.T @ r_perp
+        nn[i:i + step] = np.einsum("ij,ij->j", J, J)
+    lo = np.array([c.lower for c in cands])
+    hi = np.array([c.upper for c in cands])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        c_star = np.where(nn > 0, -dot / np.where(nn > 0, nn, 1.0), 0.0)
+    c_lin = np.clip(c_star, lo, hi)
+    gain = -2 * c_lin * dot - c_lin**2 * nn
+    tiny = np.finfo(float).tiny
+    explained = np.clip(gain, 0.0, None) / max(rr, tiny) if rr > 0 else np.zeros(len(cands))
+    dof = max(r.size - rank, 1)
+    noise = float(r_perp @ r_perp) / dof / rr if rr > 0 else 0.0
+    return _Linear(p0, sd0, explained, c_lin, noise, int(r.size), rank)
+
+
+def screen(
+    sur: Surrogate,
+    basis,
+    p,
+    data,
+    zeta: float,
+    candidates,
+    lower,
+    upper,
+    *,
+    quantity: str = "accelerance",
+    model: FRFModel | None = None,
+    n_check: int = 10,
+    shift_hz: float | None = None,
+    solve=None,
+    continuation=(),
+    refit: bool = True,
+    max_nfev: int = 40,
+    alpha: float = 0.01,
+    chunk_bytes: float = 2.5e8,
+) -> Screening:
+    """Rank candidate effects by the fraction of the residual they explain beyond the existing parameters.
+
+    Parameters
+    ----------
+    sur : Surrogate
+        Surrogate of the calibrated model (exact derivatives in p).
+    basis : (n, r) ndarray
+        Its basis T.
+    p : (n_p,) calibrated normalized parameters.
+    data : sequence of FitData
+        Equalized test FRFs at damping ``zeta`` (the smooth metric).
+    zeta : float
+        Model damping = equalization damping of ``data``.
+    candidates : sequence of CandidateTerm
+    lower, upper : (n_p,) bounds of the existing parameters.
+    quantity : str
+        FRF quantity of the data.
+    model : FRFModel, optional
+        The full-order model of ``sur``; needed for the nonlinear check
+        (``n_check`` > 0): the candidates' static corrections.
+    n_check : int
+        Candidates (best linear scores, explained > 0) re-fitted nonlinearly.
+    shift_hz, solve
+        Shift of the static solves (the basis build's) or a solver of
+        K + s M at ``sur.p_basis`` (see :func:`shifted_solver`); one is needed
+        for the nonlinear check.
+    continuation : sequence of (zeta, data)
+        Damping-continuation stages (wider damping first, data equalized at
+        that damping), as :func:`calibration.calibrate` takes them. Every
+        stage is screened linearly (its own baseline re-fit, started from the
+        previous stage's); a candidate scores its best stage. An effect that
+        moves modes by more than a half-power bandwidth at ``zeta`` (where
+        the log-ratio metric is far from linear in c) is found at a wider
+        damping. The nonlinear re-fits run through the stages.
+    refit : bool
+        Re-fit p alone on every stage's data first (from ``p``) so the
+        baseline is the existing parameters' own optimum on that data.
+    max_nfev : int
+        Residual evaluations per fit stage.
+    alpha : float
+        Family-wise false-alarm probability of the significance test
+        (Bonferroni over candidates and stages).
+    chunk_bytes : float
+        Memory bound of the scratch arrays of one chunk of candidates (bytes);
+        the chunk holds about ``16 n_f n_in (3 r + 5 n_out) + 16 N`` bytes
+        per candidate (r basis size, N compared values).
+
+    Returns
+    -------
+    Screening
+
+    Raises
+    ------
+    CalibrationError
+        No candidates, a candidate of the wrong size or repeated names,
+        bounds that do not match, or a nonlinear check without ``model``
+        or without ``shift_hz``/``solve``.
+    """
+    from scipy.stats import chi2
+
+    t0 = time.perf_counter()
+    basis = np.asarray(basis, float)
+    cands = _checked(candidates, basis, sur)
+    lower, upper = check_bounds(lower, upper, sur.n_params)
+    p_in = np.clip(np.asarray(p, float), lower, upper)
+    n_check = int(min(max(n_check, 0), len(cands)))
+    if n_check and model is None:
+        raise CalibrationError("screen: the nonlinear check (n_check > 0) needs the full-order model")
+    if n_check and solve is None and not (shift_hz is not None and shift_hz > 0):
+        raise CalibrationError("screen: the nonlinear check needs shift_hz > 0 (the basis build's) or solve")
+    stages = [(float(z), list(d)) for z, d in continuation] + [(float(zeta), list(data))]
+    sd_start = Objective(sur, stages[-1][1], zeta, quantity).sd(p_in)
+    lin = []
+    t_fit = t_lin = 0.0
+    p_s = p_in
+    for z, d in stages:
+        ta = time.perf_counter()
+        obj = Objective(sur, d, z, quantity)
+        if refit:
+            out = _fit([obj], p_s, lower, upper, max_nfev)
+            p_s, sd_s = out.p, out.sd
+        else:
+            sd_s = obj.sd(p_s)
+        tb = time.perf_counter()
+        lin.append(_linear_stage(sur, basis, p_s, sd_s, d, z, quantity, cands, chunk_bytes))
+        t_fit += tb - ta
+        t_lin += time.perf_counter() - tb
+    t2 = time.perf_counter()
+    E = np.array([x.explained for x in lin])  # (n_s, n_c)
+    best_stage = np.argmax(E, axis=0)
+    explained = E[best_stage, np.arange(len(cands))]
+    c_lin = np.array([lin[s].c[i] for i, s in enumerate(best_stage)])
+    q = float(chi2.isf(alpha / (len(cands) * len(stages)), 1))
+    noise = np.array([x.noise for x in lin])
+    threshold = noise * q
+    significant = np.any(E > threshold[:, None], axis=0)
+
+    checks = []
+    top = [int(i) for i in np.argsort(-explained, kind="stable")[:n_check] if explained[i] > 0]
+    if top:
+        if solve is None:
+            solve = shifted_solver(model, sur.p_basis, shift_hz)
+        start = lin[0].p  # the nonlinear fits run through the stages from the first stage's baseline
+        for i in top:
+            checks.append(_check(sur, basis, model, cands[i], i, stages, quantity, start, c_lin[i], lower, upper,
+                                 max_nfev, lin[-1].sd, solve))
+    t3 = time.perf_counter()
+    checks.sort(key=lambda c: -c.explained)
+    checked = [c.index for c in checks]
+    done = set(checked)
+    rest = [int(i) for i in np.argsort(-explained, kind="stable") if int(i) not in done]
+    return Screening(
+        names=tuple(c.name for c in cands),
+        stage_zeta=np.array([z for z, _ in stages]),
+        stage_explained=E,
+        stage_sd=np.array([x.sd for x in lin]),
+        explained=explained,
+        c_linear=c_lin,
+        significant=significant,
+        noise_explained=noise,
+        threshold=threshold,
+        checks=tuple(checks),
+        order=np.array(checked + rest, dtype=int),
+        p_start=p_in,
+        sd_start=sd_start,
+        p_baseline=lin[-1].p,
+        sd_baseline=lin[-1].sd,
+        n_residuals=lin[-1].n_res,
+        rank_p=lin[-1].rank,
+        timings_s={"baseline refits": t_fit, "linear screening": t_lin,
+                   "linear per candidate and stage": t_lin / (len(cands) * len(stages)),
+                   "nonlinear checks": t3 - t2, "total": t3 - t0},
+    )
+
+
+def _check(sur, basis, model, cand, index, stages, quantity, p0, c0, lower, upper, max_nfev, sd0,
+           solve) -> CandidateCheck:
+    """Extend by one candidate and re-fit [p, c] from [p0, c0] through the stages."""
+    t0 = time.perf_counter()
+    sur_e, _ = extend_with_candidates(sur, basis, model, [cand], solve=solve)
+    objs = [Objective(sur_e, d, z, quantity) for z, d in stages]
+    lo = np.r_[lower, cand.lower]
+    hi = np.r_[upper, cand.upper]
+    out = _fit(objs, np.r_[p0, c0], lo, hi, max_nfev)
+    explained = 1.0 - out.sd / sd0 if sd0 > 0 else 0.0
+    return CandidateCheck(cand.name, index, float(out.p[-1]), out.p[:-1].copy(), float(out.sd), float(explained),
+                          out.converged, time.perf_counter() - t0)
