@@ -20,6 +20,7 @@ The stage writes nothing; :func:`write_diagnosis` writes ``diagnosis.json``.
 from __future__ import annotations
 
 import json
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -355,6 +356,9 @@ class MemberDiagnosis:
     sd : dict, SD of the calibrated model (key "before") on calibration (raw lines), hold-out and
         cross-validation, beside the floor; key "after" with an accepted effect
     channels : tuple of str, the most affected channels (largest residual ratio first)
+    n_candidates : dict family -> number of candidates screened (None: not screened)
+    ranked : tuple of dict, the top of the screening (:func:`ranked_table`)
+    screening : calibration.Screening or None
     """
 
     label: str
@@ -365,12 +369,18 @@ class MemberDiagnosis:
     nonlinear_modes: tuple = ()
     sd: dict | None = None
     channels: tuple = ()
+    n_candidates: dict | None = None
+    ranked: tuple = ()
+    screening: object | None = None
 
     def to_dict(self) -> dict:
         return {"member": self.label, "articles": list(self.articles), "verdict": self.verdict,
                 "reason": self.reason, "residual": self.residual.to_dict(),
                 "nonlinear_modes": [dict(m) for m in self.nonlinear_modes], "sd": self.sd,
-                "most_affected_channels": list(self.channels)}
+                "most_affected_channels": list(self.channels), "candidates": self.n_candidates,
+                "ranked": [dict(r) for r in self.ranked],
+                "screening": None if self.screening is None else {
+                    k: v for k, v in self.screening.to_dict().items() if k != "candidates"}}
 
 
 @dataclass(frozen=True)
@@ -420,11 +430,37 @@ def _nonlinear_modes(gate: ArticleGate) -> list:
     return rows
 
 
-def diagnose_stage(camp: Campaign, load, articles, cal, val, xval, log=print) -> DiagnosisResult:
-    """The diagnosis of every calibrated member: significance, then the nonlinearity gate (module docstring).
+def _screen_member(camp: Campaign, pm, model, load, eq, m, quantity, log):
+    """Candidates of the deck and set-up, screened on the member's equalized data (with continuation)."""
+    from calibration import build_surrogate, screen
 
-    ``articles`` carry their identification; ``cal``, ``val``, ``xval`` are the
-    calibrate, validate and cross-validate results.
+    c, cfg = camp.calibration, camp.diagnosis
+    lo, hi = camp.band.low_hz, camp.band.high_hz
+    t0 = time.perf_counter()
+    cands, terms = member_candidates(camp, pm, load, m.p, log)
+    sur, T = m.surrogate, m.basis
+    if T is None:  # not stored: rebuilt at the calibrated point
+        sur, T = build_surrogate(model, m.p, (lo, hi), c.basis_factor, enrich=c.enrich)
+    data, cont = eq.member(m.articles)
+    scr = screen(sur, T, m.p, data, c.zeta0, terms, pm.lower, pm.upper, quantity=quantity, model=model, n_check=cfg.top_n,
+                 shift_hz=max(lo / 4.0, hi / 50.0), continuation=cont, max_nfev=cfg.max_evaluations)
+    counts: dict = {}
+    for cd in cands:
+        counts[cd.family] = counts.get(cd.family, 0) + 1
+    rows = ranked_table(cands, scr)
+    log(f"[{m.label}] screened {len(cands)} candidates in {time.perf_counter() - t0:.1f} s; first: "
+        + "; ".join(f"{r['family']} {r['name']} ({r['size']}, explained {100 * r['explained']:.1f} %)"
+                    for r in rows[:3]))
+    return counts, rows, scr
+
+
+def diagnose_stage(camp: Campaign, load, pm, model, articles, eq, cal, val, xval, log=print) -> DiagnosisResult:
+    """The diagnosis of every calibrated member: significance, the nonlinearity gate, the screening of
+    candidate effects (module docstring).
+
+    ``articles`` carry their identification; ``eq``, ``cal``, ``val``, ``xval``
+    are the equalize, calibrate, validate and cross-validate results; ``pm``
+    and ``model`` the campaign's parametric and FRF model.
     """
     gates = tuple(ArticleGate(name, nl, runs, notes)
                   for name, (nl, runs, notes) in nonlinearity_gate(camp, articles, log).items())
@@ -440,6 +476,7 @@ def diagnose_stage(camp: Campaign, load, articles, cal, val, xval, log=print) ->
         flagged = [by_name[n] for n in names if by_name[n].nonlinearity is not None
                    and by_name[n].nonlinearity.flagged]
         nl_modes = tuple(r for g in flagged for r in _nonlinear_modes(g))
+        counts, rows, scr = None, (), None
         if not check.significant:
             verdict = "nothing to explain"
             reason = (f"the residual is inside the floor (SD {check.ratio:.3g} x the expected "
@@ -457,11 +494,15 @@ def diagnose_stage(camp: Campaign, load, articles, cal, val, xval, log=print) ->
             reason = (f"the residual is significant ({check.ratio:.3g} x the floor) and the test article behaves "
                       f"nonlinearly: {what}; no linear effect is accepted in its place")
         else:
+            counts, rows, scr = _screen_member(camp, pm, model, load, eq, m, articles[m.articles[0]].quantity, log)
             verdict = "no effect accepted"
+            top = rows[0] if rows else None
             reason = (f"the residual is significant ({check.ratio:.3g} x the floor) and no nonlinearity is "
-                      "flagged; no candidate effect was screened")
+                      "flagged; " + (f"the screening ranks {top['family']} {top['name']} first ({top['size']}, "
+                                     f"explains {100 * top['explained']:.1f} % of the residual)" if top else
+                                     "no candidate") + "; acceptance by recalibration is not integrated")
         log(f"[{m.label}] diagnosis: {verdict}: {reason}")
-        out.append(MemberDiagnosis(m.label, names, verdict, reason, check, nl_modes, sd, chans))
+        out.append(MemberDiagnosis(m.label, names, verdict, reason, check, nl_modes, sd, chans, counts, rows, scr))
     return DiagnosisResult(gates, tuple(out))
 
 
@@ -475,3 +516,68 @@ def write_diagnosis(diag: DiagnosisResult, outdir: Path, log=print) -> dict:
     d["result_file"] = str(path)
     log(f"wrote {path}")
     return d
+
+
+# ----------------------------------------------------------------------------- candidates and screening
+
+
+def _physical(term, c: float) -> tuple:
+    """(value, unit, words) of a term at normalized magnitude c."""
+    from femodel import ElementFactor
+
+    v = float(term.value(c))
+    if isinstance(term, ElementFactor):
+        return v, "x", f"{'stiffness' if term.kind == 'K' else 'mass'} factor {v:.3g}"
+    return v, term.unit, f"{v:.3g} {term.unit}"
+
+
+def member_candidates(camp: Campaign, pm, load, p, log=print) -> tuple:
+    """Candidate effects of the deck and the test set-up (femodel.generate_candidates) and their
+    CandidateTerm (dK, dM at ``p``) for the screening.
+
+    Sensors are the grids of the calibration and hold-out channels, drives the
+    drive channels' grids and directions.
+    """
+    from calibration import CandidateTerm
+    from femodel import CandidateOptions, ParameterError, generate_candidates
+
+    cfg = camp.diagnosis
+    try:
+        opts = CandidateOptions(**{k: tuple(v) if isinstance(v, list) else v for k, v in cfg.candidates.items()})
+    except TypeError as exc:
+        raise CalibrationError(f"[diagnosis] candidates: {exc}") from None
+    except ParameterError as exc:
+        raise CalibrationError(f"[diagnosis] candidates: {exc}") from None
+    sensors = tuple(dict.fromkeys(t.grid for t in load.channels))
+    drives = tuple((t.grid, tuple(t.direction)) for t in load.drives)
+    cands = generate_candidates(pm, sensors=sensors, drives=drives, families=cfg.families, options=opts)
+    terms = []
+    for c in cands:
+        d = pm.term_derivative(c.term, p)
+        terms.append(CandidateTerm(c.name, d["K"], d["M"], c.term.lower, c.term.upper))
+    counts = {}
+    for c in cands:
+        counts[c.family] = counts.get(c.family, 0) + 1
+    log("candidates: " + ", ".join(f"{k} {v}" for k, v in counts.items()))
+    return cands, terms
+
+
+def ranked_table(cands, scr, n: int = 10) -> tuple:
+    """The screening's ranking as rows: family, location, physical size with unit, explained fraction."""
+    idx = {c.name: i for i, c in enumerate(cands)}
+    rows = []
+    for rank, k in enumerate(scr.order[:n]):
+        name = scr.names[int(k)]
+        c = cands[idx[name]]
+        chk = scr.check(name)
+        cval = float(chk.c) if chk is not None else float(scr.c_linear[k])
+        value, unit, words = _physical(c.term, cval)
+        rows.append({
+            "rank": rank + 1, "name": name, "family": c.family, "grids": list(c.grids), "parts": list(c.parts),
+            "center": [float(x) for x in c.center], "element_size": float(c.size), "description": c.description,
+            "c": cval, "value": value, "unit": unit, "size": words,
+            "explained": float(chk.explained) if chk is not None else float(scr.explained[k]),
+            "explained_linear": float(scr.explained[k]), "checked": chk is not None,
+            "significant": bool(scr.significant[k]),
+        })
+    return tuple(rows)

@@ -155,6 +155,14 @@ class DiagnosisSection(_Strict):
     thd_threshold: float = Field(0.05, gt=0, lt=1, description="total harmonic distortion above which a line is "
                                  "distorted (fraction)")
     figures_channels: int = Field(4, ge=1, description="FRF overlays at this many most affected channels")
+    families: list[str] | None = Field(None, description="candidate families (default: all of "
+                                       "femodel.CANDIDATE_FAMILIES; docs/diagnosis.md)")
+    candidates: dict[str, float | int | list[float] | list[int] | list[str]] = Field(
+        default_factory=dict, description="femodel.CandidateOptions fields (units as documented there), e.g. "
+        "{ contact_max_gap_m = 0.005, spread_grids = 40 }")
+    top_n: int = Field(5, ge=1, description="candidates re-fitted nonlinearly after the linear screening")
+    max_effects: int = Field(2, ge=1, description="at most this many effects accepted")
+    max_evaluations: int = Field(40, ge=5, description="residual evaluations per screening fit stage")
 
 
 class OutputSection(_Strict):

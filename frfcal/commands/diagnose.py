@@ -51,6 +51,14 @@ def print_diagnosis(d: dict, out) -> None:
                 extra = (f": {x['quantity']} {x['values'][0]:.4g} -> {x['values'][-1]:.4g} (x{x['ratio']:.3g}) "
                          f"from {min(x['levels_n']):.3g} to {max(x['levels_n']):.3g} N, {x['z']:.3g} sigma")
             print(f"nonlinear ({x['article']}): {x['check']} at {what}{x['frequency_hz']:.5g} Hz{extra}", file=out)
+        if m["ranked"]:
+            print(f"candidates screened: " + ", ".join(f"{k} {v}" for k, v in m["candidates"].items()), file=out)
+            print(f"{'#':>3} {'family':<18}{'location':<44}{'size':>24}{'explained':>11}", file=out)
+            for r in m["ranked"][:10]:
+                loc = ("grids " + " ".join(map(str, r["grids"][:4])) + ("..." if len(r["grids"]) > 4 else "")
+                       + f" ({', '.join(r['parts'][:2])}) at ({', '.join(f'{x:.3g}' for x in r['center'])})")
+                print(f"{r['rank']:>3} {r['family']:<18}{loc:<44}{r['size']:>24}{100 * r['explained']:10.1f}%"
+                      + ("" if r["checked"] else " (linear)"), file=out)
         sd = m["sd"]
         print(f"SD of the calibrated model: calibration (raw lines) {_fmt(sd['calibration_raw'])}, hold-out "
               f"{_fmt(sd['holdout'])}, cross-validation RSE {_fmt(sd['crossvalidation_rse'])}; residual on all "
