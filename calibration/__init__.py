@@ -1,13 +1,16 @@
 """calibration layer (see ARCHITECTURE.md)."""
 
+from calibration._accept import Acceptance, Separation, accept, separating_effect
 from calibration._crossval import CrossValidation, cross_validate, split_halves
 from calibration._diagnose import (
     CandidateCheck,
+    CandidateFit,
     CandidateTerm,
     Screening,
     candidate_jacobian,
     extend_with_candidates,
     extended_model,
+    fit_with,
     screen,
     shifted_solver,
 )
@@ -102,6 +105,12 @@ __all__ = [
     "octave_bands",
     "residual_check",
     "scatter_sd",
+    "Acceptance",
+    "Separation",
+    "accept",
+    "separating_effect",
+    "CandidateFit",
+    "fit_with",
     "CandidateCheck",
     "CandidateTerm",
     "Screening",

@@ -698,3 +698,126 @@ def _check(sur, basis, model, cand, index, stages, quantity, p0, c0, lower, uppe
     explained = 1.0 - out.sd / sd0 if sd0 > 0 else 0.0
     return CandidateCheck(cand.name, index, float(out.p[-1]), out.p[:-1].copy(), float(out.sd), float(explained),
                           out.converged, time.perf_counter() - t0)
+
+
+# ----------------------------------------------------------------------------- recalibration with candidates
+
+
+@dataclass(frozen=True)
+class CandidateFit:
+    """Calibration of the existing parameters together with chosen candidates.
+
+    Attributes
+    ----------
+    names : tuple of str, the candidates (in order; their parameters follow the existing ones)
+    p : (n_p,) existing parameters ; c : (k,) candidate magnitudes
+    sd : float, square deviation on the fitted data at (p, c)
+    sd_start : float, square deviation at the start (c = c0)
+    surrogate : Surrogate, the extended surrogate (parameters [p, c])
+    basis : (n, r + m) ndarray, its basis (for refine, validation, cross-validation)
+    lower, upper : (n_p + k,) bounds of [p, c]
+    converged : bool ; time_s : float
+    """
+
+    names: tuple
+    p: np.ndarray
+    c: np.ndarray
+    sd: float
+    sd_start: float
+    surrogate: Surrogate = field(repr=False)
+    basis: np.ndarray = field(repr=False)
+    lower: np.ndarray = field(repr=False)
+    upper: np.ndarray = field(repr=False)
+    converged: bool = True
+    time_s: float = 0.0
+
+    @property
+    def x(self) -> np.ndarray:
+        """[p, c]: the parameter vector of ``surrogate``."""
+        return np.concatenate([self.p, self.c])
+
+    @property
+    def n_added(self) -> int:
+        return int(self.c.size)
+
+    def to_dict(self) -> dict:
+        return {"names": list(self.names), "p": self.p.tolist(), "c": self.c.tolist(), "sd": self.sd,
+                "sd_start": self.sd_start, "converged": self.converged, "time_s": self.time_s}
+
+
+def fit_with(
+    sur: Surrogate,
+    basis,
+    model: FRFModel,
+    candidates,
+    data,
+    zeta: float,
+    lower,
+    upper,
+    *,
+    p0,
+    c0=None,
+    continuation=(),
+    quantity: str = "accelerance",
+    shift_hz: float | None = None,
+    solve=None,
+    max_nfev: int = 100,
+    xtol: float = 1e-10,
+) -> CandidateFit:
+    """Recalibrate the existing parameters with chosen candidates (one or several together).
+
+    Parameters
+    ----------
+    sur, basis : the calibrated model's surrogate and its basis T.
+    model : FRFModel
+        The model of ``sur`` (candidates enter linearly with their derivative
+        matrices, :func:`extended_model`) or the model already extended by
+        exactly these candidates (e.g. from ``with_terms``; exact).
+    candidates : sequence of CandidateTerm
+    data : sequence of FitData, equalized at ``zeta``.
+    zeta : float
+    lower, upper : (n_p,) bounds of the existing parameters.
+    p0 : (n_p,) start of the existing parameters (the calibrated point).
+    c0 : (k,) start of the magnitudes (default 0 clipped to the bounds; the
+        screening's c* or nonlinear c is a better start).
+    continuation : sequence of (zeta, data), damping stages run first.
+    quantity, shift_hz, solve, max_nfev, xtol
+        As :func:`screen` / :func:`calibration.calibrate`.
+
+    Returns
+    -------
+    CandidateFit
+        Holds the extended surrogate and its bounds, so that hold-out SD
+        (:func:`calibration.holdout_sd`), cross-validation
+        (:func:`calibration.cross_validate`) and the raw-line refinement
+        (:func:`calibration.refine`) run on it at ``fit.x``.
+    """
+    t0 = time.perf_counter()
+    basis = np.asarray(basis, float)
+    cands = _checked(candidates, basis, sur)
+    lower, upper = check_bounds(lower, upper, sur.n_params)
+    lo = np.r_[lower, [c.lower for c in cands]]
+    hi = np.r_[upper, [c.upper for c in cands]]
+    c0 = np.zeros(len(cands)) if c0 is None else np.asarray(c0, float)
+    if c0.shape != (len(cands),):
+        raise CalibrationError(f"fit_with: c0 has shape {c0.shape}, expected ({len(cands)},)")
+    x0 = np.clip(np.r_[np.asarray(p0, float), c0], lo, hi)
+    if solve is None and not (shift_hz is not None and shift_hz > 0):
+        raise CalibrationError("fit_with needs shift_hz > 0 (the basis build's) or solve")
+    sur_e, basis_e = extend_with_candidates(sur, basis, model, cands, shift_hz=shift_hz, solve=solve)
+    objs = [Objective(sur_e, d, z, quantity) for z, d in continuation] + [Objective(sur_e, data, zeta, quantity)]
+    out = run_start((objs, x0, lo, hi, max_nfev, xtol))
+    n_p = sur.n_params
+    return CandidateFit(
+        names=tuple(c.name for c in cands),
+        p=out.p[:n_p].copy(),
+        c=out.p[n_p:].copy(),
+        sd=float(out.sd),
+        sd_start=float(out.sd_start),
+        surrogate=sur_e,
+        basis=basis_e,
+        lower=lo,
+        upper=hi,
+        converged=bool(out.converged),
+        time_s=time.perf_counter() - t0,
+    )

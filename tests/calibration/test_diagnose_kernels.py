@@ -24,7 +24,17 @@ from calibration import (
     full_order_frf,
     half_bandwidth_frequencies,
 )
-from calibration import CandidateTerm, candidate_jacobian, extend_with_candidates, screen
+from calibration import (
+    CandidateTerm,
+    accept,
+    candidate_jacobian,
+    cross_validate,
+    extend_with_candidates,
+    fit_with,
+    holdout_sd,
+    screen,
+    separating_effect,
+)
 from femodel import AddedMass, AddedSpring, ElementFactor, parametric_model
 
 ZETA = 0.02
@@ -218,3 +228,107 @@ def test_screen_rejects_bad_input(frame):
         CandidateTerm("zero", np.zeros((4, 4)), None, 0, 1)
     with pytest.raises(CalibrationError, match="bounds"):
         CandidateTerm("b", np.eye(4), None, 1, 0)
+
+
+def _contact(terms):
+    contact = [t for t in terms if t.name.startswith("kc")]
+    return contact[len(contact) // 2]
+
+
+def test_fit_with_two_effects_singly_and_combined_and_accept(frame):
+    pm, model, sur, T, terms, cands = frame
+    sigma = 0.005
+    kc = _contact(terms)
+    truth = (AddedMass("m_truth", (30,), 0.5), AddedSpring("k_truth", kc.dofs, kc.scale))
+    ext = pm.with_terms(truth)
+    mt = FRFModel(ext.K, ext.M, model.inputs, model.outputs, parameter_names=ext.names, parametric=ext)
+    f = half_bandwidth_frequencies(*BAND, ZETA, 3)
+    H = full_order_frf(mt, np.r_[P_OLD, 1.0, 1.5], f, ZETA)
+
+    def article(seed):
+        rng = np.random.default_rng(seed)
+        noise = sigma * (rng.normal(size=H.shape) + 1j * rng.normal(size=H.shape)) / np.sqrt(2)
+        return [FitData(f, H * 10**noise, model.output_names, article=f"a{seed}")]
+
+    data, hold = article(0), article(1)
+    base = _screen(frame, data, n_check=0)
+    p_b = base.p_baseline
+    kw = dict(p0=p_b, shift_hz=SHIFT_HZ)
+    m30, kcc = _by_name(cands, "m30"), _by_name(cands, kc.name)
+    single = fit_with(sur, T, model, [m30], data, ZETA, pm.lower, pm.upper, c0=[1.0], **kw)
+    both = fit_with(sur, T, model, [m30, kcc], data, ZETA, pm.lower, pm.upper, c0=[1.0, 1.0], **kw)
+    np.testing.assert_allclose(both.c, [1.0, 1.5], rtol=0.1)
+    np.testing.assert_allclose(both.p, P_OLD, atol=0.01)
+    assert both.sd == pytest.approx(sigma**2, rel=0.1)  # down to the noise
+    assert single.sd > 3 * both.sd > 0 and single.sd < 0.7 * base.sd_baseline  # each explains a part
+    # the extended surrogate is a calibration surrogate: hold-out and cross-validation run on it
+    hb, h1, h2 = (holdout_sd(sur, p_b, hold[0], ZETA), holdout_sd(single.surrogate, single.x, hold[0], ZETA),
+                  holdout_sd(both.surrogate, both.x, hold[0], ZETA))
+    assert hb > h1 > h2
+    cv = dict(n_realizations=4, seed=3, max_nfev=20)
+    cv0 = cross_validate(sur, data, p_b, pm.lower, pm.upper, ZETA, **cv).sd_test
+    cv1 = cross_validate(single.surrogate, data, single.x, single.lower, single.upper, ZETA, **cv).sd_test
+    cv2 = cross_validate(both.surrogate, data, both.x, both.lower, both.upper, ZETA, **cv).sd_test
+    n_ind = 2 * data[0].n_values // 3  # three lines per half-power bandwidth
+    a1 = accept(hb, h1, cv0, cv1, sigma**2, 1, n_ind)
+    assert a1.accepted and not a1.stop, a1.reason
+    a2 = accept(h1, h2, cv1, cv2, sigma**2, 1, n_ind)
+    assert a2.accepted and a2.stop, a2.reason
+    # a decoy on top: the residual is at the floor, nothing more is accepted
+    decoy = fit_with(sur, T, model, [m30, kcc, _by_name(cands, "m7")], data, ZETA, pm.lower, pm.upper,
+                     c0=[1.0, 1.5, 0.0], **kw)
+    cv3 = cross_validate(decoy.surrogate, data, decoy.x, decoy.lower, decoy.upper, ZETA, **cv).sd_test
+    a3 = accept(h2, holdout_sd(decoy.surrogate, decoy.x, hold[0], ZETA), cv2, cv3, sigma**2, 1, n_ind)
+    assert not a3.accepted and a3.stop
+
+
+def test_accept_rule():
+    cv_b = np.array([1.00, 1.02, 0.98, 1.01]) * 1e-3
+    # clear improvement, far above the floor
+    a = accept(1e-3, 5e-4, cv_b, cv_b - 4e-4, 1e-5, 1, 1000)
+    assert a.accepted and not a.stop and a.holdout_ratio == pytest.approx(0.5)
+    # an improvement inside the cross-validation scatter
+    noisy = cv_b - np.array([3e-4, -2e-4, 2e-4, -2.5e-4])
+    a = accept(1e-3, 9.9e-4, cv_b, noisy, 1e-5, 1, 1000)
+    assert not a.accepted and "scatter" in a.reason
+    # the per-parameter penalty: 0.5 % better is not enough for 3 parameters on 300 residuals
+    assert np.exp(-3 * np.log(300) / 300) < 0.995
+    a = accept(1e-3, 0.995e-3, cv_b, cv_b - 5e-6, 1e-5, 3, 300)
+    assert not a.accepted and "penalty" in a.reason
+    # at the floor already: stop
+    a = accept(1.2e-5, 1e-5, cv_b, cv_b, 1e-5, 1, 1000)
+    assert not a.accepted and a.stop
+    with pytest.raises(CalibrationError, match="cross-validation"):
+        accept(1e-3, 5e-4, [1e-3], [5e-4], 1e-5, 1, 1000)
+
+
+def test_separating_effect_on_a_3_2_ensemble(frame):
+    pm, model, sur, T, terms, cands = frame
+    kc = _contact(terms)
+    ext = pm.with_terms([AddedSpring("k_truth", kc.dofs, kc.scale)])
+    mt = FRFModel(ext.K, ext.M, model.inputs, model.outputs, parameter_names=ext.names, parametric=ext)
+    f = half_bandwidth_frequencies(*BAND, ZETA, 3)
+    rng = np.random.default_rng(7)
+    closed = [1.5, 1.5, 1.5, 0.0, 0.0]  # the gap closed on three articles, open on two
+    articles = []
+    for k, c in enumerate(closed):
+        p = P_OLD * (1 + 0.02 * rng.normal(size=P_OLD.size))  # article-to-article scatter
+        H = full_order_frf(mt, np.r_[p, c], f, ZETA)
+        H = H * 10 ** (0.005 * (rng.normal(size=H.shape) + 1j * rng.normal(size=H.shape)) / np.sqrt(2))
+        articles.append([FitData(f, H, model.output_names, article=f"A{k + 1}")])
+    kcc = _by_name(cands, kc.name)
+    common = fit_with(sur, T, model, [kcc], [d[0] for d in articles], ZETA, pm.lower, pm.upper, p0=P_OLD,
+                      c0=[0.9], shift_hz=SHIFT_HZ)
+    groups = [0, 0, 0, 1, 1]
+    sep = separating_effect(common.surrogate, common.x, articles, ZETA, groups, common.lower, common.upper)
+    assert sep.separates, sep.reason
+    assert sep.articles == ("A1", "A2", "A3", "A4", "A5")
+    np.testing.assert_allclose(sep.magnitude[:3], 1.5, rtol=0.25)
+    np.testing.assert_allclose(sep.magnitude[3:], 0.0, atol=0.2)
+    assert sep.gap > 1.0
+    per = separating_effect(common.surrogate, common.x, articles, ZETA, groups, common.lower, common.upper,
+                            refit_p=True)
+    assert per.separates and np.allclose(per.magnitude, closed, atol=0.2)
+    mixed = separating_effect(common.surrogate, common.x, articles, ZETA, [0, 1, 0, 1, 0], common.lower,
+                              common.upper)
+    assert not mixed.separates
