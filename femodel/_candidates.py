@@ -9,20 +9,20 @@ acts (grids, parts, centre, local element size) and a physical description.
 Families (registry :data:`CANDIDATE_FAMILIES`, extended with
 :func:`register_family`):
 
-======================== ===========================================================
-family                   generates
-======================== ===========================================================
-``sensor_mass``          one common mass on all sensor grids (AddedMass)
-``sensor_masses``        one mass per sensor grid (AddedMass)
-``shaker_attachment``    a mass at each drive grid (force sensor, stinger end)
-``stinger_spring``       a spring to ground at each drive grid along the drive axis
-``contact_spring``       springs between facing grids of different parts that no
-                         element joins, one candidate per patch of pairs
-``ground_spring``        a spring to ground at spread grids, per direction
-``lumped_mass``          an unmodelled mass at spread grids (not the sensor grids)
-``element_cluster``      stiffness (optionally mass) factor of a sub-region of a
-                         property group, clusters of a few element sizes
-======================== ===========================================================
+========================== =========================================================
+family                     generates
+========================== =========================================================
+``sensor_mass``            one common mass on all sensor grids (AddedMass)
+``sensor_masses``          one mass per sensor grid (AddedMass)
+``shaker_attachment_mass`` a mass at each drive grid (force sensor, stinger end)
+``stinger_spring``         a spring to ground at each drive grid along the drive axis
+``contact_spring``         springs between facing grids of different parts that no
+                           element joins, one candidate per patch of pairs
+``ground_spring``          a spring to ground at spread grids, per direction
+``lumped_mass``            an unmodelled mass at spread grids (not the sensor grids)
+``element_cluster``        stiffness (optionally mass) factor of a sub-region of a
+                           property group, clusters of a few element sizes
+========================== =========================================================
 
 Geometry is SI inside (as :class:`~femodel.FEModel`); a candidate's
 ``center`` and ``size`` are in the deck's length unit. docs/diagnosis.md
@@ -288,6 +288,8 @@ class CandidateContext:
     cd_axes : (n_grid, 3, 3) float or None
         Columns: each grid's displacement axes in basic; None when every
         grid displaces in basic.
+    element_incidence : csr_matrix (n_el, n_grid)
+        1 where an element holds a grid (rows as ``element_ids``).
     """
 
     model: FEModel
@@ -311,6 +313,7 @@ class CandidateContext:
     total_mass: float
     used_names: frozenset = field(default_factory=frozenset)
     cd_axes: np.ndarray | None = None
+    element_incidence: sp.csr_matrix = field(default=None, repr=False)
 
     @property
     def grid_ids(self) -> np.ndarray:
@@ -499,34 +502,48 @@ def candidate_context(model, *, sensors=(), drives=(), options: CandidateOptions
     labels = _property_labels(fe)
     factor_pids = _factorable_pids(fe)
     n_g = fe.n_grids
+    taken = np.fromiter(taken_elements, dtype=np.int64, count=len(taken_elements))
     ids, cards, parts, egrids, centers, sizes, factorable = [], [], [], [], [], [], []
+    inc_el, inc_grid = [], []
+    offset = 0
     for key, tab in fe.elements.items():
-        if len(tab) == 0:
+        n = len(tab)
+        if n == 0:
             continue
         card = tab.card
-        nodes = np.asarray(tab["nodes"], dtype=np.int64)
+        nodes = np.asarray(tab["nodes"], dtype=np.int64).reshape(n, -1)
+        held = nodes > 0
+        flat = fe.grid_index(nodes[held], what=f"{card} grid")  # row-major: element by element
+        local = np.repeat(np.arange(n), held.sum(axis=1))
+        inc_el.append(offset + local)
+        inc_grid.append(flat)
         nc = _SOLID_CORNERS[card][0] if card in _SOLID_CORNERS else nodes.shape[1]
-        if card in _STRUCTURAL_CARDS and np.all(nodes[:, :nc] > 0):
+        if card in _STRUCTURAL_CARDS and np.all(held[:, :nc]):
             corner_rows = fe.grid_index(nodes[:, :nc].ravel(), what=f"{card} grid").reshape(-1, nc)
-            c, s = _element_geometry(card, fe.xyz[corner_rows])
-            pids = np.asarray(tab.fields.get("pid", np.full(len(tab), -1)), dtype=np.int64)
-            part = np.array([card if card == "CONROD" else labels.get(int(p), f"{card} pid {int(p)}")
-                             for p in pids.tolist()], dtype=object)
-            fac = np.array([int(p) in factor_pids for p in pids.tolist()]) & (card != "CONROD")
-            fac &= ~np.isin(tab.ids, np.fromiter(taken_elements, dtype=np.int64, count=len(taken_elements)))
+            c, sz = _element_geometry(card, fe.xyz[corner_rows])
+            pids = np.asarray(tab.fields.get("pid", np.full(n, -1)), dtype=np.int64)
+            upid, inv = np.unique(pids, return_inverse=True)
+            inv = inv.ravel()
+            labels_u = [card if card == "CONROD" else labels.get(int(q), f"{card} pid {int(q)}") for q in upid]
+            part = np.array(labels_u, dtype=object)[inv]
+            fac = np.array([int(q) in factor_pids and card != "CONROD" for q in upid], dtype=bool)[inv]
+            fac &= ~np.isin(tab.ids, taken)
         else:
-            rows = [[g for g in r if g > 0] for r in nodes.tolist()]
-            c = np.array([fe.xyz[fe.grid_index(r)].mean(axis=0) if r else np.zeros(3) for r in rows]).reshape(-1, 3)
-            s = np.zeros(len(tab))
-            part = np.full(len(tab), "", dtype=object)
-            fac = np.zeros(len(tab), dtype=bool)
+            cnt = held.sum(axis=1)
+            c = np.zeros((n, 3))
+            np.add.at(c, local, fe.xyz[flat])
+            c /= np.maximum(cnt, 1)[:, None]
+            sz = np.zeros(n)
+            part = np.full(n, "", dtype=object)
+            fac = np.zeros(n, dtype=bool)
         ids.append(np.asarray(tab.ids, dtype=np.int64))
-        cards.append(np.full(len(tab), card, dtype=object))
+        cards.append(np.full(n, card, dtype=object))
         parts.append(part)
         egrids.extend(tuple(g for g in r if g > 0) for r in nodes.tolist())
         centers.append(c)
-        sizes.append(s)
+        sizes.append(sz)
         factorable.append(fac)
+        offset += n
     cat = (lambda xs, empty: np.concatenate(xs) if xs else empty)
     element_ids = cat(ids, np.zeros(0, np.int64))
     element_cards = cat(cards, np.zeros(0, object))
@@ -534,25 +551,25 @@ def candidate_context(model, *, sensors=(), drives=(), options: CandidateOptions
     element_centers = cat(centers, np.zeros((0, 3)))
     element_sizes = cat(sizes, np.zeros(0))
     factorable_arr = cat(factorable, np.zeros(0, bool))
+    inc_el = cat(inc_el, np.zeros(0, np.int64))
+    inc_grid = cat(inc_grid, np.zeros(0, np.int64))
+    element_incidence = sp.csr_matrix((np.ones(inc_el.size), (inc_el, inc_grid)), shape=(offset, n_g))
+    element_incidence.data[:] = 1.0
 
     # parts and local size per grid, from the structural elements
     structural = element_parts != ""
-    g_rows, p_rows, s_rows = [], [], []
-    part_names = sorted(set(element_parts[structural].tolist()))
-    part_index = {p: i for i, p in enumerate(part_names)}
-    for e in np.flatnonzero(structural):
-        r = fe.grid_index(egrids[e])
-        g_rows.append(r)
-        p_rows.append(np.full(r.size, part_index[element_parts[e]]))
-        s_rows.append(np.full(r.size, element_sizes[e]))
     grid_parts_sets = [[] for _ in range(n_g)]
     grid_sizes = np.zeros(n_g)
-    if g_rows:
-        gr, pr, sr = np.concatenate(g_rows), np.concatenate(p_rows), np.concatenate(s_rows)
-        for g, p in np.unique(np.column_stack([gr, pr]), axis=0).tolist():
-            grid_parts_sets[g].append(part_names[p])
+    on = structural[inc_el]
+    if np.any(on):
+        part_names, part_idx = np.unique(element_parts[structural].astype(str), return_inverse=True)
+        pidx = np.full(offset, -1, dtype=np.int64)
+        pidx[structural] = part_idx.ravel()
+        gr, er = inc_grid[on], inc_el[on]
+        for g, q in np.unique(np.column_stack([gr, pidx[er]]), axis=0).tolist():
+            grid_parts_sets[g].append(str(part_names[q]))
         cnt = np.bincount(gr, minlength=n_g)
-        tot = np.bincount(gr, weights=sr, minlength=n_g)
+        tot = np.bincount(gr, weights=element_sizes[er], minlength=n_g)
         has = cnt > 0
         grid_sizes[has] = tot[has] / cnt[has]
         grid_sizes[~has] = float(np.median(element_sizes[structural]))
@@ -575,7 +592,7 @@ def candidate_context(model, *, sensors=(), drives=(), options: CandidateOptions
         element_grids=tuple(egrids), element_centers=element_centers, element_sizes=element_sizes,
         factorable=factorable_arr, grid_parts=grid_parts, grid_sizes=grid_sizes, free=free,
         stiffness_diagonal=kdiag, total_mass=total_mass, used_names=used,
-        cd_axes=fe.cd_axes() if np.any(fe.cd != 0) else None)
+        cd_axes=fe.cd_axes() if np.any(fe.cd != 0) else None, element_incidence=element_incidence)
 
 
 # ----------------------------------------------------------------------------
@@ -623,14 +640,14 @@ def sensor_masses_family(ctx: CandidateContext):
                             f"sensor mass {scale:.3g} kg x p at sensor {ctx.grid_label(g)}")
 
 
-def shaker_attachment_family(ctx: CandidateContext):
+def shaker_attachment_mass_family(ctx: CandidateContext):
     """A mass at each drive grid (force sensor, stinger end, adhesive): p = 1 is
     ``attachment_mass_fraction`` of the total mass."""
     scale = ctx.options.attachment_mass_fraction * ctx.total_mass
     for g in _movable(ctx, dict.fromkeys(g for g, _ in ctx.drives)):
         term = AddedMass(f"shaker_mass_g{g}", (g,), scale, 0.0, ctx.options.upper,
                          f"shaker attachment mass at drive grid {g}")
-        yield ctx.candidate("shaker_attachment", term, (g,),
+        yield ctx.candidate("shaker_attachment_mass", term, (g,),
                             f"shaker attachment mass {scale:.3g} kg x p at drive {ctx.grid_label(g)}")
 
 
@@ -728,21 +745,24 @@ def element_cluster_family(ctx: CandidateContext):
                 yield ctx.candidate(
                     "element_cluster", term, grids,
                     f"{what} of {len(eids)} {part} elements ({ctx.element_cards[sel[0]]} {eids[0]}"
-                    f"{'..' + str(eids[-1]) if len(eids) > 1 else ''}) around ({c[0]:.4g}, {c[1]:.4g}, {c[2]:.4g}) "
-                    f"deck units, {edge / size:.2g} element sizes across, times 1 + p",
+                    f"{'..' + str(eids[-1]) if len(eids) > 1 else ''}) in a cube of {ctx.deck_length(edge):.4g} "
+                    f"around ({c[0]:.4g}, {c[1]:.4g}, {c[2]:.4g}) (deck length unit), times 1 + p",
                     parts=(part,), points=ctx.element_centers[sel], size=size)
 
 
 def _incidence(ctx: CandidateContext) -> sp.csr_matrix:
     """Grid x connector incidence (elements, RBE2, RBE3, MPC equations), (n_grid, n_conn)."""
     fe = ctx.model
-    groups = [g for g in ctx.element_grids]
-    groups += [(r.gn,) + tuple(r.gm) for r in fe.rbe2]
+    groups = [(r.gn,) + tuple(r.gm) for r in fe.rbe2]
     groups += [(r.refgrid,) + tuple(g for _, _, gs in r.groups for g in gs) for r in fe.rbe3]
     groups += [tuple(g for g, _, _ in terms) for _, terms in fe.mpc]
-    rows = np.concatenate([fe.grid_index(g) for g in groups if g]) if groups else np.zeros(0, np.int64)
-    cols = np.repeat(np.arange(len(groups)), [len(g) for g in groups])
-    m = sp.csr_matrix((np.ones(rows.size), (rows, cols)), shape=(fe.n_grids, max(len(groups), 1)))
+    groups = [g for g in groups if g]
+    parts = [sp.csr_matrix(ctx.element_incidence.T)]
+    if groups:
+        rows = fe.grid_index(np.concatenate([np.asarray(g, dtype=np.int64) for g in groups]))
+        cols = np.repeat(np.arange(len(groups)), [len(g) for g in groups])
+        parts.append(sp.csr_matrix((np.ones(rows.size), (rows, cols)), shape=(fe.n_grids, len(groups))))
+    m = sp.csr_matrix(sp.hstack(parts))
     m.data[:] = 1.0
     return m
 
@@ -772,9 +792,13 @@ def contact_pairs(ctx: CandidateContext) -> np.ndarray:
     Both grids belong to exactly one part (a grid of two parts is a
     junction), the parts differ, the distance is within
     min(``contact_factor`` x local size, ``contact_max_gap_m``) of either
-    grid, no connector holds both (and, with ``contact_hops`` = 2, no grid
-    is a neighbour of both), and both grids' displacement systems agree
-    (a scalar spring between equal components is then a physical spring).
+    grid, each is the other's nearest grid of its part (mutual nearest:
+    facing grids, not the diagonals of a fine mesh nor the overhang at the
+    edge of an overlap; equal distances all kept), no
+    connector (element, RBE2, RBE3, MPC equation) holds both (and no path
+    of at most ``contact_hops`` connectors joins them), and both grids'
+    displacement systems agree (a scalar spring between equal components
+    is then a physical spring).
     """
     from scipy.spatial import cKDTree
 
@@ -790,22 +814,37 @@ def contact_pairs(ctx: CandidateContext) -> np.ndarray:
     a = np.repeat(np.arange(single.size), counts)
     b = np.fromiter((j for f in found for j in f), dtype=np.int64, count=int(counts.sum()))
     a, b = single[a], single[b]
-    keep = a < b
-    a, b = a[keep], b[keep]
-    part_of = np.array([p[0] if len(p) == 1 else "" for p in ctx.grid_parts], dtype=object)
+    part_of = np.full(ctx.grid_ids.size, -1, dtype=np.int64)
+    _, inv = np.unique(np.array([ctx.grid_parts[i][0] for i in single.tolist()], dtype=object), return_inverse=True)
+    part_of[single] = inv.ravel()
     keep = part_of[a] != part_of[b]
-    a, b = a[keep], b[keep]
     # the union over the two grids' radii: a pair found from either side once
-    pairs = np.unique(np.column_stack([np.minimum(a, b), np.maximum(a, b)]), axis=0)
+    pairs = np.unique(np.column_stack([np.minimum(a[keep], b[keep]), np.maximum(a[keep], b[keep])]), axis=0)
     if pairs.size == 0:
         return np.zeros((0, 2), np.int64)
+    d = np.linalg.norm(ctx.xyz[pairs[:, 0]] - ctx.xyz[pairs[:, 1]], axis=1)
+    n_parts = int(part_of.max()) + 1
+
+    def nearest(x, y):
+        """Pairs where y is (one of) the nearest grids of its part to x."""
+        key = x * n_parts + part_of[y]
+        order = np.lexsort((d, key))
+        k = key[order]
+        first = np.r_[True, k[1:] != k[:-1]]
+        best = np.minimum.reduceat(d[order], np.flatnonzero(first))
+        low = np.empty_like(d)
+        low[order] = np.repeat(best, np.diff(np.r_[np.flatnonzero(first), k.size]))
+        return d <= low * (1.0 + 1e-9) + 1e-15
+
+    pairs = pairs[nearest(pairs[:, 0], pairs[:, 1]) & nearest(pairs[:, 1], pairs[:, 0])]
     inc = _incidence(ctx)
     joined = np.asarray(inc[pairs[:, 0]].multiply(inc[pairs[:, 1]]).sum(axis=1)).ravel() > 0
     if o.contact_hops >= 2:
         adj = _adjacency(ctx, inc)
-        reach = adj
+        reach = adj  # grids within hops - 1 connectors of a grid (walks of up to that length)
+        step = sp.csr_matrix(adj + sp.identity(adj.shape[0], format="csr"))
         for _ in range(o.contact_hops - 2):
-            reach = sp.csr_matrix(reach @ adj)
+            reach = sp.csr_matrix(reach @ step)
         joined |= np.asarray(adj[pairs[:, 0]].multiply(reach[pairs[:, 1]]).sum(axis=1)).ravel() > 0
     pairs = pairs[~joined]
     if ctx.cd_axes is not None:
@@ -832,7 +871,7 @@ def contact_spring_family(ctx: CandidateContext):
     pairs = contact_pairs(ctx)
     if pairs.size == 0:
         return
-    part_of = [p[0] for p in ctx.grid_parts]
+    part_of = [p[0] if p else "" for p in ctx.grid_parts]
     keyset = {}
     for k, (i, j) in enumerate(pairs.tolist()):
         keyset.setdefault(tuple(sorted((part_of[i], part_of[j]))), []).append(k)
@@ -903,7 +942,7 @@ def contact_spring_family(ctx: CandidateContext):
 CANDIDATE_FAMILIES: dict[str, Callable[[CandidateContext], Iterable[Candidate]]] = {
     "sensor_mass": sensor_mass_family,
     "sensor_masses": sensor_masses_family,
-    "shaker_attachment": shaker_attachment_family,
+    "shaker_attachment_mass": shaker_attachment_mass_family,
     "stinger_spring": stinger_spring_family,
     "contact_spring": contact_spring_family,
     "ground_spring": ground_spring_family,

@@ -30,11 +30,11 @@ H = 0.01  # mesh spacing of the gap deck, m
 GAP = 0.002  # the air gap, m
 
 
-def gap_deck(path):
+def gap_deck(path, h=H, dx=0.0):
     """Two steel plates (PSHELL 1 at z = 0, PSHELL 2 at z = 2 mm) overlapping on 3 x 3 facing grids.
 
-    Plate A: grids 1..12 at x = 0..30 mm, y = 0..20 mm. Plate B: grids
-    101..112 at x = 10..40 mm, same y, z = 2 mm. Three of the nine facing
+    Plate A: grids 1..12 at x = 0..30 mm, y = 0..20 mm (spacing ``h``).
+    Plate B: grids 101..112 at x = 10..40 mm (+ ``dx``), same y, z = 2 mm. Three of the nine facing
     pairs are joined: (2, 101) by a CELAS2, (6, 105) by a CELAS1 (PELAS 9),
     (12, 111) by an RBE2. A CBAR (PBAR 3) hangs off grid 4 away from plate
     B: grid 4 is a PSHELL 1 / PBAR 3 junction, so (4, 103) is no contact
@@ -48,15 +48,15 @@ def gap_deck(path):
         for i in range(4):
             ga[i, j] = 1 + i + 4 * j
             gb[i, j] = 101 + i + 4 * j
-            lines.append(f"GRID,{ga[i, j]},,{i * H!r},{j * H!r},0.")
-            lines.append(f"GRID,{gb[i, j]},,{(i + 1) * H!r},{j * H!r},{GAP!r}")
+            lines.append(f"GRID,{ga[i, j]},,{i * h!r},{j * h!r},0.")
+            lines.append(f"GRID,{gb[i, j]},,{(i + 1) * h + dx!r},{j * h!r},{GAP!r}")
     eid = 1
     for g, pid in ((ga, 1), (gb, 2)):
         for j in range(2):
             for i in range(3):
                 lines.append(f"CQUAD4,{eid},{pid},{g[i, j]},{g[i + 1, j]},{g[i + 1, j + 1]},{g[i, j + 1]}")
                 eid += 1
-    lines.append(f"GRID,50,,{3 * H + 0.05!r},0.,-0.05")
+    lines.append(f"GRID,50,,{3 * h + 0.05!r},0.,-0.05")
     lines.append("CBAR,20,3,4,50,0.,1.,0.")
     lines.append("CELAS2,30,1.0+5,2,3,101,3")
     lines.append("CELAS1,31,9,6,1,105,1")
@@ -95,8 +95,10 @@ def _element_sets(fe):
     return [set(int(x) for x in row if x > 0) for tab in fe.elements.values() for row in np.asarray(tab["nodes"])]
 
 
-def test_gap_deck_contact_finds_exactly_the_unjoined_facing_pairs_of_single_part_grids(tmp_path):
-    path, expected, joined = gap_deck(tmp_path / "gap.bdf")
+@pytest.mark.parametrize("h", [H, 0.005])
+def test_gap_deck_contact_finds_exactly_the_unjoined_facing_pairs_of_single_part_grids(tmp_path, h):
+    # at h = 5 mm the diagonal neighbours (5.4 mm) are within 1.5 element sizes too: only facing pairs count
+    path, expected, joined = gap_deck(tmp_path / "gap.bdf", h)
     fe = read_bdf(path)
     cands = generate_candidates(fe, families=["contact_spring"])
     assert len(cands) == 1
@@ -110,12 +112,22 @@ def test_gap_deck_contact_finds_exactly_the_unjoined_facing_pairs_of_single_part
     # location: the middle of the five pairs' grids, at most two element sizes off
     pts = np.array([fe.xyz[fe.grid_index([g])[0]] for g in c.grids])
     assert np.linalg.norm(np.array(c.center) - pts.mean(axis=0)) < 1e-12
-    assert c.size == pytest.approx(H, rel=0.02)
+    assert c.size == pytest.approx(h, rel=0.02)
     # p = 1 is a tenth of the smaller K diagonal at the sprung DOF (median over pairs)
     ctx = candidate_context(fe)
     kd = [min(ctx.stiffness_diagonal[fe.grid_index([a])[0], 2], ctx.stiffness_diagonal[fe.grid_index([b])[0], 2])
           for a, b in expected]
     assert c.term.scale == pytest.approx(0.1 * np.median(kd), rel=1e-12)
+
+
+@pytest.mark.parametrize("dx, comps", [(0.0003, {(3, 3)}), (0.001, {(1, 1), (2, 2), (3, 3)})])
+def test_contact_spring_components_follow_the_gap_direction(tmp_path, dx, comps):
+    # gap (dx, 0, 2 mm): 8.5 deg off z -> z only; 26.6 deg (> contact_axis_deg = 20) -> x, y and z
+    path, expected, _ = gap_deck(tmp_path / "gap.bdf", dx=dx)
+    (c,) = generate_candidates(read_bdf(path), families=["contact_spring"])
+    assert _contact_pairs(c) == {(min(a, b), max(a, b)) for a, b in expected}
+    assert {(d[1], d[3]) for d in c.term.dofs} == comps
+    assert len(c.term.dofs) == len(expected) * len(comps)
 
 
 def test_gap_deck_contact_distance_cap_and_patches(tmp_path):
@@ -184,7 +196,7 @@ def test_setup_families_at_the_given_grids(frame_pm):
     (common,) = fam["sensor_mass"]
     assert common.term.grids == tuple(sensors) and common.term.scale == pytest.approx(1e-3 * total)
     assert [c.term.grids for c in fam["sensor_masses"]] == [(g,) for g in sensors]
-    (shaker,) = fam["shaker_attachment"]
+    (shaker,) = fam["shaker_attachment_mass"]
     assert shaker.term.grids == (drives[0][0],)
     (stinger,) = fam["stinger_spring"]
     # drive direction (0.1, 0.2, -1): dominant axis z, grounded spring, p = 1 bounces the frame at 10 Hz
