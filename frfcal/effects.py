@@ -349,3 +349,60 @@ def standard_effects(pm, sensors, drives, *, gap=None, band_hz=None, n_modes: in
                       f"{dist.max() * 1e3:.0f} mm from the nearest sensor or drive")
     out["lumped_mass"] = (Effect(term, m, family="lumped_mass"),)
     return out
+
+
+@dataclass(frozen=True)
+class ModeShifts:
+    """Reference modes of a deck and the matching modes with effects added (exact eigensolutions).
+
+    Attributes
+    ----------
+    f_ref_hz : (n,) float
+        Reference elastic modes of the deck (in the band, or the first n).
+    f_hz : (n,) float
+        Frequency of the mode of the extended model that best matches each
+        reference mode (largest MAC on the mass-weighted a-set shapes).
+    mac : (n,) float
+        That MAC.
+    """
+
+    f_ref_hz: np.ndarray
+    f_hz: np.ndarray
+    mac: np.ndarray
+
+    @property
+    def relative(self) -> np.ndarray:
+        """df/f of each reference mode."""
+        return self.f_hz / self.f_ref_hz - 1.0
+
+    def bandwidths(self, zeta: float = 1e-3) -> np.ndarray:
+        """|df| in half-power bandwidths 2 zeta f of the reference modes."""
+        return np.abs(self.f_hz - self.f_ref_hz) / (2.0 * zeta * self.f_ref_hz)
+
+
+def mode_shifts(pm, effects, *, band_hz=None, n_modes: int = 10, p=None) -> ModeShifts:
+    """Exact frequency shifts of the deck's reference modes when ``effects`` are added.
+
+    Parameters
+    ----------
+    pm : femodel.ParametricModel
+    effects : sequence of Effect (or tuples of them)
+    band_hz, n_modes, p
+        The reference modes, as :func:`standard_effects`.
+
+    Returns
+    -------
+    ModeShifts
+    """
+    effects = tuple(e for item in effects for e in ((item,) if isinstance(item, Effect) else tuple(item)))
+    p = np.zeros(pm.n_params) if p is None else np.asarray(p, float)
+    ref = _reference_modes(pm, p, band_hz, n_modes)
+    pe = pm.with_terms([e.term for e in effects])
+    q = np.concatenate([p, [e.p for e in effects]])
+    n = int(np.searchsorted(np.sort(ref.f_hz), ref.f_hz.max())) + 1
+    modes = pe.modes(q, 6 + 2 * n + 6)
+    M = pm.mass(p)
+    phi = modes.shapes
+    mac = (ref.phi.T @ (M @ phi)) ** 2 / np.outer(np.ones(ref.f_hz.size), np.einsum("ik,ik->k", phi, M @ phi))
+    best = np.argmax(mac, axis=1)
+    return ModeShifts(ref.f_hz, modes.frequencies_hz[best], mac[np.arange(best.size), best])
