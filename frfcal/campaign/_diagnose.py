@@ -143,7 +143,7 @@ def _frequency_scatter(modes_per) -> list:
     return out
 
 
-def member_residual(camp: Campaign, load, articles, member, cfg=None):
+def member_residual(camp: Campaign, load, articles, member, cfg=None, model=None):
     """Is there anything to explain for one calibrated member? (:func:`calibration.residual_check`).
 
     Parameters
@@ -151,6 +151,11 @@ def member_residual(camp: Campaign, load, articles, member, cfg=None):
     camp : Campaign ; load : LoadResult (channel/drive geometry for the drive points)
     articles : identified articles ; member : MemberCalibration
     cfg : DiagnosisSection (default: the campaign's)
+    model : (Surrogate, x, damping), optional
+        Another model of the member (e.g. extended by accepted effects);
+        ``damping`` is (zeta per article, p_ref) or None (identified damping
+        mapped by MAC); default the member's calibrated surrogate and p with
+        the refinement's damping.
 
     Returns
     -------
@@ -162,6 +167,9 @@ def member_residual(camp: Campaign, load, articles, member, cfg=None):
     arts = [articles[i] for i in member.articles]
     ref = member.refinement
     damping = None if ref is None else (ref.zeta, ref.p_zeta)
+    sur, x = member.surrogate, member.p
+    if model is not None:
+        sur, x, damping = model
     items, models, sources, model_frfs, tests = [], [], set(), [], []
     geo_c = {t.name: t for t in load.channels}
     geo_d = {t.name: t for t in load.drives}
@@ -171,7 +179,7 @@ def member_residual(camp: Campaign, load, articles, member, cfg=None):
     for k, a in enumerate(arts):
         rows = [a.channels.index(n) for n in chans]
         Ht = a.frf[:, rows]
-        Hm = model_frf(member.surrogate, member.p, a, chans, damping, k, camp.calibration.zeta0,
+        Hm = model_frf(sur, x, a, chans, damping, k, camp.calibration.zeta0,
                        camp.validation.mac_min, band)
         model_frfs.append(Hm)
         eps = log_deviation(Hm, Ht)
@@ -181,7 +189,7 @@ def member_residual(camp: Campaign, load, articles, member, cfg=None):
         tests.append(Ht)
         items.append(ResidualItem(a.name, a.freq_hz, eps, q, mask))
         models.append(_ident_frf(a, chans))
-        mode_rows.extend(mode_residuals(member.surrogate, member.p, modes_per[k], a.name,
+        mode_rows.extend(mode_residuals(sur, x, modes_per[k], a.name,
                                         mac_min=camp.validation.mac_min, band_hz=band,
                                         shift_threshold=cfg.shift_threshold, scatter_hz=scatter_hz[k]))
         pairs = [(c, d) for c, n in enumerate(chans) for d, dn in enumerate(a.drives)
@@ -359,6 +367,10 @@ class MemberDiagnosis:
     n_candidates : dict family -> number of candidates screened (None: not screened)
     ranked : tuple of dict, the top of the screening (:func:`ranked_table`)
     screening : calibration.Screening or None
+    accepted : tuple of dict, the accepted effects (rows of :func:`ranked_table` re-fitted, with the decision)
+    trials : tuple of dict, every recalibration tried (names, c, hold-out before/after, decision)
+    extended : tuple of femodel.Candidate or None, the accepted candidates (their terms extend the deck)
+    x_extended : ([p, c]) of the extended model or None
     """
 
     label: str
@@ -372,6 +384,10 @@ class MemberDiagnosis:
     n_candidates: dict | None = None
     ranked: tuple = ()
     screening: object | None = None
+    accepted: tuple = ()
+    trials: tuple = ()
+    extended: tuple | None = None
+    x_extended: np.ndarray | None = None
 
     def to_dict(self) -> dict:
         return {"member": self.label, "articles": list(self.articles), "verdict": self.verdict,
@@ -380,7 +396,8 @@ class MemberDiagnosis:
                 "most_affected_channels": list(self.channels), "candidates": self.n_candidates,
                 "ranked": [dict(r) for r in self.ranked],
                 "screening": None if self.screening is None else {
-                    k: v for k, v in self.screening.to_dict().items() if k != "candidates"}}
+                    k: v for k, v in self.screening.to_dict().items() if k != "candidates"},
+                "accepted": [dict(a) for a in self.accepted], "trials": [dict(t) for t in self.trials]}
 
 
 @dataclass(frozen=True)
@@ -448,19 +465,175 @@ def _screen_member(camp: Campaign, pm, model, load, eq, m, quantity, log):
     for cd in cands:
         counts[cd.family] = counts.get(cd.family, 0) + 1
     rows = ranked_table(cands, scr)
+    ctx = dict(cands=cands, terms=terms, sur=sur, T=T, data=data, cont=cont)
     log(f"[{m.label}] screened {len(cands)} candidates in {time.perf_counter() - t0:.1f} s; first: "
         + "; ".join(f"{r['family']} {r['name']} ({r['size']}, explained {100 * r['explained']:.1f} %)"
                     for r in rows[:3]))
-    return counts, rows, scr
+    return counts, rows, scr, ctx
 
 
-def diagnose_stage(camp: Campaign, load, pm, model, articles, eq, cal, val, xval, log=print) -> DiagnosisResult:
+def _lines_per_bandwidth(article: Article) -> float:
+    """Median number of raw lines within one half-power bandwidth of the identified modes in band (>= 1)."""
+    m = article.identification.modal
+    f = article.freq_hz
+    n = [np.sum((f >= fr * (1 - z)) & (f <= fr * (1 + z))) for fr, z in zip(m.frequency_hz, m.damping)
+         if f.min() <= fr <= f.max()]
+    return float(max(np.median(n), 1.0)) if n else 1.0
+
+
+def _holdout(camp, articles, m, sur, x, quantity):
+    """Hold-out SD of (sur, x) on the raw hold-out lines (calibration lines without hold-out channels), with
+    the identified damping mapped by MAC (the same footing before and after an effect), and its value count."""
+    from calibration import validate
+
+    from frfcal.campaign._stages import raw_data
+
+    chans = list(camp.channels.holdout) or list(camp.channels.calibrate)
+    arts = [articles[i] for i in m.articles]
+    v = validate(sur, sur, x, [raw_data(a, chans) for a in arts], [identified_modes(a) for a in arts],
+                 camp.calibration.zeta0, None, camp.validation.mac_min, quantity,
+                 (camp.band.low_hz, camp.band.high_hz))
+    return float(v.sd_calibrated), int(v.n_values)
+
+
+def _cv(camp, sur, data, x, lower, upper, quantity, executor):
+    from calibration import cross_validate
+
+    xv = camp.crossvalidation
+    n = max(xv.realizations, 3)
+    return cross_validate(sur, data, x, lower, upper, camp.calibration.zeta0, n, xv.seed, executor, quantity,
+                          xv.max_evaluations)
+
+
+def _holdout_floor(camp, check) -> float:
+    hold_chans = list(camp.channels.holdout) or list(camp.channels.calibrate)
+    rows = [x for x in check.channels if x.label in hold_chans]
+    n = sum(x.n_values for x in rows)
+    return float(sum(x.expected * x.n_values for x in rows) / n) if n else float(check.floor)
+
+
+def _accept_member(camp, load, pm, model, articles, m, check, rows, ctx, quantity, executor, log):
+    """Recalibrate with the top candidates (singly, then greedily combined), accept by hold-out and
+    cross-validation beyond their scatter with a per-parameter penalty, stop at the floor.
+
+    Returns (accepted rows, trials (dicts), sd after (dict or None), fit of the accepted set or None)."""
+    from calibration import accept, fit_with
+
+    cfg, c = camp.diagnosis, camp.calibration
+    lo, hi = camp.band.low_hz, camp.band.high_hz
+    shift = max(lo / 4.0, hi / 50.0)
+    sur, T, data, cont = ctx["sur"], ctx["T"], ctx["data"], ctx["cont"]
+    by_name = {t.name: t for t in ctx["terms"]}
+    arts = [articles[i] for i in m.articles]
+    # the floor of the hold-out comparison: the residual check's expected |eps|^2 on the hold-out channels
+    # (re-estimated with every accepted effect: the adjacent-line estimate shrinks with the model error)
+    floor = _holdout_floor(camp, check)
+    check_after = None
+    hb, n_vals = _holdout(camp, articles, m, m.surrogate, m.p, quantity)
+    n_res = max(int(n_vals / np.mean([_lines_per_bandwidth(a) for a in arts])), 2)
+    cv_b = _cv(camp, sur, data, m.p, pm.lower, pm.upper, quantity, executor)
+    base = {"holdout": hb, "cv": cv_b, "x": m.p}
+    accepted, trials, fit_acc = [], [], None
+    order = [r for r in rows if r["checked"]][:cfg.top_n]
+    for _ in range(cfg.max_effects):
+        best = None
+        for r in order:
+            if any(r["name"] == a["name"] for a in accepted):
+                continue
+            names = [a["name"] for a in accepted] + [r["name"]]
+            c0 = [a["c"] for a in accepted] + [r["c"]]
+            fit = fit_with(sur, T, model, [by_name[n] for n in names], data, c.zeta0, pm.lower, pm.upper,
+                           p0=m.p, c0=c0, continuation=cont, quantity=quantity, shift_hz=shift,
+                           max_nfev=cfg.max_evaluations)
+            ha, _ = _holdout(camp, articles, m, fit.surrogate, fit.x, quantity)
+            trial = {"names": names, "c": fit.c.tolist(), "sd_equalized": fit.sd, "holdout_before": base["holdout"],
+                     "holdout_after": ha}
+            if best is None or ha < best[1]:
+                best = (r, ha, fit, trial)
+            trials.append(trial)
+        if best is None:
+            break
+        r, ha, fit, trial = best
+        check_try = member_residual(camp, load, articles, m, model=(fit.surrogate, fit.x, None))[0]
+        floor = min(floor, _holdout_floor(camp, check_try))
+        cv_a = _cv(camp, fit.surrogate, data, fit.x, fit.lower, fit.upper, quantity, executor)
+        dec = accept(base["holdout"], ha, base["cv"].sd_test, cv_a.sd_test, floor, 1, n_res)
+        trial.update(decision=dec.to_dict(), cv_before=float(base["cv"].rse), cv_after=float(cv_a.rse))
+        log(f"[{m.label}] {' + '.join(trial['names'])}: hold-out SD {base['holdout']:.4g} -> {ha:.4g}, "
+            f"cross-validation {base['cv'].rse:.4g} -> {cv_a.rse:.4g}: "
+            f"{'ACCEPTED' if dec.accepted else 'not accepted'} ({dec.reason})")
+        if not dec.accepted:
+            break
+        value, unit, words = _physical(ctx["cands"][[cd.name for cd in ctx["cands"]].index(r["name"])].term,
+                                       float(fit.c[-1]))
+        accepted = [dict(a) for a in accepted]
+        for a, cj in zip(accepted, fit.c[:-1]):  # the earlier effects re-fitted together with the new one
+            cd = ctx["cands"][[cd.name for cd in ctx["cands"]].index(a["name"])]
+            a["c"] = float(cj)
+            a["value"], a["unit"], a["size"] = _physical(cd.term, float(cj))
+        accepted.append(dict(r, c=float(fit.c[-1]), value=value, unit=unit, size=words,
+                             decision=dec.to_dict()))
+        base, fit_acc, check_after = {"holdout": ha, "cv": cv_a, "x": fit.x}, fit, check_try
+        if dec.stop:
+            break
+    after = None
+    if fit_acc is not None:
+        ref, h_ref, x_ref = _refined(camp, articles, m, fit_acc, quantity, log)
+        if ref is not None:
+            check_after = member_residual(camp, load, articles, m,
+                                          model=(fit_acc.surrogate, x_ref, (ref.zeta, ref.p_zeta)))[0]
+            floor = min(floor, _holdout_floor(camp, check_after))
+        after = {"holdout_refined": h_ref, "calibration_raw": None if ref is None else float(ref.sd_raw),
+                 "holdout": base["holdout"], "crossvalidation_rse": float(base["cv"].rse),
+                 "calibration_equalized": float(fit_acc.sd), "holdout_before_same_footing": hb,
+                 "crossvalidation_rse_before": float(cv_b.rse), "floor_holdout": floor,
+                 "holdout_floor_ratio": (h_ref if h_ref is not None else base["holdout"]) / floor
+                 if floor > 0 else None,
+                 "n_independent_residuals": n_res, "residual": check_after.to_dict()}
+        fit_acc = (fit_acc, x_ref)
+    return tuple(accepted), tuple(trials), after, fit_acc
+
+
+def _refined(camp, articles, m, fit, quantity, log):
+    """The raw-line refinement of the extended model (as the calibrate stage refines), and its hold-out SD
+    with the damping it estimated: the "after" on the footing of the calibrated model's "before".
+
+    Returns (Refinement or None, hold-out SD or None, x)."""
+    from calibration import refine, validate
+
+    from frfcal.campaign._stages import raw_data, raw_std_error
+
+    c = camp.calibration
+    if not c.refine:
+        return None, None, fit.x
+    band = (camp.band.low_hz, camp.band.high_hz)
+    arts = [articles[i] for i in m.articles]
+    raw = [raw_data(a, camp.channels.calibrate) for a in arts]
+    modes = [identified_modes(a) for a in arts]
+    ref = refine(fit.surrogate, fit.x, raw, [(a.identification, a.ident_channels) for a in arts], modes,
+                 fit.lower, fit.upper, c.zeta0, floors=c.refine_floors, quantity=quantity,
+                 mac_min=camp.validation.mac_min, band_hz=band, max_nfev=c.max_evaluations)
+    h = None
+    if camp.channels.holdout:
+        errs = [raw_std_error(a, camp.channels.holdout) for a in arts]
+        v = validate(fit.surrogate, fit.surrogate, ref.p, [raw_data(a, camp.channels.holdout) for a in arts],
+                     modes, c.zeta0, None, camp.validation.mac_min, quantity, band,
+                     std_error=None if any(e is None for e in errs) else errs, damping=(ref.zeta, ref.p_zeta))
+        h = float(v.sd_calibrated)
+    log(f"[{m.label}] extended model refined on the raw lines: SD {ref.sd_raw:.4g}"
+        + ("" if h is None else f", hold-out SD {h:.4g} (estimated damping)"))
+    return ref, h, ref.p
+
+
+def diagnose_stage(camp: Campaign, load, pm, model, articles, eq, cal, val, xval, executor=None,
+                   log=print) -> DiagnosisResult:
     """The diagnosis of every calibrated member: significance, the nonlinearity gate, the screening of
     candidate effects (module docstring).
 
     ``articles`` carry their identification; ``eq``, ``cal``, ``val``, ``xval``
     are the equalize, calibrate, validate and cross-validate results; ``pm``
-    and ``model`` the campaign's parametric and FRF model.
+    and ``model`` the campaign's parametric and FRF model; ``executor`` runs
+    the cross-validation of the acceptance (None: serial).
     """
     gates = tuple(ArticleGate(name, nl, runs, notes)
                   for name, (nl, runs, notes) in nonlinearity_gate(camp, articles, log).items())
@@ -476,7 +649,7 @@ def diagnose_stage(camp: Campaign, load, pm, model, articles, eq, cal, val, xval
         flagged = [by_name[n] for n in names if by_name[n].nonlinearity is not None
                    and by_name[n].nonlinearity.flagged]
         nl_modes = tuple(r for g in flagged for r in _nonlinear_modes(g))
-        counts, rows, scr = None, (), None
+        counts, rows, scr, acc, trials, extended = None, (), None, (), (), None
         if not check.significant:
             verdict = "nothing to explain"
             reason = (f"the residual is inside the floor (SD {check.ratio:.3g} x the expected "
@@ -494,15 +667,29 @@ def diagnose_stage(camp: Campaign, load, pm, model, articles, eq, cal, val, xval
             reason = (f"the residual is significant ({check.ratio:.3g} x the floor) and the test article behaves "
                       f"nonlinearly: {what}; no linear effect is accepted in its place")
         else:
-            counts, rows, scr = _screen_member(camp, pm, model, load, eq, m, articles[m.articles[0]].quantity, log)
-            verdict = "no effect accepted"
-            top = rows[0] if rows else None
-            reason = (f"the residual is significant ({check.ratio:.3g} x the floor) and no nonlinearity is "
-                      "flagged; " + (f"the screening ranks {top['family']} {top['name']} first ({top['size']}, "
-                                     f"explains {100 * top['explained']:.1f} % of the residual)" if top else
-                                     "no candidate") + "; acceptance by recalibration is not integrated")
+            quantity = articles[m.articles[0]].quantity
+            counts, rows, scr, ctx = _screen_member(camp, pm, model, load, eq, m, quantity, log)
+            acc, trials, after, fit = _accept_member(camp, load, pm, model, articles, m, check, rows, ctx,
+                                                     quantity, executor, log)
+            if after is not None:
+                sd["after"] = after
+            if acc:
+                verdict = "effect(s) found"
+                extended = (tuple(ctx["cands"][[cd.name for cd in ctx["cands"]].index(a["name"])] for a in acc),
+                            fit[1])
+                reason = "accepted: " + "; ".join(f"{a['description']}: {a['size']}" for a in acc)
+            else:
+                verdict = "no effect accepted"
+                top = rows[0] if rows else None
+                why = trials[0]["decision"]["reason"] if trials and "decision" in trials[0] else "no candidate fitted"
+                reason = (f"the residual is significant ({check.ratio:.3g} x the floor) and no nonlinearity is "
+                          "flagged; " + (f"the screening ranks {top['family']} {top['name']} first ({top['size']}, "
+                                         f"explains {100 * top['explained']:.1f} % of the residual)" if top else
+                                         "no candidate") + f"; not accepted: {why}")
         log(f"[{m.label}] diagnosis: {verdict}: {reason}")
-        out.append(MemberDiagnosis(m.label, names, verdict, reason, check, nl_modes, sd, chans, counts, rows, scr))
+        out.append(MemberDiagnosis(m.label, names, verdict, reason, check, nl_modes, sd, chans, counts, rows, scr,
+                                   acc, trials, None if extended is None else extended[0],
+                                   None if extended is None else np.asarray(extended[1], float)))
     return DiagnosisResult(gates, tuple(out))
 
 

@@ -171,7 +171,8 @@ def run_campaign(camp: Campaign, log=print, diagnose: bool = False) -> dict:
         if diagnose and camp.diagnosis.enabled:
             t = time.perf_counter()
             diag = stage("diagnose", keys["diagnose"],
-                         lambda: diagnose_stage(camp, load, pm, model, articles, eq, cal, val, xval, log))
+                         lambda: diagnose_stage(camp, load, pm, model, articles, eq, cal, val, xval,
+                                                   executor.get(), log))
             timings["diagnosis_s"] = time.perf_counter() - t
     finally:
         executor.close()
