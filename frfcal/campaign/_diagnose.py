@@ -371,6 +371,9 @@ class MemberDiagnosis:
     trials : tuple of dict, every recalibration tried (names, c, hold-out before/after, decision)
     extended : tuple of femodel.Candidate or None, the accepted candidates (their terms extend the deck)
     x_extended : ([p, c]) of the extended model or None
+    overlay : dict or None, FRFs of the first article at the most affected channels (:func:`overlay_figure`):
+        article, freq_hz (n_f,), channels, drives, test, before, after ((n_f, k, n_in) complex; after None
+        without an accepted effect)
     """
 
     label: str
@@ -388,6 +391,7 @@ class MemberDiagnosis:
     trials: tuple = ()
     extended: tuple | None = None
     x_extended: np.ndarray | None = None
+    overlay: dict | None = None
 
     def to_dict(self) -> dict:
         return {"member": self.label, "articles": list(self.articles), "verdict": self.verdict,
@@ -470,6 +474,44 @@ def _screen_member(camp: Campaign, pm, model, load, eq, m, quantity, log):
         + "; ".join(f"{r['family']} {r['name']} ({r['size']}, explained {100 * r['explained']:.1f} %)"
                     for r in rows[:3]))
     return counts, rows, scr, ctx
+
+
+def _overlay(camp, article: Article, channels, before, after) -> dict:
+    """Test and model FRFs of one article at ``channels`` (before: calibrated model; after: extended)."""
+    allc = _channels(camp)
+    idx = [allc.index(c) for c in channels]
+    rows = [article.channels.index(c) for c in channels]
+    return {"article": article.name, "quantity": article.quantity, "freq_hz": article.freq_hz,
+            "channels": list(channels), "drives": list(article.drives), "test": article.frf[:, rows],
+            "before": before[:, idx], "after": None if after is None else after[:, idx]}
+
+
+def overlay_figure(overlay: dict, title: str = ""):
+    """FRF overlays before/after at the most affected channels: |H| of test, calibrated and extended model.
+
+    Returns
+    -------
+    matplotlib.figure.Figure (one row per channel, the first drive of each; log |H| over Hz)
+    """
+    from matplotlib.figure import Figure
+
+    ch = overlay["channels"]
+    f = np.asarray(overlay["freq_hz"])
+    fig = Figure(figsize=(8, 2.2 * len(ch) + 0.6))
+    axes = fig.subplots(len(ch), 1, sharex=True, squeeze=False)[:, 0]
+    for k, (ax, name) in enumerate(zip(axes, ch)):
+        d = 0
+        ax.semilogy(f, np.abs(overlay["test"][:, k, d]), ".", ms=2, color="0.3", label="test (raw lines)")
+        ax.semilogy(f, np.abs(overlay["before"][:, k, d]), "-", lw=0.9, color="C3", label="calibrated model")
+        if overlay.get("after") is not None:
+            ax.semilogy(f, np.abs(overlay["after"][:, k, d]), "-", lw=0.9, color="C0",
+                        label="with the accepted effect(s)")
+        ax.set_ylabel(f"|H| {name}/{overlay['drives'][d]}")
+        ax.grid(True, which="both", lw=0.3)
+    axes[0].legend(loc="best", fontsize=7)
+    axes[-1].set_xlabel("frequency [Hz]")
+    fig.suptitle(title or f"{overlay['article']}: most affected channels ({overlay['quantity']})")
+    return fig
 
 
 def _lines_per_bandwidth(article: Article) -> float:
@@ -579,10 +621,9 @@ def _accept_member(camp, load, pm, model, articles, m, check, rows, ctx, quantit
     after = None
     if fit_acc is not None:
         ref, h_ref, x_ref = _refined(camp, articles, m, fit_acc, quantity, log)
-        if ref is not None:
-            check_after = member_residual(camp, load, articles, m,
-                                          model=(fit_acc.surrogate, x_ref, (ref.zeta, ref.p_zeta)))[0]
-            floor = min(floor, _holdout_floor(camp, check_after))
+        damping = None if ref is None else (ref.zeta, ref.p_zeta)
+        check_after, frfs_after = member_residual(camp, load, articles, m, model=(fit_acc.surrogate, x_ref, damping))
+        floor = min(floor, _holdout_floor(camp, check_after))
         after = {"holdout_refined": h_ref, "calibration_raw": None if ref is None else float(ref.sd_raw),
                  "holdout": base["holdout"], "crossvalidation_rse": float(base["cv"].rse),
                  "calibration_equalized": float(fit_acc.sd), "holdout_before_same_footing": hb,
@@ -590,7 +631,12 @@ def _accept_member(camp, load, pm, model, articles, m, check, rows, ctx, quantit
                  "holdout_floor_ratio": (h_ref if h_ref is not None else base["holdout"]) / floor
                  if floor > 0 else None,
                  "n_independent_residuals": n_res, "residual": check_after.to_dict()}
-        fit_acc = (fit_acc, x_ref)
+        fit_acc = (fit_acc, x_ref, frfs_after)
+        n_p = pm.n_params
+        for j, a in enumerate(accepted):  # the refined magnitudes (raw lines, estimated damping) are reported
+            cd = ctx["cands"][[cd.name for cd in ctx["cands"]].index(a["name"])]
+            a["c_equalized"], a["c"] = a["c"], float(x_ref[n_p + j])
+            a["value"], a["unit"], a["size"] = _physical(cd.term, a["c"])
     return tuple(accepted), tuple(trials), after, fit_acc
 
 
@@ -641,7 +687,8 @@ def diagnose_stage(camp: Campaign, load, pm, model, articles, eq, cal, val, xval
     out = []
     for m, v, x in zip(cal.members, val.members, xval.members):
         names = tuple(dict.fromkeys(articles[i].name for i in m.articles))
-        check, _ = member_residual(camp, load, articles, m)
+        check, frfs_before = member_residual(camp, load, articles, m)
+        frfs_after = None
         for line in check.describe():
             log(f"[{m.label}] {line}")
         chans = tuple(c.label for c in sorted(check.channels, key=lambda c: -c.ratio))
@@ -677,6 +724,7 @@ def diagnose_stage(camp: Campaign, load, pm, model, articles, eq, cal, val, xval
                 verdict = "effect(s) found"
                 extended = (tuple(ctx["cands"][[cd.name for cd in ctx["cands"]].index(a["name"])] for a in acc),
                             fit[1])
+                frfs_after = fit[2]
                 reason = "accepted: " + "; ".join(f"{a['description']}: {a['size']}" for a in acc)
             else:
                 verdict = "no effect accepted"
@@ -687,18 +735,53 @@ def diagnose_stage(camp: Campaign, load, pm, model, articles, eq, cal, val, xval
                                          f"explains {100 * top['explained']:.1f} % of the residual)" if top else
                                          "no candidate") + f"; not accepted: {why}")
         log(f"[{m.label}] diagnosis: {verdict}: {reason}")
+        overlay = None
+        if check.significant:
+            overlay = _overlay(camp, articles[m.articles[0]], chans[:camp.diagnosis.figures_channels],
+                               frfs_before[0], None if frfs_after is None else frfs_after[0])
         out.append(MemberDiagnosis(m.label, names, verdict, reason, check, nl_modes, sd, chans, counts, rows, scr,
                                    acc, trials, None if extended is None else extended[0],
-                                   None if extended is None else np.asarray(extended[1], float)))
+                                   None if extended is None else np.asarray(extended[1], float), overlay))
     return DiagnosisResult(gates, tuple(out))
 
 
-def write_diagnosis(diag: DiagnosisResult, outdir: Path, log=print) -> dict:
-    """Write ``diagnosis.json`` into ``outdir``; return its content plus ``result_file``."""
+def new_cards(pm, extended, x, path: Path) -> list:
+    """Write the deck extended by the accepted effects' terms at ``x = [p, c]``; return the new cards' lines.
+
+    The new cards are the lines of the extended deck that the deck written at
+    the same ``p`` without the effects does not have (CELAS2, CONM2, copied
+    property and material cards, re-pointed elements; fixed format).
+    """
+    import tempfile
+
+    ext = pm.with_terms([c.term for c in extended])
+    ext.write_bdf(path, x)
+    with tempfile.TemporaryDirectory() as tmp:
+        base = pm.write_bdf(Path(tmp) / "base.bdf", np.asarray(x, float)[:pm.n_params])
+        old = set(Path(base).read_text().splitlines())
+    return [ln for ln in Path(path).read_text().splitlines() if ln not in old and not ln.startswith("$")]
+
+
+def write_diagnosis(diag: DiagnosisResult, camp: Campaign, pm, outdir: Path, log=print) -> dict:
+    """Write ``diagnosis.json``, per member with an accepted effect ``extended_<member>.bdf``, and the FRF
+    overlays ``diagnosis_<member>.png`` (``[output] figures``) into ``outdir``; return the JSON content plus
+    ``result_file``."""
     from frfcal.campaign._report import json_default
 
+    outdir = Path(outdir)
     d = diag.to_dict()
-    path = Path(outdir) / "diagnosis.json"
+    for m, md in zip(diag.members, d["members"]):
+        if m.extended and camp.output.write_bdf:
+            path = outdir / f"extended_{m.label}.bdf"
+            md["new_cards"] = new_cards(pm, m.extended, m.x_extended, path)
+            md["bdf"] = str(path)
+            log(f"wrote {path} ({len(md['new_cards'])} new card line(s))")
+        if m.overlay is not None and camp.output.figures:
+            path = outdir / f"diagnosis_{m.label}.png"
+            overlay_figure(m.overlay, f"[{m.label}] {m.verdict}: {m.overlay['article']}, most affected channels"
+                           ).savefig(path, dpi=90)
+            md["figures"] = [str(path)]
+    path = outdir / "diagnosis.json"
     path.write_text(json.dumps(d, indent=1, default=json_default))
     d["result_file"] = str(path)
     log(f"wrote {path}")

@@ -179,5 +179,5 @@ def run_campaign(camp: Campaign, log=print, diagnose: bool = False) -> dict:
     timings["total_s"] = time.perf_counter() - t_all
     result = write_outputs(camp, pm, articles, groups, cal, val, xval, timings, records, outdir, log)
     if diag is not None:
-        result["diagnosis"] = write_diagnosis(diag, outdir, log)
+        result["diagnosis"] = write_diagnosis(diag, camp, pm, outdir, log)
     return result

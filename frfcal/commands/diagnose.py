@@ -59,11 +59,32 @@ def print_diagnosis(d: dict, out) -> None:
                        + f" ({', '.join(r['parts'][:2])}) at ({', '.join(f'{x:.3g}' for x in r['center'])})")
                 print(f"{r['rank']:>3} {r['family']:<18}{loc:<44}{r['size']:>24}{100 * r['explained']:10.1f}%"
                       + ("" if r["checked"] else " (linear)"), file=out)
+        for a in m["accepted"]:
+            print(f"ACCEPTED: {a['description']}: {a['size']} (grids {', '.join(map(str, a['grids']))}; "
+                  f"{', '.join(a['parts'])}): {a['decision']['reason']}", file=out)
+        if not m["accepted"] and m["trials"]:
+            t = m["trials"][0]
+            if "decision" in t:
+                print(f"not accepted: {' + '.join(t['names'])}: {t['decision']['reason']}", file=out)
         sd = m["sd"]
         print(f"SD of the calibrated model: calibration (raw lines) {_fmt(sd['calibration_raw'])}, hold-out "
               f"{_fmt(sd['holdout'])}, cross-validation RSE {_fmt(sd['crossvalidation_rse'])}; residual on all "
               f"channels {_fmt(sd['residual_all_channels'])} beside the floor {_fmt(sd['floor'])} "
               f"({sd['floor_source']})" + (f" + scatter {sd['scatter']:.3g}" if sd["scatter"] else ""), file=out)
+        a = sd.get("after")
+        if a:
+            print(f"SD with the accepted effect(s): calibration (raw lines) {_fmt(a['calibration_raw'])}, hold-out "
+                  f"{_fmt(a['holdout_refined'])} = {_fmt(a['holdout_floor_ratio'], '.3g')} x its floor "
+                  f"{_fmt(a['floor_holdout'])}; on one footing (identified damping): hold-out "
+                  f"{_fmt(a['holdout_before_same_footing'])} -> {_fmt(a['holdout'])}, cross-validation RSE "
+                  f"{_fmt(a['crossvalidation_rse_before'])} -> {_fmt(a['crossvalidation_rse'])}", file=out)
+            print(f"after: {a['residual']['test']}", file=out)
+        if m.get("bdf"):
+            print(f"extended deck: {m['bdf']}; new cards:", file=out)
+            for ln in m["new_cards"][:20]:
+                print(f"  {ln}", file=out)
+        for fpath in m.get("figures", []):
+            print(f"figure: {fpath}", file=out)
     print(f"\ndiagnosis: {d['result_file']}", file=out)
 
 

@@ -114,9 +114,9 @@ def _frame_campaign(tmp, effects_family):
         + f"[channels]\ncalibrate = {json.dumps(cal)}\nholdout = {json.dumps(hold)}\n"
         + f"[band]\nlow_hz = {BAND[0]}\nhigh_hz = {BAND[1]}\n"
         + '[calibration]\nstarts = 4\n[crossvalidation]\nrealizations = 3\n[execution]\nworkers = 2\n'
-        + f'[output]\ndir = "{tmp / "out"}"\nfigures = false\n'
+        + f'[output]\ndir = "{tmp / "out"}"\nfigures = {"true" if effects_family else "false"}\n'
     )
-    return camp, pm, effects
+    return camp, pm, effects, sc, hold
 
 
 def _diagnose_json(camp, capsys):
@@ -128,7 +128,7 @@ def _diagnose_json(camp, capsys):
 @pytest.fixture(scope="module")
 def control(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("diag_control")
-    camp, pm, _ = _frame_campaign(tmp, None)
+    camp, pm, _, _, _ = _frame_campaign(tmp, None)
     assert main(["diagnose", str(camp), "--quiet"]) == 0
     return camp, json.loads((tmp / "out" / "diagnosis.json").read_text())
 
@@ -156,13 +156,13 @@ def test_rerun_reuses_the_stored_diagnosis(control, capsys):
 @pytest.fixture(scope="module")
 def lumped_mass(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("diag_mass")
-    camp, pm, effects = _frame_campaign(tmp, "lumped_mass")
+    camp, pm, effects, sc, hold = _frame_campaign(tmp, "lumped_mass")
     assert main(["diagnose", str(camp), "--quiet"]) == 0
-    return pm, effects, json.loads((tmp / "out" / "diagnosis.json").read_text())
+    return pm, effects, json.loads((tmp / "out" / "diagnosis.json").read_text()), sc, hold
 
 
 def test_an_unmodelled_mass_is_significant_and_ranks_first(lumped_mass):
-    pm, effects, d = lumped_mass
+    pm, effects, d, _, _ = lumped_mass
     (eff,) = effects
     m = d["members"][0]
     r = m["residual"]
@@ -246,3 +246,28 @@ def test_bolted_beam_is_nonlinear_and_no_linear_effect_is_accepted(tmp_path, cap
     assert main(["diagnose", str(camp), "--quiet"]) == 0
     text = capsys.readouterr().out
     assert "verdict: NONLINEAR" in text and "level dependence at mode 1" in text
+
+
+def test_the_unmodelled_mass_is_accepted_and_brings_the_holdout_to_the_floor(lumped_mass):
+    pm, effects, d, sc, hold = lumped_mass
+    (eff,) = effects
+    m = d["members"][0]
+    assert m["verdict"] == "effect(s) found"
+    (a,) = m["accepted"]  # one effect, nothing more accepted after it
+    assert a["family"] == "lumped_mass" and a["unit"] == "kg"
+    assert a["value"] == pytest.approx(eff.value, rel=0.2)
+    dec = a["decision"]
+    assert dec["accepted"] and dec["holdout_ratio"] < dec["penalty_ratio"]
+    assert dec["cv_improvement"] > dec["cv_scatter"]
+    after = m["sd"]["after"]
+    floor = sc.floor_sd(channels=hold)  # the truth against its own noise on the hold-out channels
+    assert after["holdout_refined"] < 2 * floor
+    assert after["holdout_refined"] < 0.05 * m["sd"]["holdout"]
+    assert after["residual"]["verdict"] == "inside the floor"
+    # the extended deck: one CONM2 of the accepted mass at the true grid
+    cards = [ln for ln in m["new_cards"] if ln.startswith("CONM2")]
+    assert len(cards) == 1
+    fields = [cards[0][k:k + 16].strip() for k in range(8, len(cards[0]), 16)]  # large field: EID G CID M
+    assert int(fields[1]) == int(eff.term.grids[0])
+    assert float(fields[3]) == pytest.approx(a["value"], rel=1e-6)
+    assert m["figures"] and all(p.endswith(".png") for p in m["figures"])
