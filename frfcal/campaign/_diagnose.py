@@ -410,9 +410,12 @@ class DiagnosisResult:
 
     gates: tuple  # of ArticleGate
     members: tuple  # of MemberDiagnosis
+    separations: tuple = ()  # of dict: accepted effects fitted per article against the article groups
 
     def to_dict(self) -> dict:
-        return {"gates": [g.to_dict() for g in self.gates], "members": [m.to_dict() for m in self.members]}
+        return {"gates": [g.to_dict() for g in self.gates], "members": [m.to_dict() for m in self.members],
+                "separations": [dict(x) for x in self.separations],
+                "separating_effects": [x["name"] for x in self.separations if x["separates"]]}
 
 
 def _sd_table(member, val, xval, check) -> dict:
@@ -620,9 +623,10 @@ def _accept_member(camp, load, pm, model, articles, m, check, rows, ctx, quantit
             break
     after = None
     if fit_acc is not None:
-        ref, h_ref, x_ref = _refined(camp, articles, m, fit_acc, quantity, log)
+        terms = [ctx["cands"][[cd.name for cd in ctx["cands"]].index(a["name"])].term for a in accepted]
+        ref, h_ref, x_ref, sur_ref = _refined(camp, pm, model, articles, m, fit_acc, terms, quantity, log)
         damping = None if ref is None else (ref.zeta, ref.p_zeta)
-        check_after, frfs_after = member_residual(camp, load, articles, m, model=(fit_acc.surrogate, x_ref, damping))
+        check_after, frfs_after = member_residual(camp, load, articles, m, model=(sur_ref, x_ref, damping))
         floor = min(floor, _holdout_floor(camp, check_after))
         after = {"holdout_refined": h_ref, "calibration_raw": None if ref is None else float(ref.sd_raw),
                  "holdout": base["holdout"], "crossvalidation_rse": float(base["cv"].rse),
@@ -640,51 +644,70 @@ def _accept_member(camp, load, pm, model, articles, m, check, rows, ctx, quantit
     return tuple(accepted), tuple(trials), after, fit_acc
 
 
-def _refined(camp, articles, m, fit, quantity, log):
-    """The raw-line refinement of the extended model (as the calibrate stage refines), and its hold-out SD
-    with the damping it estimated: the "after" on the footing of the calibrated model's "before".
+def _refined(camp, pm, model, articles, m, fit, extended_terms, quantity, log):
+    """The raw-line refinement of the extended model, as the calibrate stage refines: damping continuation on
+    the extended surrogate, then ``refine_cycles`` re-basis cycles on the full extended model
+    (``pm.with_terms``); and its hold-out SD with the damping it estimated: the "after" on the footing of the
+    calibrated model's "before".
 
-    Returns (Refinement or None, hold-out SD or None, x)."""
-    from calibration import refine, validate
+    Returns (Refinement or None, hold-out SD or None, x, surrogate)."""
+    from calibration import FRFModel, build_surrogate, refine, validate
 
     from frfcal.campaign._stages import raw_data, raw_std_error
 
     c = camp.calibration
     if not c.refine:
-        return None, None, fit.x
+        return None, None, fit.x, fit.surrogate
     band = (camp.band.low_hz, camp.band.high_hz)
     arts = [articles[i] for i in m.articles]
     raw = [raw_data(a, camp.channels.calibrate) for a in arts]
     modes = [identified_modes(a) for a in arts]
-    ref = refine(fit.surrogate, fit.x, raw, [(a.identification, a.ident_channels) for a in arts], modes,
-                 fit.lower, fit.upper, c.zeta0, floors=c.refine_floors, quantity=quantity,
-                 mac_min=camp.validation.mac_min, band_hz=band, max_nfev=c.max_evaluations)
+    idents = [(a.identification, a.ident_channels) for a in arts]
+    opts = dict(quantity=quantity, mac_min=camp.validation.mac_min, band_hz=band, max_nfev=c.max_evaluations)
+    ref = refine(fit.surrogate, fit.x, raw, idents, modes, fit.lower, fit.upper, c.zeta0, floors=c.refine_floors,
+                 **opts)
+    sur = fit.surrogate
+    if c.refine_cycles:
+        ext = pm.with_terms(list(extended_terms))
+        mext = FRFModel(K=ext.K, M=ext.M, inputs=model.inputs, outputs=model.outputs,
+                        input_names=model.input_names, output_names=model.output_names,
+                        parameter_names=tuple(ext.names), parametric=ext)
+        basis = None
+        for _ in range(c.refine_cycles):
+            sur, basis = build_surrogate(mext, ref.p, band, c.basis_factor, enrich=c.enrich, previous_basis=basis)
+            nxt = refine(sur, ref.p, raw, idents, modes, fit.lower, fit.upper, c.zeta0, floors=(0.0,), **opts)
+            dp = float(np.max(np.abs(nxt.p - ref.p)))
+            ref = nxt
+            if dp < c.cycle_tol:
+                break
     h = None
     if camp.channels.holdout:
         errs = [raw_std_error(a, camp.channels.holdout) for a in arts]
-        v = validate(fit.surrogate, fit.surrogate, ref.p, [raw_data(a, camp.channels.holdout) for a in arts],
+        v = validate(sur, sur, ref.p, [raw_data(a, camp.channels.holdout) for a in arts],
                      modes, c.zeta0, None, camp.validation.mac_min, quantity, band,
                      std_error=None if any(e is None for e in errs) else errs, damping=(ref.zeta, ref.p_zeta))
         h = float(v.sd_calibrated)
     log(f"[{m.label}] extended model refined on the raw lines: SD {ref.sd_raw:.4g}"
         + ("" if h is None else f", hold-out SD {h:.4g} (estimated damping)"))
-    return ref, h, ref.p
+    return ref, h, ref.p, sur
 
 
 def diagnose_stage(camp: Campaign, load, pm, model, articles, eq, cal, val, xval, executor=None,
-                   log=print) -> DiagnosisResult:
+                   log=print, groups=None) -> DiagnosisResult:
     """The diagnosis of every calibrated member: significance, the nonlinearity gate, the screening of
     candidate effects (module docstring).
 
     ``articles`` carry their identification; ``eq``, ``cal``, ``val``, ``xval``
     are the equalize, calibrate, validate and cross-validate results; ``pm``
     and ``model`` the campaign's parametric and FRF model; ``executor`` runs
-    the cross-validation of the acceptance (None: serial).
+    the cross-validation of the acceptance (None: serial); ``groups`` the
+    group stage's result: with article groups, every accepted effect is
+    fitted per article to find the one that separates them.
     """
     gates = tuple(ArticleGate(name, nl, runs, notes)
                   for name, (nl, runs, notes) in nonlinearity_gate(camp, articles, log).items())
     by_name = {g.article: g for g in gates}
-    out = []
+    out, fits = [], []
     for m, v, x in zip(cal.members, val.members, xval.members):
         names = tuple(dict.fromkeys(articles[i].name for i in m.articles))
         check, frfs_before = member_residual(camp, load, articles, m)
@@ -725,6 +748,7 @@ def diagnose_stage(camp: Campaign, load, pm, model, articles, eq, cal, val, xval
                 extended = (tuple(ctx["cands"][[cd.name for cd in ctx["cands"]].index(a["name"])] for a in acc),
                             fit[1])
                 frfs_after = fit[2]
+                fits.append((m, acc, fit[0]))
                 reason = "accepted: " + "; ".join(f"{a['description']}: {a['size']}" for a in acc)
             else:
                 verdict = "no effect accepted"

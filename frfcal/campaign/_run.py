@@ -88,7 +88,7 @@ def stage_keys(camp: Campaign, model, load: str) -> dict:
                                  _section(camp, "calibration"), _section(camp, "validation", "mac_min"))
     k["validate"] = fingerprint(VERSION, "validate", k["calibrate"], _section(camp, "validation"))
     k["crossvalidate"] = fingerprint(VERSION, "crossvalidate", k["calibrate"], _section(camp, "crossvalidation"))
-    k["diagnose"] = fingerprint(VERSION, "diagnose", k["calibrate"], k["validate"], k["crossvalidate"],
+    k["diagnose"] = fingerprint(VERSION, "diagnose", k["group"], k["calibrate"], k["validate"], k["crossvalidate"],
                                 _section(camp, "diagnosis"), [e.level for e in camp.run])
     return k
 
@@ -172,7 +172,7 @@ def run_campaign(camp: Campaign, log=print, diagnose: bool = False) -> dict:
             t = time.perf_counter()
             diag = stage("diagnose", keys["diagnose"],
                          lambda: diagnose_stage(camp, load, pm, model, articles, eq, cal, val, xval,
-                                                   executor.get(), log))
+                                                   executor.get(), log, groups))
             timings["diagnosis_s"] = time.perf_counter() - t
     finally:
         executor.close()

@@ -85,6 +85,12 @@ def print_diagnosis(d: dict, out) -> None:
                 print(f"  {ln}", file=out)
         for fpath in m.get("figures", []):
             print(f"figure: {fpath}", file=out)
+    for x in d.get("separations", []):
+        sep = x["separation"]
+        per = ", ".join(f"{a} {c:.3g}" for a, c in zip(sep["articles"], sep["magnitude"]))
+        print(f"\nseparating effect: {x['name']} ({x['family']}, accepted in {x['member']}): "
+              f"{'SEPARATES' if x['separates'] else 'does not separate'} the article groups {sep['groups']}; "
+              f"magnitude c per article: {per} ({sep['reason']})", file=out)
     print(f"\ndiagnosis: {d['result_file']}", file=out)
 
 
