@@ -731,8 +731,8 @@ def diagnose_stage(camp: Campaign, load, pm, model, articles, eq, cal, val, xval
             what = "; ".join(
                 f"{r['article']}: {r['check']}" + (f" of mode {r['mode']} at {r['frequency_hz']:.5g} Hz"
                                                    if r.get("mode") else f" at {r['frequency_hz']:.5g} Hz")
-                + (f" ({r['quantity']} x{r['ratio']:.3g} from {min(r['levels_n']):.3g} to "
-                   f"{max(r['levels_n']):.3g} N)" if r["check"] == "level dependence" else "")
+                + (f" ({r['quantity']} {r['values'][0]:.4g} -> {r['values'][-1]:.4g} from {min(r['levels_n']):.3g}"
+                   f" to {max(r['levels_n']):.3g} N, {r['z']:.3g} sigma)" if r["check"] == "level dependence" else "")
                 for r in nl_modes) or "; ".join(g.article for g in flagged)
             reason = (f"the residual is significant ({check.ratio:.3g} x the floor) and the test article behaves "
                       f"nonlinearly: {what}; no linear effect is accepted in its place")

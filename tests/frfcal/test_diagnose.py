@@ -82,12 +82,12 @@ def test_residual_check_refuses_mismatched_input():
 # ----------------------------------------------------------------------------- the frame
 
 
-def _frame_campaign(tmp, effects_family):
+def _frame_campaign(tmp, effects_family, gap_mm=None):
     """Synthesize the frame (1 article; one standard effect or none), import the UFF, write the campaign."""
     from frfcal.effects import standard_effects
     from frfcal.synth import SynthChannel, synthesize
 
-    ex = femodel.example_frame(tmp / "model", gap_mm=3.0)
+    ex = femodel.example_frame(tmp / "model", gap_mm=gap_mm)
     pm = femodel.parametric_model(ex.params)
     g = np.asarray(pm.assembly.model.grid_ids)
     pick = g[np.linspace(2, len(g) - 3, 16).astype(int)]
@@ -96,7 +96,7 @@ def _frame_campaign(tmp, effects_family):
     drives = [SynthChannel("F1", int(pick[3]), (0.0, 0.0, 1.0)), SynthChannel("F2", int(pick[10]), (0.0, 1.0, 0.0))]
     effects = ()
     if effects_family:
-        effects = standard_effects(pm, sensors, drives, gap=ex.gap_pairs, band_hz=BAND)[effects_family]
+        effects = standard_effects(pm, sensors, drives, gap=ex.gap_pairs or None, band_hz=BAND)[effects_family]
     sc = synthesize(ex.bdf, ex.params, tmp / "data", sensors=sensors, drives=drives, band_hz=BAND, n_articles=1,
                     seed=3, scatter=0.003, effects=effects, parametric=pm)
     runs = []
@@ -128,7 +128,7 @@ def _diagnose_json(camp, capsys):
 @pytest.fixture(scope="module")
 def control(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("diag_control")
-    camp, pm, _, _, _ = _frame_campaign(tmp, None)
+    camp, pm, _, _, _ = _frame_campaign(tmp, None, gap_mm=3.0)  # the gap deck, its gap open: nothing missing
     assert main(["diagnose", str(camp), "--quiet"]) == 0
     return camp, json.loads((tmp / "out" / "diagnosis.json").read_text())
 
@@ -175,8 +175,11 @@ def test_an_unmodelled_mass_is_significant_and_ranks_first(lumped_mass):
     true_grid = int(eff.term.grids[0])
     dist = np.linalg.norm(xyz[true_grid] - np.asarray(top["center"]))
     assert dist <= 2 * top["element_size"]  # location within two element sizes
-    assert top["unit"] == "kg" and top["value"] == pytest.approx(eff.value, rel=0.2)
-    assert top["explained"] > 0.5
+    assert top["unit"] == "kg" and top["explained"] > 0.3  # of the equalized residual, nonlinear re-fit
+    # the magnitude: the screening's equalized re-fit is a start (within 50 %); the accepted effect, re-fitted
+    # with the parameters and refined on the raw lines, is the estimate (within 20 %, next test)
+    assert top["value"] == pytest.approx(eff.value, rel=0.5)
+    assert m["accepted"] and m["accepted"][0]["name"] == top["name"]
 
 
 # ----------------------------------------------------------------------------- the bolted beam
