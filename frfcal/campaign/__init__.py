@@ -5,9 +5,20 @@ Application layer: it reads run files (``acquisition``), builds the model
 (``calibration``); the library layers below hold the kernels.
 """
 
+from frfcal.campaign._diagnose import (
+    ArticleGate,
+    DiagnosisResult,
+    LevelRun,
+    MemberDiagnosis,
+    diagnose_stage,
+    member_residual,
+    nonlinearity_gate,
+    overlay_figure,
+    write_diagnosis,
+)
 from frfcal.campaign._identify import identify_lines, identify_run, line_weights, run_weights
 from frfcal.campaign._report import json_default, member_figures, write_outputs
-from frfcal.campaign._run import STAGES, load_key, model_fingerprint, run_campaign, stage_keys
+from frfcal.campaign._run import ALL_STAGES, STAGES, load_key, model_fingerprint, run_campaign, stage_keys
 from frfcal.campaign._schema import Campaign, campaign_from_dict, load_campaign
 from frfcal.campaign._stages import (
     Article,
@@ -50,8 +61,18 @@ def identified_articles(camp: Campaign, articles, log=print) -> list:
 
 
 __all__ = [
+    "ALL_STAGES",
     "STAGES",
     "Article",
+    "ArticleGate",
+    "DiagnosisResult",
+    "LevelRun",
+    "MemberDiagnosis",
+    "diagnose_stage",
+    "member_residual",
+    "nonlinearity_gate",
+    "overlay_figure",
+    "write_diagnosis",
     "CalibrateResult",
     "Campaign",
     "CrossValidationResult",

@@ -34,7 +34,8 @@ from frfcal.campaign._stages import (
 )
 from frfcal.campaign._store import StageStore, file_hash, fingerprint
 
-STAGES = ("load", "identify", "equalize", "group", "calibrate", "validate", "crossvalidate", "diagnose")
+STAGES = ("load", "identify", "equalize", "group", "calibrate", "validate", "crossvalidate")
+ALL_STAGES = STAGES + ("diagnose",)  # diagnose runs only with run_campaign(..., diagnose=True)
 VERSION = 1  # bump when a stage computes differently: every stored result is then stale
 
 
