@@ -418,7 +418,7 @@ class DiagnosisResult:
                 "separating_effects": [x["name"] for x in self.separations if x["separates"]]}
 
 
-def _sd_table(member, val, xval, check) -> dict:
+def _sd_table(member, val, xval, check, arts=()) -> dict:
     """SD of the calibrated model on calibration (raw lines), hold-out, cross-validation, beside the floor."""
     ref = member.refinement
     v = val.validation if val is not None else None
@@ -433,6 +433,7 @@ def _sd_table(member, val, xval, check) -> dict:
         "floor": float(check.floor),
         "floor_source": check.floor_source,
         "scatter": float(check.scatter),
+        "identification_fit": float(np.mean([a.identification.fit_deviation_total for a in arts])) if arts else None,
     }
 
 
@@ -715,7 +716,7 @@ def diagnose_stage(camp: Campaign, load, pm, model, articles, eq, cal, val, xval
         for line in check.describe():
             log(f"[{m.label}] {line}")
         chans = tuple(c.label for c in sorted(check.channels, key=lambda c: -c.ratio))
-        sd = _sd_table(m, v, x, check)
+        sd = _sd_table(m, v, x, check, [articles[i] for i in m.articles])
         flagged = [by_name[n] for n in names if by_name[n].nonlinearity is not None
                    and by_name[n].nonlinearity.flagged]
         nl_modes = tuple(r for g in flagged for r in _nonlinear_modes(g))
