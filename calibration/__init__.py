@@ -1,6 +1,13 @@
 """calibration layer (see ARCHITECTURE.md)."""
 
-from calibration._accept import Acceptance, Separation, accept, separating_effect
+from calibration._accept import (
+    Acceptance,
+    Separation,
+    accept,
+    rank_separating,
+    separating_effect,
+    separation_score,
+)
 from calibration._crossval import CrossValidation, cross_validate, split_halves
 from calibration._diagnose import (
     CandidateCheck,
@@ -109,6 +116,8 @@ __all__ = [
     "Separation",
     "accept",
     "separating_effect",
+    "rank_separating",
+    "separation_score",
     "CandidateFit",
     "fit_with",
     "CandidateCheck",

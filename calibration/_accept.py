@@ -68,7 +68,15 @@ class Acceptance:
     floor_ratio_after: float
 
     def to_dict(self) -> dict:
-        return {k: (bool(v) if isinstance(v, (bool, np.bool_)) else v) for k, v in self.__dict__.items()}
+        """Plain values; a ratio to a zero floor (inf) becomes None."""
+        out = {}
+        for k, v in self.__dict__.items():
+            if isinstance(v, (bool, np.bool_)):
+                v = bool(v)
+            elif isinstance(v, (float, np.floating)):
+                v = float(v) if np.isfinite(v) else None
+            out[k] = v
+        return out
 
 
 def accept(
@@ -288,3 +296,79 @@ class _OneParameter:
 
     def jacobian(self, y):
         return self.obj.jacobian(self._full(y))[:, [self.j]]
+
+
+def separation_score(sep: Separation) -> float:
+    """Gap between group means in pooled within-group standard deviations (inf for no scatter, 0 for no gap)."""
+    if sep.gap <= 0:
+        return 0.0
+    return float(sep.gap / sep.within_sd) if sep.within_sd > 0 else np.inf
+
+
+def rank_separating(
+    sur: Surrogate,
+    basis,
+    model,
+    candidates,
+    article_data,
+    zeta: float,
+    groups,
+    lower,
+    upper,
+    *,
+    p0,
+    c0=None,
+    shift_hz: float | None = None,
+    solve=None,
+    quantity: str = "accelerance",
+    refit_p: bool = False,
+    n_sigma: float = 3.0,
+    c_tol: float = 0.0,
+    max_nfev: int = 50,
+) -> list:
+    """Which candidate's magnitude separates the article groups: each fitted on all articles, then per article.
+
+    For every candidate: :func:`calibration.fit_with` on the data of all
+    articles together (common p and c, the ensemble's calibration with the
+    candidate), then :func:`separating_effect` from that point.
+
+    Parameters
+    ----------
+    sur, basis, model : as :func:`calibration.fit_with`.
+    candidates : sequence of CandidateTerm (e.g. the screening's top few).
+    article_data : sequence of sequence of FitData, one per article.
+    zeta, groups, lower, upper : as :func:`separating_effect` (``lower``, ``upper`` of the existing parameters).
+    p0 : (n_p,) start of the existing parameters; c0 : (n_c,) start magnitudes (default 0).
+    shift_hz, solve : static solves of the extension (``solve`` is formed once when not given).
+    refit_p, n_sigma, c_tol : as :func:`separating_effect`.
+
+    Returns
+    -------
+    list of (name, CandidateFit, Separation)
+        Separating candidates first, each group by the mean of the articles'
+        SD after their per-article fit (ascending). A decoy that mimics the
+        true effect in part separates the groups too (its fitted magnitude
+        takes up part of the group difference), but leaves more of every
+        article's residual: the effect that separates *and* explains the
+        articles comes first.
+    """
+    from calibration._diagnose import fit_with, shifted_solver
+
+    cands = list(candidates)
+    c0 = np.zeros(len(cands)) if c0 is None else np.asarray(c0, float)
+    if c0.shape != (len(cands),):
+        raise CalibrationError(f"rank_separating: c0 has shape {c0.shape}, expected ({len(cands)},)")
+    if solve is None:
+        if model is None or not (shift_hz is not None and shift_hz > 0):
+            raise CalibrationError("rank_separating needs the model and shift_hz > 0, or solve")
+        solve = shifted_solver(model, sur.p_basis, shift_hz)
+    pooled = [d for art in article_data for d in art]
+    out = []
+    for cand, c_start in zip(cands, c0):
+        fit = fit_with(sur, basis, model, [cand], pooled, zeta, lower, upper, p0=p0, c0=[c_start], solve=solve,
+                       quantity=quantity, max_nfev=max_nfev)
+        sep = separating_effect(fit.surrogate, fit.x, article_data, zeta, groups, fit.lower, fit.upper,
+                                refit_p=refit_p, quantity=quantity, max_nfev=max_nfev, n_sigma=n_sigma, c_tol=c_tol)
+        out.append((cand.name, fit, sep))
+    out.sort(key=lambda t: (not t[2].separates, float(np.mean(t[2].sd))))
+    return out

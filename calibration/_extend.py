@@ -30,7 +30,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from calibration._errors import CalibrationError
-from calibration._surrogate import FRFModel, Surrogate, _factor, _shifted, _sym, m_orthonormalized
+from calibration._surrogate import FRFModel, Surrogate, _factor, _local_terms, _shifted, _sym, m_orthonormalized
 
 
 def _range_basis(A: np.ndarray, rtol: float) -> np.ndarray:
@@ -130,13 +130,12 @@ def extended_surrogate(
                                    "(with_terms keeps the old terms first, in order)")
         new_terms[kind] = list(A.matrices[k_old:])
     p_b = np.concatenate([sur.p_basis, np.zeros(n_new - n_old)])
-    K0 = model.stiffness(p_b)
     M0 = model.mass(p_b)
-    if solve is None:
+    if solve is None:  # K(p_b) is needed only to factorize
         if shift_hz is None or not shift_hz > 0:
             raise CalibrationError("extended_surrogate needs shift_hz > 0 (the basis build's shift) or solve")
         s = (2 * np.pi * float(shift_hz)) ** 2
-        solve = _factor(_shifted(K0, M0, s))
+        solve = _factor(_shifted(model.stiffness(p_b), M0, s))
     t1 = time.perf_counter()
     loads = [_term_loads(A, T, load_rtol) for kind in ("K", "M") for A in new_terms[kind]]
     F = np.hstack(loads) if loads else np.zeros((n, 0))
@@ -157,14 +156,18 @@ def extended_surrogate(
     t3 = time.perf_counter()
 
     def extend(A, Ar):
-        """[T, W]^T A_k [T, W] for every term, the T-T block from the old surrogate."""
+        """[T, W]^T A_k [T, W] for every term, the T-T block from the old surrogate.
+
+        A sparse term touches only its own rows (:func:`_local_terms`): the
+        products run on those rows of T and W, not on full-size blocks."""
         k_old = len(Ar.matrices)
         out = []
-        for i, m in enumerate(A.matrices):
-            mW = np.asarray(m @ W)
-            ww = W.T @ mW
-            tw = T.T @ mW
-            tt = np.asarray(Ar.matrices[i]) if i < k_old else np.asarray(T.T @ (m @ T))
+        for i, (rows, mk) in enumerate(_local_terms(A)):
+            Tl, Wl = (T, W) if rows is None else (T[rows], W[rows])
+            mW = np.asarray(mk @ Wl)
+            ww = Wl.T @ mW
+            tw = Tl.T @ mW
+            tt = np.asarray(Ar.matrices[i]) if i < k_old else np.asarray(Tl.T @ (mk @ Tl))
             out.append(_sym(np.block([[tt, tw], [tw.T, ww]])))
         return replace(A, matrices=tuple(out))
 

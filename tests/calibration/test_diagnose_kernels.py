@@ -32,6 +32,7 @@ from calibration import (
     extend_with_candidates,
     fit_with,
     holdout_sd,
+    rank_separating,
     screen,
     separating_effect,
 )
@@ -155,6 +156,49 @@ def test_candidate_jacobian_is_the_first_order_change_of_the_extended_surrogate(
         assert err < (0.03 if c.name.startswith("f") else 0.01), (c.name, err)
 
 
+def test_candidate_jacobian_is_the_first_order_change_of_the_full_model(frame):
+    """Against the full-order model (dense, all modes): the basis without the candidate's static corrections
+    carries its first-order effect (the adjoint form needs only the drive and sensor responses)."""
+    from calibration._fit import stacked_residual
+    from calibration._metric import log_deviation
+
+    pm, model, sur, T, terms, cands = frame
+    data = _truth_data(pm, model, AddedMass("m_truth", (30,), 0.5), 1.0)
+    f = data[0].freq_hz
+    contact = _contact(terms)
+    for name, term in (("m30", AddedMass("t", (30,), 0.5)), (contact.name, AddedSpring("t", contact.dofs, 2e5))):
+        ext = pm.with_terms([term])
+        mt = FRFModel(ext.K, ext.M, model.inputs, model.outputs, parameter_names=ext.names, parametric=ext)
+
+        def r(c):
+            return stacked_residual(log_deviation(full_order_frf(mt, np.r_[P_OLD, c], f, ZETA), data[0].frf).ravel())
+
+        h = 1e-2
+        fd = (r(h) - r(-h)) / (2 * h)
+        jc = candidate_jacobian(sur, T, P_OLD, data, ZETA, [_by_name(cands, name)])[:, 0]
+        err = np.linalg.norm(jc - fd) / np.linalg.norm(fd)
+        assert err < 0.01, (name, err)
+        print(f"{name}: |J_c - FD(full order)| / |FD| = {err:.2e}")
+
+
+def test_candidate_jacobian_follows_the_objective_weights_and_masks(frame):
+    from calibration import log_frequency_weights
+
+    pm, model, sur, T, terms, cands = frame
+    d = _truth_data(pm, model, AddedMass("m_truth", (30,), 0.5), 1.0)[0]
+    mask = np.random.default_rng(5).random(d.frf.shape) < 0.7
+    # two data sets: one line-weighted on a drive subset, one masked
+    sets = [FitData(d.freq_hz, d.frf[:, :, [1]], d.outputs, inputs=(model.input_names[1],),
+                    weights=log_frequency_weights(d.freq_hz) * np.linspace(0.5, 2, d.freq_hz.size)),
+            d.masked(mask)]
+    sub = [_by_name(cands, "m30"), _by_name(cands, "kg1")]
+    Jc = candidate_jacobian(sur, T, P_OLD, sets, ZETA, sub, chunk_bytes=1)  # one candidate per chunk
+    for k, c in enumerate(sub):
+        sur_e, _ = extend_with_candidates(sur, T, model, [c], shift_hz=SHIFT_HZ)
+        Je = Objective(sur_e, sets, ZETA).evaluate(np.r_[P_OLD, 0.0])[1][:, -1]
+        assert np.linalg.norm(Jc[:, k] - Je) < 0.01 * np.linalg.norm(Je), c.name
+
+
 def test_a_mass_at_a_grid_ranks_first_with_the_density_refitted(frame):
     pm, model, sur, T, terms, cands = frame
     data = _truth_data(pm, model, AddedMass("m_truth", (30,), 0.5), 1.0, sigma=0.005)
@@ -166,6 +210,10 @@ def test_a_mass_at_a_grid_ranks_first_with_the_density_refitted(frame):
     chk = s.check("m30")
     assert chk.c == pytest.approx(1.0, rel=0.2)
     assert chk.explained > 0.9
+    # bounds hold; a mass whose best linear magnitude is negative is clipped to 0 and explains nothing
+    lo = np.array([c.lower for c in cands])
+    assert np.all(s.c_linear >= lo) and np.all(s.explained >= 0)
+    assert np.all(s.explained[s.c_linear == 0] == 0) and np.any(s.c_linear == 0)
     # the linearized magnitude is already close (an effect of a fraction of a bandwidth)
     assert s.c_linear[s.names.index("m30")] == pytest.approx(1.0, rel=0.2)
     # the neighbours explain less once [p, c] is re-fitted
@@ -332,3 +380,97 @@ def test_separating_effect_on_a_3_2_ensemble(frame):
     mixed = separating_effect(common.surrogate, common.x, articles, ZETA, [0, 1, 0, 1, 0], common.lower,
                               common.upper)
     assert not mixed.separates
+    # which effect separates the groups: the contact among decoys of every family
+    names = [kc.name, "m30", "f13"]
+    ranked = rank_separating(sur, T, model, [_by_name(cands, n) for n in names], articles, ZETA, groups, pm.lower,
+                             pm.upper, p0=P_OLD, c0=[0.9, 0.5, 0.0], shift_hz=SHIFT_HZ)
+    assert ranked[0][0] == kc.name and ranked[0][2].separates
+    # decoys that mimic the contact in part separate the groups too, but leave the articles' residuals
+    sd = {name: float(np.mean(sep.sd)) for name, _, sep in ranked}
+    # (the contact's articles keep their 2 % scatter of the existing parameters: common p here)
+    assert all(sd[n] > 3 * sd[kc.name] for n in names[1:]), sd
+    print("mean article SD after the per-article fit:", {n: f"{v:.3g}" for n, v in sd.items()},
+          "magnitudes:", np.round(sep.magnitude, 3))
+
+
+def test_raw_line_refinement_runs_on_the_fitted_extension():
+    """The final number: :func:`calibration.refine` on a :class:`CandidateFit`'s surrogate reaches the floor.
+
+    Beam of tests/calibration/_models.py with an unmodelled 0.2 kg point mass
+    (the truth); per-mode damping, uneven line grid, 1 % noise, identified
+    modes for the damping mapping, as tests/calibration/test_refine.py.
+    """
+    import scipy.sparse as sp
+
+    from calibration import IdentifiedModes, extended_model, refine
+    from calibration._metric import log_deviation, square_deviation
+    from identification import identify
+    from tests.calibration._models import beam_model
+
+    band, lo, hi = (20.0, 400.0), -0.3 * np.ones(7), 0.3 * np.ones(7)
+    p_true = np.array([0.03, -0.04, 0.02, -0.05, 0.04, 0.03, -0.02])
+    model, _ = beam_model()
+    n = model.K.shape[0]
+    node = 12
+    dM = sp.csr_matrix(([0.2], ([2 * node], [2 * node])), shape=(n, n))
+    cand = CandidateTerm("m_node12", None, dM, 0.0, 5.0)
+    truth = extended_model(model, [cand])
+    rng = np.random.default_rng(3)
+    zeta = 10 ** rng.uniform(np.log10(1e-3), np.log10(3e-3), n)
+    f = np.geomspace(band[0], band[1], 400)
+    H = full_order_frf(truth, np.r_[p_true, 1.0], f, zeta)
+    Hn = H * (1 + 0.01 * (rng.standard_normal(H.shape) + 1j * rng.standard_normal(H.shape)) / np.sqrt(2))
+    floor = square_deviation(log_deviation(H, Hn))
+    ident = identify(f, Hn, 24, band_hz=band)
+    modes = IdentifiedModes(ident.modal.frequency_hz, ident.modal.damping, ident.modal.shapes, model.output_names)
+    raw = FitData(f, Hn, model.output_names, article="beam")
+    sur, T = build_surrogate(model, np.zeros(7), band)
+    # equalized target at 0.02 (the identified model resynthesized; here the truth at uniform damping)
+    fe = half_bandwidth_frequencies(*band, 0.02, 3)
+    eq = [FitData(fe, full_order_frf(truth, np.r_[p_true, 1.0], fe, 0.02), model.output_names)]
+    fit = fit_with(sur, T, model, [cand], eq, 0.02, lo, hi, p0=np.zeros(7), c0=[0.5], shift_hz=8.0)
+    assert fit.c[0] == pytest.approx(1.0, rel=0.05)
+    ref = refine(fit.surrogate, fit.x, [raw], [(ident, raw.outputs)], [modes], fit.lower, fit.upper, 0.02)
+    assert ref.p[-1] == pytest.approx(1.0, rel=0.03)
+    assert ref.sd_raw < 2.0 * floor, (ref.sd_raw, floor)
+    # without the mass the raw lines stay far from the floor
+    ref0 = refine(sur, np.zeros(7), [raw], [(ident, raw.outputs)], [modes], lo, hi, 0.02)
+    assert ref0.sd_raw > 10 * floor, (ref0.sd_raw, floor)
+    print(f"refine on the extension: c {fit.c[0]:.4f} -> {ref.p[-1]:.4f}, raw SD {ref.sd_raw / floor:.2f} x floor "
+          f"(without the candidate {ref0.sd_raw / floor:.1f} x)")
+
+
+def test_extended_model_is_linear_in_the_candidates(frame):
+    from calibration import extended_model
+
+    pm, model, sur, T, terms, cands = frame
+    sub = [_by_name(cands, "m30"), _by_name(cands, "f1"), _by_name(cands, "kg1")]
+    ext = extended_model(model, sub)
+    assert ext.parameter_names == tuple(pm.names) + ("m30", "f1", "kg1")
+    x = np.r_[P_OLD, 0.7, -0.2, 1.5]
+    K = pm.stiffness(P_OLD) - 0.2 * sub[1].dK + 1.5 * sub[2].dK
+    M = pm.mass(P_OLD) + 0.7 * sub[0].dM
+    for fast, slow, ref in ((ext.stiffness(x), ext.K.at(x), K), (ext.mass(x), ext.M.at(x), M)):
+        scale = abs(ref).max()
+        assert abs(fast - ref).max() < 1e-12 * scale and abs(slow - ref).max() < 1e-12 * scale
+    assert abs(ext.dM(x, 7) - sub[0].dM).max() == 0 and ext.dK(x, 7).nnz == 0
+    assert abs(ext.dK(x, 0) - pm.dK(P_OLD, 0)).max() == 0 and abs(pm.dK(P_OLD, 0)).max() > 0
+
+
+def test_a_mass_at_the_tank_grid_is_found_beyond_the_tank_mass_parameter(frame):
+    """The tank's CONM2 (offset 150 mm, rotary inertia) has a mass parameter: it absorbs most of an added
+    0.5 kg at its grid; what it cannot absorb (no offset, no inertia) still points at the grid."""
+    pm, model, sur, T, terms, cands = frame
+    conm = pm.assembly.model.elements["CONM2"]
+    g_tank = int(np.asarray(conm["nodes"]).ravel()[list(conm.ids).index(9003)])
+    j_tank = list(pm.names).index("M_tank")
+    data = _truth_data(pm, model, AddedMass("m_truth", (g_tank,), 0.5), 1.0, sigma=0.005)
+    s = _screen(frame, data, n_check=3)
+    # the parameter takes the mass up: -10 % of 6 kg + 0.5 kg is about nominal
+    assert s.p_baseline[j_tank] == pytest.approx(-0.1 + 0.5 / 6.0, abs=0.03)
+    assert s.sd_baseline < 0.01 * s.sd_start
+    # ... and the candidate still explains most of what is left, at its true magnitude
+    assert s.best == f"m{g_tank}"
+    chk = s.check(f"m{g_tank}")
+    assert chk.explained > 0.7 and chk.c == pytest.approx(1.0, rel=0.2)
+    np.testing.assert_allclose(chk.p, P_OLD, atol=0.01)
