@@ -204,12 +204,27 @@ class Candidate:
     """
 
     family: str
-    term: object
+    term: AddedSpring | AddedMass | ElementFactor
     grids: tuple
     parts: tuple
     center: tuple
     size: float
     description: str
+
+    def __post_init__(self) -> None:
+        what = f"Candidate of family {self.family!r}"
+        if not isinstance(self.term, (AddedSpring, AddedMass, ElementFactor)):
+            raise ParameterError(f"{what}: term must be an AddedSpring, AddedMass or ElementFactor, "
+                                 f"got {type(self.term).__name__}")
+        center = tuple(float(x) for x in self.center)
+        if len(center) != 3 or not all(math.isfinite(x) for x in center):
+            raise ParameterError(f"{what} {self.term.name!r}: center must be 3 finite coordinates, got {self.center!r}")
+        if not (math.isfinite(float(self.size)) and float(self.size) >= 0.0):
+            raise ParameterError(f"{what} {self.term.name!r}: size must be finite and >= 0, got {self.size!r}")
+        object.__setattr__(self, "center", center)
+        object.__setattr__(self, "size", float(self.size))
+        object.__setattr__(self, "grids", tuple(int(g) for g in self.grids))
+        object.__setattr__(self, "parts", tuple(str(q) for q in self.parts))
 
     @property
     def name(self) -> str:
@@ -732,9 +747,11 @@ def element_cluster_family(ctx: CandidateContext):
         keys = np.floor((pts - pts.min(axis=0)) / edge).astype(np.int64)
         _, inv = np.unique(keys, axis=0, return_inverse=True)
         inv = inv.ravel()
-        for n in range(inv.max() + 1):
-            sel = els[inv == n]
+        order = np.argsort(inv, kind="stable")
+        cells = np.split(els[order], np.cumsum(np.bincount(inv))[:-1])
+        for n, sel in enumerate(cells):
             eids = tuple(int(e) for e in ctx.element_ids[sel])
+            listed = ", ".join(str(e) for e in eids[:2]) + (f", ..., {eids[-1]}" if len(eids) > 2 else "")
             grids = sorted({g for e in sel for g in ctx.element_grids[e]})
             size = float(np.median(ctx.element_sizes[sel]))
             c = ctx.deck_length(ctx.element_centers[sel].mean(axis=0))
@@ -744,8 +761,8 @@ def element_cluster_family(ctx: CandidateContext):
                                      o.factor_bounds[1], f"{what} of {len(eids)} elements of {part}")
                 yield ctx.candidate(
                     "element_cluster", term, grids,
-                    f"{what} of {len(eids)} {part} elements ({ctx.element_cards[sel[0]]} {eids[0]}"
-                    f"{'..' + str(eids[-1]) if len(eids) > 1 else ''}) in a cube of {ctx.deck_length(edge):.4g} "
+                    f"{what} of {len(eids)} {part} elements ({ctx.element_cards[sel[0]]} {listed}) "
+                    f"in a cube of {ctx.deck_length(edge):.4g} "
                     f"around ({c[0]:.4g}, {c[1]:.4g}, {c[2]:.4g}) (deck length unit), times 1 + p",
                     parts=(part,), points=ctx.element_centers[sel], size=size)
 

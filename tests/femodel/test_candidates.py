@@ -354,6 +354,18 @@ def test_options_validated_with_the_field_named(kwargs, field):
         CandidateOptions(**kwargs)
 
 
+def test_candidate_checks_its_fields():
+    from femodel import Candidate
+
+    term = AddedMass("m1", (1,), 1.0)
+    c = Candidate("lumped_mass", term, [np.int64(1)], ["PBAR 1"], np.array([0.0, 1.0, 2.0]), 0.1, "mass")
+    assert c.grids == (1,) and c.center == (0.0, 1.0, 2.0) and c.parts == ("PBAR 1",)
+    with pytest.raises(ParameterError, match="term must be"):
+        Candidate("lumped_mass", "m1", (1,), (), (0, 0, 0), 0.1, "mass")
+    with pytest.raises(ParameterError, match="center"):
+        Candidate("lumped_mass", term, (1,), (), (0, 0), 0.1, "mass")
+
+
 def test_setup_errors_name_the_grid(frame_pm):
     with pytest.raises(ParameterError, match=r"sensor grid \[99999\]"):
         generate_candidates(frame_pm, sensors=[1, 99999])
