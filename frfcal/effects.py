@@ -141,6 +141,9 @@ _FACTOR_CARDS = ("CQUAD4", "CTRIA3", "CBAR", "CBEAM", "CROD", "CHEXA", "CPENTA",
 CLUSTER_FACTOR = 0.7
 #: radius of the element cluster, in element sizes
 CLUSTER_RADIUS_ELEMENTS = 2.0
+#: the shaker's axial support (armature suspension in series with the stinger) is soft: its spring is sized for
+#: this fraction of ``shift``, so the attachment's mass dominates as it does on a free-free test
+STINGER_SHIFTS = 0.25
 #: a closed gap is stiff: its contact springs are sized for this many times ``shift`` (first order; the exact
 #: shift saturates where the contact is stiffer than the parts around it)
 CONTACT_SHIFTS = 10.0
@@ -246,10 +249,11 @@ def standard_effects(pm, sensors, drives, *, gap=None, band_hz=None, n_modes: in
     family              effect
     ==================  ============================================================================
     sensor_mass         one common mass on every sensor grid (accelerometer, block, cable)
-    shaker_attachment   a mass at the first drive grid (force gauge, armature share) and a stinger
-                        spring to ground along the drive direction (two Effects)
-    contact_spring      springs along the gap between every facing pair of ``gap`` (a closed gap);
-                        only when ``gap`` is given
+    shaker_attachment   a mass at the first drive grid (force gauge, armature share) and a soft
+                        stinger/armature spring to ground along the drive direction (two Effects;
+                        the spring sized for a quarter of ``shift``)
+    contact_spring      springs along the gap between every facing pair of ``gap`` (a closed gap;
+                        sized for ten times ``shift``); only when ``gap`` is given
     ground_spring       a suspension spring to ground in z at the structural grid farthest from the
                         grid centroid
     element_cluster     stiffness factor 0.7 on the elements of the largest property group (most
@@ -301,7 +305,7 @@ def standard_effects(pm, sensors, drives, *, gap=None, band_hz=None, n_modes: in
     c = _component(d.direction, f"drive {d.name!r}")
     tm, m = _scaled(pm, AddedMass, "shaker_mass", (int(d.grid),), ref, shift,
                     f"shaker attachment mass {{value:.4g}} kg at drive grid {d.grid} ({d.name})")
-    ts, k = _scaled(pm, AddedSpring, "stinger_spring", ((int(d.grid), c, 0, 0),), ref, shift,
+    ts, k = _scaled(pm, AddedSpring, "stinger_spring", ((int(d.grid), c, 0, 0),), ref, STINGER_SHIFTS * shift,
                     f"stinger/shaker axial spring {{value:.4g}} N/m to ground at drive grid {d.grid}, component {c}")
     out["shaker_attachment"] = (Effect(tm, m, family="shaker_attachment"),
                                 Effect(ts, k, family="shaker_attachment"))
@@ -397,10 +401,12 @@ def mode_shifts(pm, effects, *, band_hz=None, n_modes: int = 10, p=None) -> Mode
     effects = tuple(e for item in effects for e in ((item,) if isinstance(item, Effect) else tuple(item)))
     p = np.zeros(pm.n_params) if p is None else np.asarray(p, float)
     ref = _reference_modes(pm, p, band_hz, n_modes)
+    from frfcal.synth import modes_up_to
+
     pe = pm.with_terms([e.term for e in effects])
     q = np.concatenate([p, [e.p for e in effects]])
-    n = int(np.searchsorted(np.sort(ref.f_hz), ref.f_hz.max())) + 1
-    modes = pe.modes(q, 6 + 2 * n + 6)
+    # every mode of the extended model up to 1.5 x the top reference mode: the partners shift by less
+    modes, _ = modes_up_to(pe.stiffness(q), pe.mass(q), 1.5 * float(ref.f_hz.max()), dofs=pe.aset)
     M = pm.mass(p)
     phi = modes.shapes
     mac = (ref.phi.T @ (M @ phi)) ** 2 / np.outer(np.ones(ref.f_hz.size), np.einsum("ik,ik->k", phi, M @ phi))
