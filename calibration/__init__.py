@@ -56,6 +56,19 @@ from calibration._nonlinearity import (
     nonlinearity,
     sweep_direction,
 )
+from calibration._residual import (
+    AntiResonance,
+    ModeResidual,
+    PlaceResidual,
+    ResidualCheck,
+    ResidualItem,
+    antiresonances,
+    expected_from_std_error,
+    mode_residuals,
+    octave_bands,
+    residual_check,
+    scatter_sd,
+)
 from calibration._refine import (
     ModalDampingObjective,
     Refinement,
@@ -88,6 +101,17 @@ from calibration._surrogate import (
 )
 
 __all__ = [
+    "AntiResonance",
+    "ModeResidual",
+    "PlaceResidual",
+    "ResidualCheck",
+    "ResidualItem",
+    "antiresonances",
+    "expected_from_std_error",
+    "mode_residuals",
+    "octave_bands",
+    "residual_check",
+    "scatter_sd",
     "Acceptance",
     "Separation",
     "accept",

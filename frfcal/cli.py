@@ -32,6 +32,7 @@ COMMANDS: tuple[tuple[str, str], ...] = (
     ("export-uff", "frfcal.commands.export_uff"),
     ("identify", "frfcal.commands.identify"),
     ("calibrate", "frfcal.commands.calibrate"),
+    ("diagnose", "frfcal.commands.diagnose"),
     ("run", "frfcal.commands.run"),
     ("demo", "frfcal.commands.demo"),
     ("report", "frfcal.commands.report"),

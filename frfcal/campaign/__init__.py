@@ -5,6 +5,17 @@ Application layer: it reads run files (``acquisition``), builds the model
 (``calibration``); the library layers below hold the kernels.
 """
 
+from frfcal.campaign._diagnose import (
+    ArticleGate,
+    DiagnosisResult,
+    LevelRun,
+    MemberDiagnosis,
+    diagnose_stage,
+    member_residual,
+    nonlinearity_gate,
+    overlay_figure,
+    write_diagnosis,
+)
 from frfcal.campaign._identify import identify_lines, identify_run, line_weights, run_weights
 from frfcal.campaign._report import json_default, member_figures, write_outputs
 from frfcal.campaign._front import LayoutResult, RunFiles, acquire_stage, campaign_plan, import_stage, pretest_stage
@@ -77,6 +88,15 @@ __all__ = [
     "pretest_stage",
     "section",
     "Article",
+    "ArticleGate",
+    "DiagnosisResult",
+    "LevelRun",
+    "MemberDiagnosis",
+    "diagnose_stage",
+    "member_residual",
+    "nonlinearity_gate",
+    "overlay_figure",
+    "write_diagnosis",
     "CalibrateResult",
     "Campaign",
     "CrossValidationResult",

@@ -28,6 +28,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from calibration import make_executor
+from frfcal.campaign._diagnose import diagnose_stage, write_diagnosis
 from frfcal.campaign._report import write_outputs
 from calibration import CalibrationError
 from frfcal.campaign._front import (
@@ -171,6 +172,7 @@ class StageContext:
     outputs: dict | None = None
     names: list = field(default_factory=list)
     last: int = 0
+    records: dict = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -285,7 +287,7 @@ def run_campaign(camp: Campaign, log=print, upto: str | None = None, force: str 
         return got
 
     executor = _Executor(camp)
-    ctx = StageContext(camp, outdir, log, executor.get, names=names, last=last)
+    ctx = StageContext(camp, outdir, log, executor.get, names=names, last=last, records=records)
     try:
         try:
             return _stages(camp, ctx, stage, records, timings, t_all)
@@ -354,8 +356,58 @@ def _stages(camp, ctx, stage, records, timings, t_all):
     timings["total_s"] = time.perf_counter() - t_all
     out = write_outputs(camp, pm, articles, groups, cal, val, xval, timings, records, outdir, ctx.log)
     ctx.outputs = out
+    diag = ctx.results.get("diagnose")
+    if diag is not None:
+        out["diagnosis"] = write_diagnosis(diag, camp, pm, outdir, ctx.log)
     for spec in wanted:
         if spec.after_outputs:
             run_late(spec)
+    if ctx.results.get("report") is not None:
+        out["report"] = str(ctx.results["report"])
     out["stages"] = records
     return out
+
+
+def _diagnose(ctx: StageContext):
+    r = ctx.results
+    return diagnose_stage(ctx.camp, r["load"], ctx.pm, ctx.model, ctx.articles, r["equalize"], r["calibrate"],
+                          r["validate"], r["crossvalidate"], ctx.executor(), ctx.log, r["group"],
+                          level_checks=_acquired_level_checks(r.get("acquired")))
+
+
+def _acquired_level_checks(acquired) -> dict:
+    """Level dependence of every acquired article swept at several force levels (the campaign calibrates on the
+    lowest; docs/campaign.md): article -> (LevelDependence or reason, ((level N, path), ...))."""
+    if acquired is None:
+        return {}
+    from acquisition.runfile import read_run
+
+    from frfcal.campaign._acquire import level_checks, runs_by_level
+
+    by_level = runs_by_level(acquired.paths)
+    by_level = {a: e for a, e in by_level.items() if len(e) > 1}
+    if not by_level:
+        return {}
+    first = next(iter(by_level.values()))[0][1]
+    tol = ((read_run(first).plan or {}).get("settle") or {}).get("tolerance")
+    checks = level_checks(by_level, settle_tolerance=tol)
+    return {a: (checks[a], tuple(by_level[a])) for a in checks}
+
+
+def _report(ctx: StageContext):
+    from frfcal.campaign._html import ReportResults, report_stage
+
+    r = ctx.results
+    return report_stage(ctx.camp, ReportResults(
+        load=r.get("load"), identify=r.get("identify"), group=r.get("group"), calibrate=r.get("calibrate"),
+        validate=r.get("validate"), crossvalidate=r.get("crossvalidate"), model=ctx.pm,
+        pretest=getattr(r.get("pretest"), "result", None), diagnosis=r.get("diagnose"), stages=dict(ctx.records),
+        campaign_file=ctx.camp.source), log=ctx.log)
+
+
+LATE_STAGES.append(StageSpec("diagnose", ("group", "calibrate", "validate", "crossvalidate"),
+                             lambda c: [section(c, "diagnosis"), [e.level for e in c.run]], _diagnose,
+                             applies=lambda c: c.diagnosis.enabled))
+LATE_STAGES.append(StageSpec("report", ("load", "identify", "group", "calibrate", "validate", "crossvalidate",
+                                        "diagnose"),
+                             lambda c: [section(c, "output"), str(c.source)], _report, after_outputs=True))

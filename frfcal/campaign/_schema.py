@@ -33,6 +33,9 @@ class RunEntry(_Strict):
     path: Path | None = Field(None, description="run file (HDF5)")
     uff: Path | None = Field(None, description="UFF58 FRF file, imported into <output dir>/runs/ (import stage)")
     article: str | None = Field(None, description="article label (default: the run file's article)")
+    level: float | None = Field(None, gt=0, description="excitation force level of the run, N (default: the median "
+                                "achieved force over its valid lines); runs of one article at several levels feed "
+                                "the nonlinearity gate of the diagnosis")
 
     @model_validator(mode="after")
     def _one_source(self):
@@ -283,6 +286,33 @@ class ExecutionSection(_Strict):
     host: str = Field("127.0.0.1", description="interface the local Dask cluster listens on (loopback by default)")
 
 
+class DiagnosisSection(_Strict):
+    """The diagnose stage (docs/diagnosis.md): run by ``frfcal diagnose`` and ``frfcal run``, never by
+    ``frfcal calibrate``."""
+
+    enabled: bool = Field(True, description="run the diagnose stage in `frfcal run` (`frfcal diagnose` "
+                          "refuses a campaign with enabled = false)")
+    ratio_threshold: float = Field(2.0, gt=1, description="residual SD / (noise floor + test-to-test scatter) "
+                                   "above which the residual is significant (dimensionless)")
+    z_threshold: float = Field(5.0, gt=0, description="chi-square size of the residual above which it is "
+                               "significant, sigma")
+    shift_threshold: float = Field(1.0, gt=0, description="model-test frequency shift above which a mode is "
+                                   "flagged, half-power bandwidths (2 zeta f)")
+    nonlinearity_z: float = Field(5.0, gt=0, description="significance of a level, sweep-direction "
+                                  "difference above which it is flagged nonlinear, sigma")
+    thd_threshold: float = Field(0.05, gt=0, lt=1, description="total harmonic distortion above which a line is "
+                                 "distorted (fraction)")
+    figures_channels: int = Field(4, ge=1, description="FRF overlays at this many most affected channels")
+    families: list[str] | None = Field(None, description="candidate families (default: all of "
+                                       "femodel.CANDIDATE_FAMILIES; docs/diagnosis.md)")
+    candidates: dict[str, float | int | list[float] | list[int] | list[str]] = Field(
+        default_factory=dict, description="femodel.CandidateOptions fields (units as documented there), e.g. "
+        "{ contact_max_gap_m = 0.005, spread_grids = 40 }")
+    top_n: int = Field(5, ge=1, description="candidates re-fitted nonlinearly after the linear screening")
+    max_effects: int = Field(2, ge=1, description="at most this many effects accepted")
+    max_evaluations: int = Field(40, ge=5, description="residual evaluations per screening fit stage")
+
+
 class OutputSection(_Strict):
     dir: Path = Field(Path("calibration-out"), description="output directory")
     figures: bool = True
@@ -304,9 +334,11 @@ class Campaign(_Strict):
     validation: ValidationSection = ValidationSection()
     crossvalidation: CrossValidationSection = CrossValidationSection()
     simulation: SimulationSection | None = None
+    diagnosis: DiagnosisSection = DiagnosisSection()
     execution: ExecutionSection = ExecutionSection()
     output: OutputSection = OutputSection()
     base_dir: Path = Field(Path("."), exclude=True)
+    source: Path | None = Field(None, exclude=True)
 
     @model_validator(mode="after")
     def _sources(self):
@@ -356,6 +388,7 @@ def load_campaign(path) -> Campaign:
         raise CalibrationError(f"{path}: not valid TOML: {exc}") from None
     except FileNotFoundError:
         raise CalibrationError(f"{path}: campaign file not found") from None
-    if "base_dir" in data:
-        raise CalibrationError(f"{path}: base_dir: unknown field")
-    return campaign_from_dict(data, path.resolve().parent, str(path))
+    if "base_dir" in data or "source" in data:
+        raise CalibrationError(f"{path}: {'base_dir' if 'base_dir' in data else 'source'}: unknown field")
+    camp = campaign_from_dict(data, path.resolve().parent, str(path))
+    return camp.model_copy(update={"source": path.resolve()})

@@ -70,7 +70,7 @@ def test_articles_grouped_and_calibrated_per_group(tmp_path):
                                 starts=0, realizations=0, extra='figures = false')
     text = path.read_text().replace("[calibration]", '[calibration]\nensemble = "group"')
     path.write_text(text)
-    res = run_campaign(load_campaign(path), log=lambda m: None)
+    res = run_campaign(load_campaign(path), log=lambda m: None, upto="crossvalidate")
     groups = [m["articles"] for m in res["members"]]
     assert sorted(groups) == [["SF1", "SF2"], ["SF3"]]
     D = np.array(res["pairwise_sd"])
@@ -140,7 +140,7 @@ def test_campaign_reports_identifiability_floor_and_per_article_damping(tmp_path
     path, _, pm = make_campaign(tmp_path, p_true=P_TRUE, target_dof=1500, articles=2, noise=0.01, starts=0,
                                 realizations=2, extra="figures = false")
     lines = []
-    res = run_campaign(load_campaign(path), log=lines.append)
+    res = run_campaign(load_campaign(path), log=lines.append, upto="crossvalidate")
     text = "\n".join(lines)
     assert "calibration SD (equalized test model, zeta0=1 %)" in text
     assert "hold-out SD (raw lines, identified damping)" in text and "passed" not in text.lower()

@@ -20,7 +20,7 @@ def staged(tmp_path_factory):
     path, _, _ = make_campaign(tmp, p_true=P_TRUE, target_dof=1000, step_hz=2.0, noise=0.01, starts=0,
                                realizations=2, extra="figures = false")
     camp = load_campaign(path)
-    first = run_campaign(camp, log=lambda m: None)
+    first = run_campaign(camp, log=lambda m: None, upto="crossvalidate")
     return camp, first
 
 
@@ -61,7 +61,7 @@ def test_first_run_stores_every_stage(staged):
 def test_rerun_with_unchanged_inputs_skips_every_stage(staged):
     camp, first = staged
     logged = []
-    again = run_campaign(camp, log=logged.append)
+    again = run_campaign(camp, log=logged.append, upto="crossvalidate")
     assert _status(again) == {name: "reused" for name in STAGES}
     assert not any("calibrating on" in m or "identified order" in m for m in logged)
     # the same result, read back from the stored stages (surrogates, refinement, validation, CV)
@@ -73,7 +73,7 @@ def test_changed_validation_setting_redoes_validation_only(staged, tmp_path):
     camp, first = staged
     out = camp.resolve(camp.output.dir)
     changed = _with(camp, out, validation={"target_sd": 1e-3})
-    res = run_campaign(changed, log=lambda m: None)
+    res = run_campaign(changed, log=lambda m: None, upto="crossvalidate")
     st = _status(res)
     assert all(st[s] == "reused" for s in ("load", "identify", "equalize", "group", "calibrate"))
     assert st["validate"] == "ran"
@@ -94,12 +94,12 @@ def test_interrupted_campaign_resumes_without_recalibrating(staged, tmp_path, mo
 
     monkeypatch.setattr("frfcal.campaign._stages.validate", broken)
     with pytest.raises(RuntimeError, match="power cut"):
-        run_campaign(camp, log=lambda m: None)
+        run_campaign(camp, log=lambda m: None, upto="crossvalidate")
     stored = tmp_path / "o" / "stages"
     assert (stored / "calibrate.json").exists() and not (stored / "validate.json").exists()
     monkeypatch.undo()
     logged = []
-    res = run_campaign(camp, log=logged.append)
+    res = run_campaign(camp, log=logged.append, upto="crossvalidate")
     st = _status(res)
     assert all(st[s] == "reused" for s in ("load", "identify", "equalize", "group", "calibrate"))
     assert st["validate"] == "ran" and st["crossvalidate"] == "ran"

@@ -77,7 +77,7 @@ def campaign(tmp_path_factory):
                              crossvalidation={"realizations": 2}, execution={"workers": 1},
                              output={"dir": "out", "figures": False})
     camp = load_campaign(path)
-    run_campaign(camp, log=lambda m: None)
+    run_campaign(camp, log=lambda m: None, upto="crossvalidate")
     assert main(["report", str(path), "--quiet"]) == 0
     page = tmp / "out" / "report.html"
     return sc, camp, path, page, stored_results(camp, campaign_file=path, log=lambda m: None)

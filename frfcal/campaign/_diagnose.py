@@ -1,0 +1,891 @@
+"""The diagnose stage: is there anything to explain, is it nonlinear, which effect does the model lack?
+
+Flow per ensemble member (docs/diagnosis.md):
+
+1. **significance** (:func:`member_residual`): the calibrated model's residual on
+   the raw calibration and hold-out lines against the noise floor (per-line
+   standard errors, else the identification's fit residual) and the
+   test-to-test scatter of the member's articles
+   (:func:`calibration.residual_check`). Inside the floor: stop, "nothing to
+   explain".
+2. **nonlinearity gate** (:func:`nonlinearity_gate`): run files of the same
+   article at several force levels (level dependence), THD of the run files,
+   up/down sweeps at one level. Flagged: stop, "nonlinear"; no linear effect
+   is accepted.
+3. candidates and screening (when the kernels are present).
+
+The stage writes nothing; :func:`write_diagnosis` writes ``diagnosis.json``.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from calibration import (
+    CalibrationError,
+    FitData,
+    ModalDampingObjective,
+    ResidualItem,
+    antiresonances,
+    expected_from_std_error,
+    log_deviation,
+    mode_residuals,
+    residual_check,
+    scatter_sd,
+)
+from calibration._damping import mapped_damping
+from calibration._metric import LN10
+from frfcal.campaign._schema import Campaign
+from frfcal.campaign._stages import Article, identified_modes, pair_mask
+
+VERDICTS = ("nothing to explain", "nonlinear", "effect(s) found", "no effect accepted")
+
+
+# ----------------------------------------------------------------------------- residual
+
+
+def _channels(camp: Campaign) -> list:
+    return list(camp.channels.calibrate) + list(camp.channels.holdout)
+
+
+def model_frf(sur, p, article: Article, channels, damping, k: int, zeta0: float, mac_min: float, band):
+    """The calibrated model's FRF on the article's raw lines and ``channels`` (all values, no mask).
+
+    ``damping`` is the refinement's (zeta per article, p_ref) or None: then
+    the identified damping mapped by MAC at ``p``.
+    """
+    rows = [article.channels.index(n) for n in channels]
+    H = article.frf[:, rows]
+    d = FitData(article.freq_hz, H, tuple(channels), article.drives, article=article.name)
+    if damping is not None:
+        zeta, p_ref = damping[0][k], damping[1]
+    else:
+        modes = identified_modes(article)
+        fallback = float(np.median(modes.damping)) if len(modes.damping) else zeta0
+        zeta, p_ref = mapped_damping(sur, p, modes, fallback, mac_min, band)[0], p
+    eps = ModalDampingObjective(sur, [d], [zeta], p_ref, 0.0, article.quantity).deviation(p)[0]
+    return H * 10 ** eps.reshape(H.shape)
+
+
+def difference_noise(eps, window: int = 15) -> np.ndarray:
+    """Noise ``E|eps|^2`` per value from the differences of adjacent lines (difference-based estimate).
+
+    Measurement noise is independent from line to line; a model error is
+    correlated over neighbouring lines. The half squared difference of
+    adjacent residuals, ``|eps_k - eps_k+1|^2 / 2``, keeps the noise and
+    cancels most of a smooth model error; its running median over ``window``
+    lines of the pair, over ln 2 (exponential distribution), is the local
+    noise (robust to the few lines where a sharp misfit does not cancel).
+
+    Parameters
+    ----------
+    eps : (n_f, n_out, n_in) complex residual on ascending lines
+
+    Returns
+    -------
+    (n_f, n_out, n_in) float
+    """
+    from scipy.ndimage import uniform_filter1d
+
+    e = np.asarray(eps)
+    if e.shape[0] < 3:
+        return np.abs(e) ** 2
+    d = np.abs(np.diff(e, axis=0)) ** 2 / 2
+    d = np.concatenate([d, d[-1:]], axis=0)
+    return uniform_filter1d(d, size=min(window, d.shape[0]), axis=0, mode="nearest")
+
+
+def _expected(article: Article, channels, H, eps):
+    """(E|eps|^2 per value, source): the per-line standard errors, else a difference-based estimate.
+
+    Without standard errors (e.g. run files imported from UFF58), the noise
+    is :func:`difference_noise` of the residual: it needs neither the
+    identification (whose own misfit would pass for noise) nor a noise model.
+    """
+    rows = [article.channels.index(n) for n in channels]
+    if article.std_error is not None:
+        return expected_from_std_error(H, article.std_error[:, rows]), "per-line standard errors"
+    return difference_noise(eps), "adjacent-line differences of the residual (no standard errors)"
+
+
+def _ident_frf(article: Article, channels):
+    rows = [article.ident_channels.index(n) for n in channels]
+    ident = article.identification
+    n_in = ident.model.n_in
+
+    def frf(f):
+        H = ident.frf(f)[:, rows]
+        return H if n_in == len(article.drives) else H[:, :, :len(article.drives)]
+    return frf
+
+
+def _frequency_scatter(modes_per) -> list:
+    """Per article, per identified mode: standard deviation (Hz) of its frequency over the articles
+    (nearest mode within 5 % in each other article); zeros with one article."""
+    out = []
+    for a, ma in enumerate(modes_per):
+        s = np.zeros(len(ma.frequency_hz))
+        if len(modes_per) > 1:
+            for k, f in enumerate(ma.frequency_hz):
+                fs = [f]
+                for b, mb in enumerate(modes_per):
+                    if b != a and len(mb.frequency_hz):
+                        j = np.argmin(np.abs(mb.frequency_hz - f))
+                        if abs(mb.frequency_hz[j] / f - 1) < 0.05:
+                            fs.append(mb.frequency_hz[j])
+                s[k] = np.std(fs, ddof=1) if len(fs) > 1 else 0.0
+        out.append(s)
+    return out
+
+
+def member_residual(camp: Campaign, load, articles, member, cfg=None, model=None):
+    """Is there anything to explain for one calibrated member? (:func:`calibration.residual_check`).
+
+    Parameters
+    ----------
+    camp : Campaign ; load : LoadResult (channel/drive geometry for the drive points)
+    articles : identified articles ; member : MemberCalibration
+    cfg : DiagnosisSection (default: the campaign's)
+    model : (Surrogate, x, damping), optional
+        Another model of the member (e.g. extended by accepted effects);
+        ``damping`` is (zeta per article, p_ref) or None (identified damping
+        mapped by MAC); default the member's calibrated surrogate and p with
+        the refinement's damping.
+
+    Returns
+    -------
+    (ResidualCheck, list of per-article model FRFs on the raw lines and channels)
+    """
+    cfg = cfg or camp.diagnosis
+    chans = _channels(camp)
+    band = (camp.band.low_hz, camp.band.high_hz)
+    arts = [articles[i] for i in member.articles]
+    ref = member.refinement
+    damping = None if ref is None else (ref.zeta, ref.p_zeta)
+    sur, x = member.surrogate, member.p
+    if model is not None:
+        sur, x, damping = model
+    items, models, sources, model_frfs, tests = [], [], set(), [], []
+    geo_c = {t.name: t for t in load.channels}
+    geo_d = {t.name: t for t in load.drives}
+    modes_per = [identified_modes(a) for a in arts]
+    scatter_hz = _frequency_scatter(modes_per)
+    mode_rows, anti = [], []
+    for k, a in enumerate(arts):
+        rows = [a.channels.index(n) for n in chans]
+        Ht = a.frf[:, rows]
+        Hm = model_frf(sur, x, a, chans, damping, k, camp.calibration.zeta0,
+                       camp.validation.mac_min, band)
+        model_frfs.append(Hm)
+        eps = log_deviation(Hm, Ht)
+        q, src = _expected(a, chans, Ht, eps)
+        sources.add(src)
+        mask = pair_mask(a, chans, a.freq_hz.size)
+        tests.append(Ht)
+        items.append(ResidualItem(a.name, a.freq_hz, eps, q, mask))
+        models.append(_ident_frf(a, chans))
+        mode_rows.extend(mode_residuals(sur, x, modes_per[k], a.name,
+                                        mac_min=camp.validation.mac_min, band_hz=band,
+                                        shift_threshold=cfg.shift_threshold, scatter_hz=scatter_hz[k]))
+        pairs = [(c, d) for c, n in enumerate(chans) for d, dn in enumerate(a.drives)
+                 if n in geo_c and dn in geo_d and geo_c[n].grid == geo_d[dn].grid
+                 and abs(float(np.dot(geo_c[n].direction, geo_d[dn].direction))) > 0.99]
+        anti.extend(antiresonances(a.name, a.freq_hz, Hm, Ht, pairs, chans, a.drives, mask=mask))
+    sc = scatter_sd([a.freq_hz for a in arts], tests, models, [it.expected for it in items],
+                    [it.mask for it in items])
+    check = residual_check(items, chans, arts[0].drives, scatter=sc, band_hz=band, modes=tuple(mode_rows),
+                           antiresonances=tuple(anti), ratio_threshold=cfg.ratio_threshold,
+                           z_threshold=cfg.z_threshold, floor_source=" / ".join(sorted(sources)))
+    return check, model_frfs
+
+
+# ----------------------------------------------------------------------------- nonlinearity
+
+
+def _sweep_order(time_s) -> str:
+    t = np.asarray(time_s, float)
+    if t.size > 1 and np.all(np.isfinite(t)):
+        dt = np.diff(t)
+        return "up" if np.all(dt > 0) else "down" if np.all(dt < 0) else "unknown"
+    return "unknown"
+
+
+@dataclass(frozen=True)
+class LevelRun:
+    """One run file of an article as the nonlinearity gate sees it.
+
+    article : str ; path : Path ; level : force level (N), None when unknown ; level_source : "campaign"
+    (``[[run]] level``), "run file" (median achieved force over the valid lines, mean over drives) or
+    "unknown" (the run file holds no force) ; sweep : "up"/"down"/"unknown"
+    """
+
+    article: str
+    path: Path
+    level: float | None
+    level_source: str
+    sweep: str
+
+
+def _frf_level(a: Article, lr: LevelRun, band):
+    from calibration import FRFLevel
+
+    ln = a.lines
+    f = np.asarray(ln.frequency_hz, float)
+    use = np.asarray(ln.valid, bool) & (f >= band[0]) & (f <= band[1])
+    se = None if ln.std_error is None else np.asarray(ln.std_error, float)[use]
+    if se is not None and not (np.all(np.isfinite(se)) and np.all(se > 0)):
+        se = None
+    return FRFLevel(f[use], np.asarray(ln.frf)[use], lr.level, se, "N", a.quantity, a.path.name, lr.sweep)
+
+
+def nonlinearity_gate(camp: Campaign, articles, log=print) -> dict:
+    """The nonlinearity checks per article name, from the campaign's run files.
+
+    Run files with the same article name are the same article: at two or more
+    distinct force levels (``[[run]] level``, N, else the run's median achieved
+    force; levels within 2 % are one level) they feed
+    :func:`calibration.level_dependence` on the identified modes in the band;
+    an up and a down sweep at one level feed :func:`calibration.sweep_direction`;
+    every run's THD (when the run file has it) feeds :func:`calibration.distortion`
+    (the run with the largest THD is reported).
+
+    Returns
+    -------
+    dict article name -> (Nonlinearity or None, tuple of LevelRun, tuple of str notes)
+    """
+    from acquisition.runfile import read_run
+
+    from calibration import distortion, level_dependence, nonlinearity, sweep_direction
+
+    cfg = camp.diagnosis
+    lo = camp.identification.low_hz or 0.8 * camp.band.low_hz
+    hi = camp.identification.high_hz or 1.25 * camp.band.high_hz
+    by_name: dict = {}
+    for i, a in enumerate(articles):
+        by_name.setdefault(a.name, []).append(i)
+    out = {}
+    for name, idx in by_name.items():
+        runs, dist, notes = [], [], []
+        for i in idx:
+            a, entry = articles[i], camp.run[i]
+            run = read_run(a.path)
+            ok = np.asarray(run.valid, bool)
+            if entry.level is not None:
+                lvl, src = float(entry.level), "campaign"
+            else:
+                fn = np.asarray(run.force_n, float)[ok]
+                lvl = float(np.median(np.mean(np.abs(fn), axis=1))) if fn.size else float("nan")
+                lvl, src = (lvl, "run file") if np.isfinite(lvl) and lvl > 0 else (None, "unknown")
+            runs.append(LevelRun(name, a.path, lvl, src, _sweep_order(np.asarray(run.time_s, float)[ok])))
+            thd = np.asarray(run.thd, float)
+            if thd.size and np.any(np.isfinite(thd) & (thd > 0)):
+                modal = a.identification.modal
+                dist.append(distortion(run.frequency_hz, thd, channels=[s.name for s in run.sensors]
+                                       + [d.name for d in run.drives], threshold=cfg.thd_threshold,
+                                       modes_hz=modal.frequency_hz, damping=modal.damping, label=a.path.name))
+        level = sweep = None
+        good = [k for k, r in enumerate(runs) if r.level is not None]
+        distinct = []
+        for k in sorted(good, key=lambda k: runs[k].level):
+            if not distinct or runs[k].level > 1.02 * runs[distinct[-1]].level:
+                distinct.append(k)
+        if len(distinct) >= 2:
+            a0 = articles[idx[distinct[0]]]
+            modal = a0.identification.modal
+            fm = [f for f in modal.frequency_hz if camp.band.low_hz <= f <= camp.band.high_hz]
+            try:
+                level = level_dependence([_frf_level(articles[idx[k]], runs[k], (lo, hi)) for k in distinct],
+                                         fm or None, z_threshold=cfg.nonlinearity_z)
+            except CalibrationError as exc:
+                notes.append(f"{name}: level dependence not evaluated: {exc}")
+        elif len(idx) == 1:
+            notes.append(f"{name}: one run file: no level-dependence check")
+        else:
+            notes.append(f"{name}: {len(idx)} run files at {len(distinct)} distinct known force level(s): "
+                         "no level-dependence check")
+        ups = [k for k in good if runs[k].sweep == "up"]
+        downs = [k for k in good if runs[k].sweep == "down"]
+        pair = next(((u, d) for u in ups for d in downs if abs(runs[u].level / runs[d].level - 1) < 0.02), None)
+        if pair is not None:
+            try:
+                sweep = sweep_direction(*(_frf_level(articles[idx[k]], runs[k], (lo, hi)) for k in pair),
+                                        z_threshold=cfg.nonlinearity_z)
+            except CalibrationError as exc:
+                notes.append(f"{name}: sweep direction not evaluated: {exc}")
+        worst = max(dist, key=lambda d: (d.flagged, np.nanmax(d.max_thd))) if dist else None
+        verdict = None
+        if level is not None or worst is not None or sweep is not None:
+            verdict = nonlinearity(level, worst, sweep)
+        for n in notes:
+            log(n)
+        out[name] = (verdict, tuple(runs), tuple(notes))
+    return out
+
+
+# ----------------------------------------------------------------------------- the stage
+
+
+@dataclass(frozen=True)
+class ArticleGate:
+    """The nonlinearity gate of one article (all its run files).
+
+    nonlinearity : calibration.Nonlinearity or None (no check possible: one level,
+    no THD, no up/down pair) ; runs : tuple of LevelRun ; notes : why a check was not run
+    """
+
+    article: str
+    nonlinearity: object | None
+    runs: tuple
+    notes: tuple = ()
+
+    def to_dict(self) -> dict:
+        return {"article": self.article,
+                "nonlinearity": None if self.nonlinearity is None else self.nonlinearity.to_dict(),
+                "runs": [{"path": str(r.path), "level_n": r.level, "level_source": r.level_source,
+                          "sweep": r.sweep} for r in self.runs],
+                "notes": list(self.notes)}
+
+
+@dataclass(frozen=True)
+class MemberDiagnosis:
+    """One ensemble member's diagnosis.
+
+    Attributes
+    ----------
+    label : str ; articles : tuple of article names
+    verdict : one of VERDICTS ; reason : the verdict in one sentence
+    residual : calibration.ResidualCheck of the calibrated model
+    nonlinear_modes : tuple of dict (article, mode, frequency_hz, quantity, levels, values, ratio, z)
+    sd : dict, SD of the calibrated model (key "before") on calibration (raw lines), hold-out and
+        cross-validation, beside the floor; key "after" with an accepted effect
+    channels : tuple of str, the most affected channels (largest residual ratio first)
+    n_candidates : dict family -> number of candidates screened (None: not screened)
+    ranked : tuple of dict, the top of the screening (:func:`ranked_table`)
+    screening : calibration.Screening or None
+    accepted : tuple of dict, the accepted effects (rows of :func:`ranked_table` re-fitted, with the decision)
+    trials : tuple of dict, every recalibration tried (names, c, hold-out before/after, decision)
+    extended : tuple of femodel.Candidate or None, the accepted candidates (their terms extend the deck)
+    x_extended : ([p, c]) of the extended model or None
+    overlay : dict or None, FRFs of the first article at the most affected channels (:func:`overlay_figure`):
+        article, freq_hz (n_f,), channels, drives, test, before, after ((n_f, k, n_in) complex; after None
+        without an accepted effect)
+    """
+
+    label: str
+    articles: tuple
+    verdict: str
+    reason: str
+    residual: object
+    nonlinear_modes: tuple = ()
+    sd: dict | None = None
+    channels: tuple = ()
+    n_candidates: dict | None = None
+    ranked: tuple = ()
+    screening: object | None = None
+    accepted: tuple = ()
+    trials: tuple = ()
+    extended: tuple | None = None
+    x_extended: np.ndarray | None = None
+    overlay: dict | None = None
+
+    def to_dict(self) -> dict:
+        return {"member": self.label, "articles": list(self.articles), "verdict": self.verdict,
+                "reason": self.reason, "residual": self.residual.to_dict(),
+                "nonlinear_modes": [dict(m) for m in self.nonlinear_modes], "sd": self.sd,
+                "most_affected_channels": list(self.channels), "candidates": self.n_candidates,
+                "ranked": [dict(r) for r in self.ranked],
+                "screening": None if self.screening is None else {
+                    k: v for k, v in self.screening.to_dict().items() if k != "candidates"},
+                "accepted": [dict(a) for a in self.accepted], "trials": [dict(t) for t in self.trials]}
+
+
+@dataclass(frozen=True)
+class DiagnosisResult:
+    """The diagnose stage: the nonlinearity gate per article and the diagnosis per ensemble member."""
+
+    gates: tuple  # of ArticleGate
+    members: tuple  # of MemberDiagnosis
+    separations: tuple = ()  # of dict: accepted effects fitted per article against the article groups
+
+    def to_dict(self) -> dict:
+        return {"gates": [g.to_dict() for g in self.gates], "members": [m.to_dict() for m in self.members],
+                "separations": [dict(x) for x in self.separations],
+                "separating_effects": [x["name"] for x in self.separations if x["separates"]]}
+
+
+def _sd_table(member, val, xval, check, arts=()) -> dict:
+    """SD of the calibrated model on calibration (raw lines), hold-out, cross-validation, beside the floor."""
+    ref = member.refinement
+    v = val.validation if val is not None else None
+    cv = xval.crossvalidation if xval is not None else None
+    return {
+        "calibration_raw": None if ref is None else float(ref.sd_raw),
+        "calibration_equalized": float(member.cycle.sd),
+        "holdout": None if v is None else float(v.sd_calibrated),
+        "holdout_floor": None if v is None or v.sd_floor is None else float(v.sd_floor),
+        "crossvalidation_rse": None if cv is None else float(cv.rse),
+        "residual_all_channels": float(check.sd),
+        "floor": float(check.floor),
+        "floor_source": check.floor_source,
+        "scatter": float(check.scatter),
+        "identification_fit": float(np.mean([a.identification.fit_deviation_total for a in arts])) if arts else None,
+    }
+
+
+def _nonlinear_modes(gate: ArticleGate) -> list:
+    nl = gate.nonlinearity
+    if nl is None:
+        return []
+    rows = [{"article": gate.article, "check": "level dependence", "mode": c.mode, "frequency_hz": c.frequency_hz,
+             "quantity": c.quantity, "levels_n": list(c.levels), "values": list(c.values), "ratio": c.ratio,
+             "z": c.z} for c in nl.modes]
+    if nl.distortion is not None:
+        for x in nl.distortion.lines:
+            rows.append({"article": gate.article, "check": "harmonic distortion", "mode": x.mode,
+                         "frequency_hz": x.frequency_hz, "channel": x.channel, "thd": x.thd, "relation": x.relation})
+    if nl.sweep is not None:
+        for b in nl.sweep.bands:
+            rows.append({"article": gate.article, "check": "sweep direction", "frequency_hz": b.peak_up_hz,
+                         "band_hz": [b.f_low_hz, b.f_high_hz], "z": b.max_z})
+    return rows
+
+
+def _screen_member(camp: Campaign, pm, model, load, eq, m, quantity, log):
+    """Candidates of the deck and set-up, screened on the member's equalized data (with continuation)."""
+    from calibration import build_surrogate, screen
+
+    c, cfg = camp.calibration, camp.diagnosis
+    lo, hi = camp.band.low_hz, camp.band.high_hz
+    t0 = time.perf_counter()
+    cands, terms = member_candidates(camp, pm, load, m.p, log)
+    sur, T = m.surrogate, m.basis
+    if T is None:  # not stored: rebuilt at the calibrated point
+        sur, T = build_surrogate(model, m.p, (lo, hi), c.basis_factor, enrich=c.enrich)
+    data, cont = eq.member(m.articles)
+    scr = screen(sur, T, m.p, data, c.zeta0, terms, pm.lower, pm.upper, quantity=quantity, model=model, n_check=cfg.top_n,
+                 shift_hz=max(lo / 4.0, hi / 50.0), continuation=cont, max_nfev=cfg.max_evaluations)
+    counts: dict = {}
+    for cd in cands:
+        counts[cd.family] = counts.get(cd.family, 0) + 1
+    rows = ranked_table(cands, scr)
+    ctx = dict(cands=cands, terms=terms, sur=sur, T=T, data=data, cont=cont)
+    log(f"[{m.label}] screened {len(cands)} candidates in {time.perf_counter() - t0:.1f} s; first: "
+        + "; ".join(f"{r['family']} {r['name']} ({r['size']}, explained {100 * r['explained']:.1f} %)"
+                    for r in rows[:3]))
+    return counts, rows, scr, ctx
+
+
+def _overlay(camp, article: Article, channels, before, after) -> dict:
+    """Test and model FRFs of one article at ``channels`` (before: calibrated model; after: extended)."""
+    allc = _channels(camp)
+    idx = [allc.index(c) for c in channels]
+    rows = [article.channels.index(c) for c in channels]
+    return {"article": article.name, "quantity": article.quantity, "freq_hz": article.freq_hz,
+            "channels": list(channels), "drives": list(article.drives), "test": article.frf[:, rows],
+            "before": before[:, idx], "after": None if after is None else after[:, idx]}
+
+
+def overlay_figure(overlay: dict, title: str = ""):
+    """FRF overlays before/after at the most affected channels: |H| of test, calibrated and extended model.
+
+    Returns
+    -------
+    matplotlib.figure.Figure (one row per channel, the first drive of each; log |H| over Hz)
+    """
+    from matplotlib.figure import Figure
+
+    ch = overlay["channels"]
+    f = np.asarray(overlay["freq_hz"])
+    fig = Figure(figsize=(8, 2.2 * len(ch) + 0.6))
+    axes = fig.subplots(len(ch), 1, sharex=True, squeeze=False)[:, 0]
+    for k, (ax, name) in enumerate(zip(axes, ch)):
+        d = 0
+        ax.semilogy(f, np.abs(overlay["test"][:, k, d]), ".", ms=2, color="0.3", label="test (raw lines)")
+        ax.semilogy(f, np.abs(overlay["before"][:, k, d]), "-", lw=0.9, color="C3", label="calibrated model")
+        if overlay.get("after") is not None:
+            ax.semilogy(f, np.abs(overlay["after"][:, k, d]), "-", lw=0.9, color="C0",
+                        label="with the accepted effect(s)")
+        ax.set_ylabel(f"|H| {name}/{overlay['drives'][d]}")
+        ax.grid(True, which="both", lw=0.3)
+    axes[0].legend(loc="best", fontsize=7)
+    axes[-1].set_xlabel("frequency [Hz]")
+    fig.suptitle(title or f"{overlay['article']}: most affected channels ({overlay['quantity']})")
+    return fig
+
+
+def _lines_per_bandwidth(article: Article) -> float:
+    """Median number of raw lines within one half-power bandwidth of the identified modes in band (>= 1)."""
+    m = article.identification.modal
+    f = article.freq_hz
+    n = [np.sum((f >= fr * (1 - z)) & (f <= fr * (1 + z))) for fr, z in zip(m.frequency_hz, m.damping)
+         if f.min() <= fr <= f.max()]
+    return float(max(np.median(n), 1.0)) if n else 1.0
+
+
+def _holdout(camp, articles, m, sur, x, quantity):
+    """Hold-out SD of (sur, x) on the raw hold-out lines (calibration lines without hold-out channels), with
+    the identified damping mapped by MAC (the same footing before and after an effect), and its value count."""
+    from calibration import validate
+
+    from frfcal.campaign._stages import raw_data
+
+    chans = list(camp.channels.holdout) or list(camp.channels.calibrate)
+    arts = [articles[i] for i in m.articles]
+    v = validate(sur, sur, x, [raw_data(a, chans) for a in arts], [identified_modes(a) for a in arts],
+                 camp.calibration.zeta0, None, camp.validation.mac_min, quantity,
+                 (camp.band.low_hz, camp.band.high_hz))
+    return float(v.sd_calibrated), int(v.n_values)
+
+
+def _cv(camp, sur, data, x, lower, upper, quantity, executor):
+    from calibration import cross_validate
+
+    xv = camp.crossvalidation
+    n = max(xv.realizations, 3)
+    return cross_validate(sur, data, x, lower, upper, camp.calibration.zeta0, n, xv.seed, executor, quantity,
+                          xv.max_evaluations)
+
+
+def _holdout_floor(camp, check) -> float:
+    hold_chans = list(camp.channels.holdout) or list(camp.channels.calibrate)
+    rows = [x for x in check.channels if x.label in hold_chans]
+    n = sum(x.n_values for x in rows)
+    return float(sum(x.expected * x.n_values for x in rows) / n) if n else float(check.floor)
+
+
+def _accept_member(camp, load, pm, model, articles, m, check, rows, ctx, quantity, executor, log):
+    """Recalibrate with the top candidates (singly, then greedily combined), accept by hold-out and
+    cross-validation beyond their scatter with a per-parameter penalty, stop at the floor.
+
+    Returns (accepted rows, trials (dicts), sd after (dict or None), fit of the accepted set or None)."""
+    from calibration import accept, fit_with
+
+    cfg, c = camp.diagnosis, camp.calibration
+    lo, hi = camp.band.low_hz, camp.band.high_hz
+    shift = max(lo / 4.0, hi / 50.0)
+    sur, T, data, cont = ctx["sur"], ctx["T"], ctx["data"], ctx["cont"]
+    by_name = {t.name: t for t in ctx["terms"]}
+    arts = [articles[i] for i in m.articles]
+    # the floor of the hold-out comparison: the residual check's expected |eps|^2 on the hold-out channels
+    # (re-estimated with every accepted effect: the adjacent-line estimate shrinks with the model error)
+    floor = _holdout_floor(camp, check)
+    check_after = None
+    hb, n_vals = _holdout(camp, articles, m, m.surrogate, m.p, quantity)
+    n_res = max(int(n_vals / np.mean([_lines_per_bandwidth(a) for a in arts])), 2)
+    cv_b = _cv(camp, sur, data, m.p, pm.lower, pm.upper, quantity, executor)
+    base = {"holdout": hb, "cv": cv_b, "x": m.p}
+    accepted, trials, fit_acc = [], [], None
+    order = [r for r in rows if r["checked"]][:cfg.top_n]
+    for _ in range(cfg.max_effects):
+        best = None
+        for r in order:
+            if any(r["name"] == a["name"] for a in accepted):
+                continue
+            names = [a["name"] for a in accepted] + [r["name"]]
+            c0 = [a["c"] for a in accepted] + [r["c"]]
+            fit = fit_with(sur, T, model, [by_name[n] for n in names], data, c.zeta0, pm.lower, pm.upper,
+                           p0=m.p, c0=c0, continuation=cont, quantity=quantity, shift_hz=shift,
+                           max_nfev=cfg.max_evaluations)
+            ha, _ = _holdout(camp, articles, m, fit.surrogate, fit.x, quantity)
+            trial = {"names": names, "c": fit.c.tolist(), "sd_equalized": fit.sd, "holdout_before": base["holdout"],
+                     "holdout_after": ha}
+            if best is None or ha < best[1]:
+                best = (r, ha, fit, trial)
+            trials.append(trial)
+        if best is None:
+            break
+        r, ha, fit, trial = best
+        check_try = member_residual(camp, load, articles, m, model=(fit.surrogate, fit.x, None))[0]
+        floor = min(floor, _holdout_floor(camp, check_try))
+        cv_a = _cv(camp, fit.surrogate, data, fit.x, fit.lower, fit.upper, quantity, executor)
+        dec = accept(base["holdout"], ha, base["cv"].sd_test, cv_a.sd_test, floor, 1, n_res)
+        trial.update(decision=dec.to_dict(), cv_before=float(base["cv"].rse), cv_after=float(cv_a.rse))
+        log(f"[{m.label}] {' + '.join(trial['names'])}: hold-out SD {base['holdout']:.4g} -> {ha:.4g}, "
+            f"cross-validation {base['cv'].rse:.4g} -> {cv_a.rse:.4g}: "
+            f"{'ACCEPTED' if dec.accepted else 'not accepted'} ({dec.reason})")
+        if not dec.accepted:
+            break
+        value, unit, words = _physical(ctx["cands"][[cd.name for cd in ctx["cands"]].index(r["name"])].term,
+                                       float(fit.c[-1]))
+        accepted = [dict(a) for a in accepted]
+        for a, cj in zip(accepted, fit.c[:-1]):  # the earlier effects re-fitted together with the new one
+            cd = ctx["cands"][[cd.name for cd in ctx["cands"]].index(a["name"])]
+            a["c"] = float(cj)
+            a["value"], a["unit"], a["size"] = _physical(cd.term, float(cj))
+        accepted.append(dict(r, c=float(fit.c[-1]), value=value, unit=unit, size=words,
+                             decision=dec.to_dict()))
+        base, fit_acc, check_after = {"holdout": ha, "cv": cv_a, "x": fit.x}, fit, check_try
+        if dec.stop:
+            break
+    after = None
+    if fit_acc is not None:
+        terms = [ctx["cands"][[cd.name for cd in ctx["cands"]].index(a["name"])].term for a in accepted]
+        ref, h_ref, x_ref, sur_ref = _refined(camp, pm, model, articles, m, fit_acc, terms, quantity, log)
+        damping = None if ref is None else (ref.zeta, ref.p_zeta)
+        check_after, frfs_after = member_residual(camp, load, articles, m, model=(sur_ref, x_ref, damping))
+        floor = min(floor, _holdout_floor(camp, check_after))
+        after = {"holdout_refined": h_ref, "calibration_raw": None if ref is None else float(ref.sd_raw),
+                 "holdout": base["holdout"], "crossvalidation_rse": float(base["cv"].rse),
+                 "calibration_equalized": float(fit_acc.sd), "holdout_before_same_footing": hb,
+                 "crossvalidation_rse_before": float(cv_b.rse), "floor_holdout": floor,
+                 "holdout_floor_ratio": (h_ref if h_ref is not None else base["holdout"]) / floor
+                 if floor > 0 else None,
+                 "n_independent_residuals": n_res, "residual": check_after.to_dict()}
+        fit_acc = (fit_acc, x_ref, frfs_after)
+        n_p = pm.n_params
+        for j, a in enumerate(accepted):  # the refined magnitudes (raw lines, estimated damping) are reported
+            cd = ctx["cands"][[cd.name for cd in ctx["cands"]].index(a["name"])]
+            a["c_equalized"], a["c"] = a["c"], float(x_ref[n_p + j])
+            a["value"], a["unit"], a["size"] = _physical(cd.term, a["c"])
+    return tuple(accepted), tuple(trials), after, fit_acc
+
+
+def _refined(camp, pm, model, articles, m, fit, extended_terms, quantity, log):
+    """The raw-line refinement of the extended model, as the calibrate stage refines: damping continuation on
+    the extended surrogate, then ``refine_cycles`` re-basis cycles on the full extended model
+    (``pm.with_terms``); and its hold-out SD with the damping it estimated: the "after" on the footing of the
+    calibrated model's "before".
+
+    Returns (Refinement or None, hold-out SD or None, x, surrogate)."""
+    from calibration import FRFModel, build_surrogate, refine, validate
+
+    from frfcal.campaign._stages import raw_data, raw_std_error
+
+    c = camp.calibration
+    if not c.refine:
+        return None, None, fit.x, fit.surrogate
+    band = (camp.band.low_hz, camp.band.high_hz)
+    arts = [articles[i] for i in m.articles]
+    raw = [raw_data(a, camp.channels.calibrate) for a in arts]
+    modes = [identified_modes(a) for a in arts]
+    idents = [(a.identification, a.ident_channels) for a in arts]
+    opts = dict(quantity=quantity, mac_min=camp.validation.mac_min, band_hz=band, max_nfev=c.max_evaluations)
+    ref = refine(fit.surrogate, fit.x, raw, idents, modes, fit.lower, fit.upper, c.zeta0, floors=c.refine_floors,
+                 **opts)
+    sur = fit.surrogate
+    if c.refine_cycles:
+        ext = pm.with_terms(list(extended_terms))
+        mext = FRFModel(K=ext.K, M=ext.M, inputs=model.inputs, outputs=model.outputs,
+                        input_names=model.input_names, output_names=model.output_names,
+                        parameter_names=tuple(ext.names), parametric=ext)
+        basis = None
+        for _ in range(c.refine_cycles):
+            sur, basis = build_surrogate(mext, ref.p, band, c.basis_factor, enrich=c.enrich, previous_basis=basis)
+            nxt = refine(sur, ref.p, raw, idents, modes, fit.lower, fit.upper, c.zeta0, floors=(0.0,), **opts)
+            dp = float(np.max(np.abs(nxt.p - ref.p)))
+            ref = nxt
+            if dp < c.cycle_tol:
+                break
+    h = None
+    if camp.channels.holdout:
+        errs = [raw_std_error(a, camp.channels.holdout) for a in arts]
+        v = validate(sur, sur, ref.p, [raw_data(a, camp.channels.holdout) for a in arts],
+                     modes, c.zeta0, None, camp.validation.mac_min, quantity, band,
+                     std_error=None if any(e is None for e in errs) else errs, damping=(ref.zeta, ref.p_zeta))
+        h = float(v.sd_calibrated)
+    log(f"[{m.label}] extended model refined on the raw lines: SD {ref.sd_raw:.4g}"
+        + ("" if h is None else f", hold-out SD {h:.4g} (estimated damping)"))
+    return ref, h, ref.p, sur
+
+
+def diagnose_stage(camp: Campaign, load, pm, model, articles, eq, cal, val, xval, executor=None,
+                   log=print, groups=None, level_checks=None) -> DiagnosisResult:
+    """The diagnosis of every calibrated member: significance, the nonlinearity gate, the screening of
+    candidate effects (module docstring).
+
+    ``articles`` carry their identification; ``eq``, ``cal``, ``val``, ``xval``
+    are the equalize, calibrate, validate and cross-validate results; ``pm``
+    and ``model`` the campaign's parametric and FRF model; ``executor`` runs
+    the cross-validation of the acceptance (None: serial); ``groups`` the
+    group stage's result: with article groups, every accepted effect is
+    fitted per article to find the one that separates them. ``level_checks``
+    (article -> (calibration.LevelDependence or the reason it could not be
+    made, ((level N, run path), ...))) replaces the gate's level check of
+    those articles: an acquiring campaign calibrates on each article's lowest
+    level and checks all its levels here.
+    """
+    gate = nonlinearity_gate(camp, articles, log)
+    for name, (check, entries) in (level_checks or {}).items():
+        from calibration import nonlinearity
+
+        runs = tuple(LevelRun(name, Path(path), float(level), "run file", "unknown") for level, path in entries)
+        if isinstance(check, str):
+            nl, notes = gate.get(name, (None,))[0], (f"{name}: level dependence {check}",)
+        else:
+            nl, notes = nonlinearity(check, None, None), ()
+        gate[name] = (nl, runs, notes)
+    gates = tuple(ArticleGate(name, nl, runs, notes) for name, (nl, runs, notes) in gate.items())
+    by_name = {g.article: g for g in gates}
+    out, fits = [], []
+    for m, v, x in zip(cal.members, val.members, xval.members):
+        names = tuple(dict.fromkeys(articles[i].name for i in m.articles))
+        check, frfs_before = member_residual(camp, load, articles, m)
+        frfs_after = None
+        for line in check.describe():
+            log(f"[{m.label}] {line}")
+        chans = tuple(c.label for c in sorted(check.channels, key=lambda c: -c.ratio))
+        sd = _sd_table(m, v, x, check, [articles[i] for i in m.articles])
+        flagged = [by_name[n] for n in names if by_name[n].nonlinearity is not None
+                   and by_name[n].nonlinearity.flagged]
+        nl_modes = tuple(r for g in flagged for r in _nonlinear_modes(g))
+        counts, rows, scr, acc, trials, extended = None, (), None, (), (), None
+        if not check.significant:
+            verdict = "nothing to explain"
+            reason = (f"the residual is inside the floor (SD {check.ratio:.3g} x the expected "
+                      f"{check.expected:.3g}, threshold {check.ratio_threshold:g}): no effect is looked for")
+            if flagged:
+                reason += "; the nonlinearity gate flags " + ", ".join(g.article for g in flagged) + " (reported)"
+        elif flagged:
+            verdict = "nonlinear"
+            what = "; ".join(
+                f"{r['article']}: {r['check']}" + (f" of mode {r['mode']} at {r['frequency_hz']:.5g} Hz"
+                                                   if r.get("mode") else f" at {r['frequency_hz']:.5g} Hz")
+                + (f" ({r['quantity']} {r['values'][0]:.4g} -> {r['values'][-1]:.4g} from {min(r['levels_n']):.3g}"
+                   f" to {max(r['levels_n']):.3g} N, {r['z']:.3g} sigma)" if r["check"] == "level dependence" else "")
+                for r in nl_modes) or "; ".join(g.article for g in flagged)
+            reason = (f"the residual is significant ({check.ratio:.3g} x the floor) and the test article behaves "
+                      f"nonlinearly: {what}; no linear effect is accepted in its place")
+        else:
+            quantity = articles[m.articles[0]].quantity
+            counts, rows, scr, ctx = _screen_member(camp, pm, model, load, eq, m, quantity, log)
+            acc, trials, after, fit = _accept_member(camp, load, pm, model, articles, m, check, rows, ctx,
+                                                     quantity, executor, log)
+            if after is not None:
+                sd["after"] = after
+            if acc:
+                verdict = "effect(s) found"
+                extended = (tuple(ctx["cands"][[cd.name for cd in ctx["cands"]].index(a["name"])] for a in acc),
+                            fit[1])
+                frfs_after = fit[2]
+                fits.append((m, acc, fit[0]))
+                reason = "accepted: " + "; ".join(f"{a['description']}: {a['size']}" for a in acc)
+            else:
+                verdict = "no effect accepted"
+                top = rows[0] if rows else None
+                why = trials[0]["decision"]["reason"] if trials and "decision" in trials[0] else "no candidate fitted"
+                reason = (f"the residual is significant ({check.ratio:.3g} x the floor) and no nonlinearity is "
+                          "flagged; " + (f"the screening ranks {top['family']} {top['name']} first ({top['size']}, "
+                                         f"explains {100 * top['explained']:.1f} % of the residual)" if top else
+                                         "no candidate") + f"; not accepted: {why}")
+        log(f"[{m.label}] diagnosis: {verdict}: {reason}")
+        overlay = None
+        if check.significant:
+            overlay = _overlay(camp, articles[m.articles[0]], chans[:camp.diagnosis.figures_channels],
+                               frfs_before[0], None if frfs_after is None else frfs_after[0])
+        out.append(MemberDiagnosis(m.label, names, verdict, reason, check, nl_modes, sd, chans, counts, rows, scr,
+                                   acc, trials, None if extended is None else extended[0],
+                                   None if extended is None else np.asarray(extended[1], float), overlay))
+    return DiagnosisResult(gates, tuple(out))
+
+
+def new_cards(pm, extended, x, path: Path) -> list:
+    """Write the deck extended by the accepted effects' terms at ``x = [p, c]``; return the new cards' lines.
+
+    The new cards are the lines of the extended deck that the deck written at
+    the same ``p`` without the effects does not have (CELAS2, CONM2, copied
+    property and material cards, re-pointed elements; fixed format).
+    """
+    import tempfile
+
+    ext = pm.with_terms([c.term for c in extended])
+    ext.write_bdf(path, x)
+    with tempfile.TemporaryDirectory() as tmp:
+        base = pm.write_bdf(Path(tmp) / "base.bdf", np.asarray(x, float)[:pm.n_params])
+        old = set(Path(base).read_text().splitlines())
+    return [ln for ln in Path(path).read_text().splitlines() if ln not in old and not ln.startswith("$")]
+
+
+def write_diagnosis(diag: DiagnosisResult, camp: Campaign, pm, outdir: Path, log=print) -> dict:
+    """Write ``diagnosis.json``, per member with an accepted effect ``extended_<member>.bdf``, and the FRF
+    overlays ``diagnosis_<member>.png`` (``[output] figures``) into ``outdir``; return the JSON content plus
+    ``result_file``."""
+    from frfcal.campaign._report import json_default
+
+    outdir = Path(outdir)
+    d = diag.to_dict()
+    for m, md in zip(diag.members, d["members"]):
+        if m.extended and camp.output.write_bdf:
+            path = outdir / f"extended_{m.label}.bdf"
+            md["new_cards"] = new_cards(pm, m.extended, m.x_extended, path)
+            md["bdf"] = str(path)
+            log(f"wrote {path} ({len(md['new_cards'])} new card line(s))")
+        if m.overlay is not None and camp.output.figures:
+            path = outdir / f"diagnosis_{m.label}.png"
+            overlay_figure(m.overlay, f"[{m.label}] {m.verdict}: {m.overlay['article']}, most affected channels"
+                           ).savefig(path, dpi=90)
+            md["figures"] = [str(path)]
+    path = outdir / "diagnosis.json"
+    path.write_text(json.dumps(d, indent=1, default=json_default))
+    d["result_file"] = str(path)
+    log(f"wrote {path}")
+    return d
+
+
+# ----------------------------------------------------------------------------- candidates and screening
+
+
+def _physical(term, c: float) -> tuple:
+    """(value, unit, words) of a term at normalized magnitude c."""
+    from femodel import ElementFactor
+
+    v = float(term.value(c))
+    if isinstance(term, ElementFactor):
+        return v, "x", f"{'stiffness' if term.kind == 'K' else 'mass'} factor {v:.3g}"
+    return v, term.unit, f"{v:.3g} {term.unit}"
+
+
+def member_candidates(camp: Campaign, pm, load, p, log=print) -> tuple:
+    """Candidate effects of the deck and the test set-up (femodel.generate_candidates) and their
+    CandidateTerm (dK, dM at ``p``) for the screening.
+
+    Sensors are the grids of the calibration and hold-out channels, drives the
+    drive channels' grids and directions.
+    """
+    from calibration import CandidateTerm
+    from femodel import CandidateOptions, ParameterError, generate_candidates
+
+    cfg = camp.diagnosis
+    try:
+        opts = CandidateOptions(**{k: tuple(v) if isinstance(v, list) else v for k, v in cfg.candidates.items()})
+    except TypeError as exc:
+        raise CalibrationError(f"[diagnosis] candidates: {exc}") from None
+    except ParameterError as exc:
+        raise CalibrationError(f"[diagnosis] candidates: {exc}") from None
+    sensors = tuple(dict.fromkeys(t.grid for t in load.channels))
+    drives = tuple((t.grid, tuple(t.direction)) for t in load.drives)
+    cands = generate_candidates(pm, sensors=sensors, drives=drives, families=cfg.families, options=opts)
+    terms = []
+    for c in cands:
+        d = pm.term_derivative(c.term, p)
+        terms.append(CandidateTerm(c.name, d["K"], d["M"], c.term.lower, c.term.upper))
+    counts = {}
+    for c in cands:
+        counts[c.family] = counts.get(c.family, 0) + 1
+    log("candidates: " + ", ".join(f"{k} {v}" for k, v in counts.items()))
+    return cands, terms
+
+
+def ranked_table(cands, scr, n: int = 10) -> tuple:
+    """The screening's ranking as rows: family, location, physical size with unit, explained fraction."""
+    idx = {c.name: i for i, c in enumerate(cands)}
+    rows = []
+    for rank, k in enumerate(scr.order[:n]):
+        name = scr.names[int(k)]
+        c = cands[idx[name]]
+        chk = scr.check(name)
+        cval = float(chk.c) if chk is not None else float(scr.c_linear[k])
+        value, unit, words = _physical(c.term, cval)
+        rows.append({
+            "rank": rank + 1, "name": name, "family": c.family, "grids": list(c.grids), "parts": list(c.parts),
+            "center": [float(x) for x in c.center], "element_size": float(c.size), "description": c.description,
+            "c": cval, "value": value, "unit": unit, "size": words,
+            "explained": float(chk.explained) if chk is not None else float(scr.explained[k]),
+            "explained_linear": float(scr.explained[k]), "checked": chk is not None,
+            "significant": bool(scr.significant[k]),
+        })
+    return tuple(rows)

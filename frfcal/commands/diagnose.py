@@ -1,0 +1,124 @@
+"""``frfcal diagnose CAMPAIGN.toml``: what does the calibrated model lack? (docs/diagnosis.md)."""
+
+from __future__ import annotations
+
+import argparse
+
+HELP = ("diagnose a calibrated campaign: is the residual above the noise floor, is the article nonlinear, "
+        "which effect explains it")
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("campaign", help="campaign TOML file (see docs/campaign.md, [diagnosis])")
+    parser.add_argument("--json", action="store_true", help="print one JSON object (docs/diagnosis.md)")
+    parser.add_argument("--out", help="output directory (overrides [output] dir)")
+    parser.add_argument("--workers", type=int, help="local worker processes")
+    parser.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    parser.add_argument("--quiet", action="store_true", help="no progress messages")
+
+
+def _fmt(x, spec=".4g"):
+    return "n/a" if x is None else format(x, spec)
+
+
+def print_diagnosis(d: dict, out) -> None:
+    """The human-readable diagnosis (``d`` = the ``diagnosis`` entry of the result)."""
+    for g in d["gates"]:
+        nl = g["nonlinearity"]
+        levels = ", ".join(f"{_fmt(r['level_n'], '.3g')} N ({r['sweep']})" for r in g["runs"])
+        state = "not checked" if nl is None else nl["verdict"]
+        print(f"article {g['article']}: {len(g['runs'])} run(s) at {levels}; nonlinearity gate: {state}", file=out)
+        for n in g["notes"]:
+            print(f"  {n}", file=out)
+    for m in d["members"]:
+        r = m["residual"]
+        print(f"\n== {m['member']} ({', '.join(m['articles'])})", file=out)
+        print(f"verdict: {m['verdict'].upper()}", file=out)
+        print(f"  {m['reason']}", file=out)
+        print(f"is there anything to explain: {r['test']}", file=out)
+        print(f"{'place':<28}{'SD':>11}{'expected':>11}{'ratio':>8}{'sigma':>10}", file=out)
+        for p in r["ranked"][:10]:
+            if p["kind"] == "mode":
+                print(f"mode {p['mode']} {p['test_hz']:.5g} Hz ({p['article']}): model {p['model_hz']:.5g} Hz, "
+                      f"{p['shift_bandwidths']:+.2f} half-power bandwidths, MAC {p['mac']:.3f}", file=out)
+            else:
+                print(f"{p['kind'] + ' ' + p['label']:<28}{p['sd']:11.3g}{p['expected']:11.3g}{p['ratio']:8.3g}"
+                      f"{p['z']:10.3g}", file=out)
+        for x in m["nonlinear_modes"]:
+            what = f"mode {x['mode']} " if x.get("mode") else ""
+            extra = ""
+            if x["check"] == "level dependence":
+                extra = (f": {x['quantity']} {x['values'][0]:.4g} -> {x['values'][-1]:.4g} (x{x['ratio']:.3g}) "
+                         f"from {min(x['levels_n']):.3g} to {max(x['levels_n']):.3g} N, {x['z']:.3g} sigma")
+            print(f"nonlinear ({x['article']}): {x['check']} at {what}{x['frequency_hz']:.5g} Hz{extra}", file=out)
+        if m["ranked"]:
+            print(f"candidates screened: " + ", ".join(f"{k} {v}" for k, v in m["candidates"].items()), file=out)
+            print(f"{'#':>3} {'family':<18}{'location':<44}{'size':>24}{'explained':>11}", file=out)
+            for r in m["ranked"][:10]:
+                loc = ("grids " + " ".join(map(str, r["grids"][:4])) + ("..." if len(r["grids"]) > 4 else "")
+                       + f" ({', '.join(r['parts'][:2])}) at ({', '.join(f'{x:.3g}' for x in r['center'])})")
+                print(f"{r['rank']:>3} {r['family']:<18}{loc:<44}{r['size']:>24}{100 * r['explained']:10.1f}%"
+                      + ("" if r["checked"] else " (linear)"), file=out)
+        for a in m["accepted"]:
+            print(f"ACCEPTED: {a['description']}: {a['size']} (grids {', '.join(map(str, a['grids']))}; "
+                  f"{', '.join(a['parts'])}): {a['decision']['reason']}", file=out)
+        if not m["accepted"] and m["trials"]:
+            t = m["trials"][0]
+            if "decision" in t:
+                print(f"not accepted: {' + '.join(t['names'])}: {t['decision']['reason']}", file=out)
+        sd = m["sd"]
+        print(f"SD of the calibrated model: calibration (raw lines) {_fmt(sd['calibration_raw'])}, hold-out "
+              f"{_fmt(sd['holdout'])}, cross-validation RSE {_fmt(sd['crossvalidation_rse'])}; residual on all "
+              f"channels {_fmt(sd['residual_all_channels'])} beside the floor {_fmt(sd['floor'])} "
+              f"({sd['floor_source']})" + (f" + scatter {sd['scatter']:.3g}" if sd["scatter"] else ""), file=out)
+        a = sd.get("after")
+        if a:
+            print(f"SD with the accepted effect(s): calibration (raw lines) {_fmt(a['calibration_raw'])}, hold-out "
+                  f"{_fmt(a['holdout_refined'])} = {_fmt(a['holdout_floor_ratio'], '.3g')} x its floor "
+                  f"{_fmt(a['floor_holdout'])}; on one footing (identified damping): hold-out "
+                  f"{_fmt(a['holdout_before_same_footing'])} -> {_fmt(a['holdout'])}, cross-validation RSE "
+                  f"{_fmt(a['crossvalidation_rse_before'])} -> {_fmt(a['crossvalidation_rse'])}", file=out)
+            print(f"after: {a['residual']['test']}", file=out)
+        if m.get("bdf"):
+            print(f"extended deck: {m['bdf']}; new cards:", file=out)
+            for ln in m["new_cards"][:20]:
+                print(f"  {ln}", file=out)
+        for fpath in m.get("figures", []):
+            print(f"figure: {fpath}", file=out)
+    for x in d.get("separations", []):
+        sep = x["separation"]
+        per = ", ".join(f"{a} {c:.3g}" for a, c in zip(sep["articles"], sep["magnitude"]))
+        print(f"\nseparating effect: {x['name']} ({x['family']}, accepted in {x['member']}): "
+              f"{'SEPARATES' if x['separates'] else 'does not separate'} the article groups {sep['groups']}; "
+              f"magnitude c per article: {per} ({sep['reason']})", file=out)
+    print(f"\ndiagnosis: {d['result_file']}", file=out)
+
+
+def run(args) -> int:
+    import json
+    import sys
+
+    from calibration import CalibrationError
+    from frfcal.campaign import json_default, load_campaign, run_campaign
+    from frfcal.commands.calibrate import _override
+
+    args.starts = args.realizations = args.scheduler = None
+    camp = _override(load_campaign(args.campaign), args)
+    if not camp.diagnosis.enabled:
+        raise CalibrationError(f"{args.campaign}: [diagnosis] enabled = false: nothing to run")
+    stream = sys.stderr if args.json else sys.stdout
+
+    def log(msg):
+        if not args.quiet:
+            print(msg, file=stream, flush=True)
+
+    res = run_campaign(camp, log=log, upto="diagnose")
+    d = res["diagnosis"]
+    if args.json:
+        out = dict(d)
+        out["calibration_file"] = res["result_file"]
+        out["stages"] = res["stages"]
+        print(json.dumps(out, default=json_default))
+        return 0
+    print_diagnosis(d, sys.stdout)
+    return 0
