@@ -162,12 +162,9 @@ def main(argv=None) -> int:
     malloc_tuned = keep_large_allocations()  # as the frfcal command does
 
     import femodel
-    from calibration import (CandidateTerm, accept, cross_validate, fit_with, holdout_sd, make_executor, screen,
-                             shifted_solver)
-    from femodel import CandidateOptions, generate_candidates
+    from calibration import make_executor
     from frfcal.campaign import load_campaign
-    from frfcal.campaign._stages import (build_model, calibrate_stage, equalize_stage, equalized_data, group_stage,
-                                         identify_stage, load_stage)
+    from frfcal.campaign._stages import build_model, calibrate_stage, equalize_stage, group_stage, identify_stage, load_stage
     from frfcal.synth import SynthChannel, synthesize
 
     load0 = os.getloadavg()
@@ -210,19 +207,28 @@ def main(argv=None) -> int:
     t = time.perf_counter()
     load = load_stage(camp, log)
     _, model = build_model(camp, load, log)
-    pm = model.parametric
     articles = identify_stage(camp, load.articles, log).attached(load.articles)
     eq = equalize_stage(camp, articles)
     groups = group_stage(camp, articles, eq, log)
-    ex_ = make_executor(camp.execution.scheduler, args.workers or camp.execution.workers, progress=None)
-    ex_.start()
+    pool = make_executor(camp.execution.scheduler, args.workers or camp.execution.workers, progress=None)
+    pool.start()  # also runs the screening's nonlinear checks and the cross-validation below
     try:
-        cal = calibrate_stage(camp, model, articles, eq, groups, ex_, log)
+        cal = calibrate_stage(camp, model, articles, eq, groups, pool, log)
+        prep["campaign calibration (load, identify, equalize, calibrate, refine)"] = time.perf_counter() - t
+        return _diagnose(args, ex, sc, effects, camp, model, articles, eq, cal, pool, sensors, drives, hold_ch,
+                         prep, load0, malloc_tuned)
     finally:
-        close = getattr(ex_, "close", None)
-        if close:
-            close()
-    prep["campaign calibration (load, identify, equalize, calibrate, refine)"] = time.perf_counter() - t
+        pool.close()
+
+
+def _diagnose(args, ex, sc, effects, camp, model, articles, eq, cal, pool, sensors, drives, hold_ch, prep, load0,
+              malloc_tuned) -> int:
+    import femodel
+    from calibration import CandidateTerm, accept, cross_validate, fit_with, holdout_sd, screen, shifted_solver
+    from femodel import CandidateOptions, generate_candidates
+    from frfcal.campaign._stages import equalized_data
+
+    pm = model.parametric
     (m,) = cal.members
     p_cal, sur, basis = m.p, m.surrogate, m.basis
     zeta = camp.calibration.zeta0
@@ -259,11 +265,11 @@ def main(argv=None) -> int:
 
     t0 = clock.start()
     s = screen(sur, basis, p_cal, data, zeta, terms, pm.lower, pm.upper, quantity=quantity, model=model,
-               n_check=args.n_check, solve=solve, continuation=cont)
+               n_check=args.n_check, solve=solve, continuation=cont, executor=pool)
     clock.stop("screening (linear + nonlinear checks)", t0)
 
     t0 = clock.start()
-    cvo = dict(n_realizations=args.cv_realizations, seed=args.seed, quantity=quantity, max_nfev=20)
+    cvo = dict(n_realizations=args.cv_realizations, seed=args.seed, quantity=quantity, max_nfev=20, executor=pool)
     p_b = s.p_baseline
     h_before = float(np.mean([holdout_sd(sur, p_b, h, zeta, quantity) for h in hold]))
     cv_before = cross_validate(sur, data, p_b, pm.lower, pm.upper, zeta, **cvo).sd_test
