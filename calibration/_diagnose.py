@@ -597,6 +597,7 @@ def screen(
     max_nfev: int = 40,
     alpha: float = 0.01,
     chunk_bytes: float = 2.5e8,
+    executor=None,
 ) -> Screening:
     """Rank candidate effects by the fraction of the residual they explain beyond the existing parameters.
 
@@ -644,6 +645,12 @@ def screen(
         Memory bound of the scratch arrays of one chunk of candidates (bytes);
         the chunk holds about ``16 n_f n_in (3 r + 5 n_out) + 48 r^2 + 32 N`` bytes
         per candidate (r basis size, N compared values).
+    executor : optional
+        Runs the nonlinear re-fits (:func:`calibration.run_start`, one per
+        checked candidate) in parallel, as the multi-start does
+        (:func:`calibration.make_executor`); the extensions are built here,
+        the fits are independent. None: one after the other in this process.
+        The outcome does not depend on it.
 
     Returns
     -------
@@ -701,9 +708,17 @@ def screen(
         if solve is None:
             solve = shifted_solver(model, sur.p_basis, shift_hz)
         start = lin[0].p  # the nonlinear fits run through the stages from the first stage's baseline
-        for i in top:
-            checks.append(_check(sur, basis, model, cands[i], i, stages, quantity, start, c_lin[i], lower, upper,
-                                 max_nfev, lin[-1].sd, solve))
+        jobs = [_check_job(sur, basis, model, cands[i], stages, quantity, start, c_lin[i], lower, upper, max_nfev,
+                           solve) for i in top]
+        if executor is None:
+            outs = [(run_start(job), t) for job, t in jobs]
+        else:
+            tf = time.perf_counter()
+            fits = executor.map(run_start, [job for job, _ in jobs])
+            share = (time.perf_counter() - tf) / len(jobs)  # the pool's wall time, spread over the checks
+            outs = [(o, t + share) for o, (_, t) in zip(fits, jobs)]
+        for i, (out, t_ext) in zip(top, outs):
+            checks.append(_checked_fit(cands[i], i, out, lin[-1].sd, t_ext))
     t3, c3 = time.perf_counter(), time.process_time()
     checks.sort(key=lambda c: -c.explained)
     checked = [c.index for c in checks]
@@ -734,18 +749,23 @@ def screen(
     )
 
 
-def _check(sur, basis, model, cand, index, stages, quantity, p0, c0, lower, upper, max_nfev, sd0,
-           solve) -> CandidateCheck:
-    """Extend by one candidate and re-fit [p, c] from [p0, c0] through the stages."""
+def _check_job(sur, basis, model, cand, stages, quantity, p0, c0, lower, upper, max_nfev, solve, xtol=1e-8):
+    """Extend by one candidate; return (the :func:`run_start` arguments of the [p, c] re-fit from [p0, c0]
+    through the stages, wall time of the extension)."""
     t0 = time.perf_counter()
     sur_e, _ = extend_with_candidates(sur, basis, model, [cand], solve=solve)
     objs = [Objective(sur_e, d, z, quantity) for z, d in stages]
     lo = np.r_[lower, cand.lower]
     hi = np.r_[upper, cand.upper]
-    out = _fit(objs, np.r_[p0, c0], lo, hi, max_nfev)
+    x0 = np.clip(np.r_[p0, c0], lo, hi)
+    return (objs, x0, lo, hi, max_nfev, xtol), time.perf_counter() - t0
+
+
+def _checked_fit(cand, index, out, sd0, t_ext) -> CandidateCheck:
+    """The CandidateCheck of a re-fit outcome (``t_ext``: the extension's wall time, added to the fit's)."""
     explained = 1.0 - out.sd / sd0 if sd0 > 0 else 0.0
     return CandidateCheck(cand.name, index, float(out.p[-1]), out.p[:-1].copy(), float(out.sd), float(explained),
-                          out.converged, time.perf_counter() - t0)
+                          out.converged, float(t_ext + out.time_s))
 
 
 # ----------------------------------------------------------------------------- recalibration with candidates

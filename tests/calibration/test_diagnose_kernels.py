@@ -248,6 +248,25 @@ def test_a_stiffness_loss_on_three_bars_ranks_first(frame):
     assert s.check("f13").explained > 0.9
 
 
+def test_nonlinear_checks_in_a_process_pool_match_the_serial_ones(frame):
+    """screen(executor=...) runs the re-fits of the checked candidates in workers: the same checks and ranking."""
+    from calibration import make_executor
+
+    pm, model, sur, T, terms, cands = frame
+    data = _truth_data(pm, model, AddedMass("m_truth", (30,), 0.5), 1.0, sigma=0.005)
+    serial = _screen(frame, data, n_check=4)
+    with make_executor(None, 2) as ex:
+        pooled = _screen(frame, data, n_check=4, executor=ex)
+    assert [c.name for c in pooled.checks] == [c.name for c in serial.checks]
+    assert pooled.best == serial.best == "m30"
+    np.testing.assert_array_equal(pooled.order, serial.order)
+    for a, b in zip(pooled.checks, serial.checks):
+        assert a.c == pytest.approx(b.c, rel=1e-9, abs=1e-12)
+        assert a.sd == pytest.approx(b.sd, rel=1e-9)
+        np.testing.assert_allclose(a.p, b.p, rtol=1e-9, atol=1e-12)
+    assert serial.check("m30").c == pytest.approx(1.0, rel=0.05)
+
+
 def test_without_an_effect_no_candidate_is_significant(frame):
     pm, model, sur, T, terms, cands = frame
     for seed in (0, 1):
