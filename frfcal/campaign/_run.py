@@ -28,7 +28,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from calibration import make_executor
-from frfcal.campaign._diagnose import diagnose_stage, write_diagnosis
+from frfcal.campaign._diagnose import DiagnosisResult, diagnose_stage, write_diagnosis
 from frfcal.campaign._report import write_outputs
 from calibration import CalibrationError
 from frfcal.campaign._front import (
@@ -357,12 +357,12 @@ def _stages(camp, ctx, stage, records, timings, t_all):
     out = write_outputs(camp, pm, articles, groups, cal, val, xval, timings, records, outdir, ctx.log)
     ctx.outputs = out
     diag = ctx.results.get("diagnose")
-    if diag is not None:
+    if isinstance(diag, DiagnosisResult):
         out["diagnosis"] = write_diagnosis(diag, camp, pm, outdir, ctx.log)
     for spec in wanted:
         if spec.after_outputs:
             run_late(spec)
-    if ctx.results.get("report") is not None:
+    if isinstance(ctx.results.get("report"), (str, Path)):
         out["report"] = str(ctx.results["report"])
     out["stages"] = records
     return out

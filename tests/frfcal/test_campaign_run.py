@@ -27,6 +27,7 @@ from frfcal.synth import SynthChannel, synthesize
 REPO = Path(__file__).resolve().parents[2]
 BAND = (60.0, 250.0)
 CORE = ["load", "identify", "equalize", "group", "calibrate", "validate", "crossvalidate"]
+LATE = ["diagnose", "report"]  # the late stages frfcal run adds after cross-validation
 
 
 def _campaign_text(params, uffs, names, out="out", extra=""):
@@ -87,8 +88,9 @@ def _status(res):
 
 def test_uninterrupted_run_imports_the_uff_files_and_runs_every_stage(small):
     tmp, camp, ref = small
-    assert list(ref["stages"]) == ["import", *CORE]
+    assert list(ref["stages"]) == ["import", *CORE, *LATE]
     assert set(_status(ref).values()) == {"ran"}
+    assert (tmp / "ref" / "report.html").exists() and (tmp / "ref" / "diagnosis.json").exists()
     assert sorted(p.name for p in (tmp / "ref" / "runs").glob("*.h5")) == ["A1.h5", "A2.h5"]
     # the calibration moved every parameter off nominal towards the truth (5-15 % offsets)
     truth = np.load(tmp / "data" / "truth.npz")
@@ -121,8 +123,8 @@ def test_killed_run_resumes_after_the_last_stored_stage_with_the_same_result(sma
     log = done.stdout
     # the stages stored before the kill are read back, not recomputed: no identification, no calibration ran
     for k, name in enumerate(["import", "load", "identify", "equalize", "group", "calibrate"], start=1):
-        assert f"[{k}/8] {name}: inputs unchanged, stored result reused" in log
-    assert "[8/8] crossvalidate: done in" in log
+        assert f"[{k}/10] {name}: inputs unchanged, stored result reused" in log
+    assert "[8/10] crossvalidate: done in" in log and "[10/10] report: done in" in log
     assert "identified order" not in log and "calibrating on" not in log
     res = json.loads((out / "calibration.json").read_text())
     st = _status(res)
