@@ -37,8 +37,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dof", type=int, default=5000, help="approximate model size in DOF (default 5000)")
     parser.add_argument("--band", type=float, nargs=2, default=(100.0, 400.0), metavar=("LO_HZ", "HI_HZ"),
                         help="calibration band, Hz (default 100 400, as in the paper)")
-    parser.add_argument("--starts", type=int, default=3, help="Latin-hypercube starts besides the nominal one (default 3)")
-    parser.add_argument("--realizations", type=int, default=4, help="cross-validation realizations (default 4)")
+    parser.add_argument("--starts", type=int, default=2, help="Latin-hypercube starts besides the nominal one (default 2)")
+    parser.add_argument("--realizations", type=int, default=3, help="cross-validation realizations (default 3)")
     parser.add_argument("--workers", type=int, default=None, help="local worker processes (default: all cores)")
 
 
@@ -159,9 +159,9 @@ n_groups = 2
 realizations = {realizations}
 
 [diagnosis]                 # docs/diagnosis.md; sized for the demo's 5-minute budget on 2 cores
-top_n = 3                   # candidates re-fitted nonlinearly after the linear screening, then recalibrated
+top_n = 2                   # candidates re-fitted nonlinearly after the linear screening, then recalibrated
 max_effects = 1             # one effect per article group at most
-max_evaluations = 20        # residual evaluations per screening fit stage
+max_evaluations = 15        # residual evaluations per screening fit stage
 candidates = {{ spread_grids = 15 }}  # ground springs and lumped masses at 15 spread grids (default 40)
 {execution}
 [output]
