@@ -646,6 +646,14 @@ def _summary(camp, r: ReportResults) -> str:
                 if v.floor_ratio is not None:
                     txt += f" ({v.floor_ratio:.2g}x the floor)"
             rows.append((f"member {m.label}", txt))
+    for m in getattr(r.diagnosis, "members", ()):
+        if hasattr(m, "verdict"):
+            acc = "; ".join(f"{a['family']} {a['name']}: {a['size']}" for a in m.accepted)
+            rows.append((f"diagnosis {m.label}", m.verdict + (f": {acc}" if acc else "")))
+    flagged = [g.article for g in getattr(r.diagnosis, "gates", ())
+               if getattr(g, "nonlinearity", None) is not None and g.nonlinearity.flagged]
+    if hasattr(r.diagnosis, "gates"):
+        rows.append(("nonlinear articles", ", ".join(flagged) or "none"))
     return _kv(rows)
 
 

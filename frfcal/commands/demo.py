@@ -318,7 +318,8 @@ def closing_summary(res: dict, checks: dict | None = None) -> tuple[list, dict]:
             lines.append(f"  {name:34s} {_g(a):>9s} {_g(b):>11s} {_g(c):>10s} {_g(f):>9s}")
         if sd:
             lines.append(f"  (raw calibration: 'nominal' is the refinement's start, the equalized optimum; its floor "
-                         f"is noise {_g(sd.get('floor'))} + test-to-test scatter {_g(sd.get('scatter'))})")
+                         f"is noise {_g(sd.get('floor'))} + test-to-test scatter {_g(sd.get('scatter'))}; the "
+                         "hold-out floor is the noise alone)")
         entry = {"member": m.get("member"), "articles": m.get("articles"),
                  "sd": {k: {"nominal": a, "calibrated": b, "diagnosed": c, "floor": f} for k, a, b, c, f in rows}}
         if d:

@@ -430,3 +430,5 @@ def test_diagnosis_result_rendered_per_member(campaign, tmp_path):
     assert [x[:3] for x in _rows(text, "A1") if "no check" in x] == [["A1", "&ndash;", "no check"]]
     assert "all: test FRF, calibrated model, extended model at the most affected channels" in text
     assert "is drawn in the Diagnosis section" in text
+    assert _rows(text, "diagnosis all") == [["diagnosis all", "effect(s) found: contact_spring contact_p1_p2_1: 2.4e+05 N/m"]]
+    assert _rows(text, "nonlinear articles") == [["nonlinear articles", "none"]]
