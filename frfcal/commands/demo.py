@@ -11,9 +11,12 @@
    loose part that rattles at the higher force level; the simulated lab sweeps
    each at 0.25 N and 1 N (at 1 N the sharpest resonance reaches about 270 m/s^2 of the 500 m/s^2 accelerometer range); calibration of the 17 parameters on 11 channels,
    hold-out validation on 9, cross-validation, one calibration per article group;
-4. ``frfcal run campaign.toml``: every stage that exists, stored under ``DIR/campaign``;
-5. the level check of every article (the 1 N runs against the 0.25 N runs)
-   and the headline numbers.
+4. ``frfcal run campaign.toml``: every stage, stored under ``DIR/campaign``, through
+   the diagnose stage (its nonlinearity gate compares each article's 1 N run with its
+   0.25 N run) and the report ``DIR/campaign/report.html``;
+5. the closing summary (:func:`closing_summary`, also ``DIR/demo_summary.json``): the
+   report's path, the grouping, SD before/after calibration and diagnosis beside the
+   floor per group, the effect found (or what ranked first), the nonlinear article(s).
 """
 
 from __future__ import annotations
