@@ -341,7 +341,9 @@ def _overlays(camp, r: ReportResults, tmp: Path) -> str:
                + _table(("member", "article", "model", "median rel. deviation", "median floor", "ratio to floor"),
                         rows))
     if not ext:
-        out.append(_note("no extended model (the diagnosis did not run or accepted no effect)"))
+        accepted = [m.label for m in getattr(r.diagnosis, "members", ()) if getattr(m, "accepted", ())]
+        out.append(_note("the extended model of " + ", ".join(accepted) + " is drawn in the Diagnosis section"
+                         if accepted else "no extended model (the diagnosis did not run or accepted no effect)"))
     return "".join(out)
 
 
@@ -485,12 +487,83 @@ def _is_figure(v) -> bool:
     return hasattr(v, "savefig") and hasattr(v, "axes")
 
 
+_SD_ROWS = (("calibration, equalized", "calibration_equalized", "calibration_equalized", None),
+            ("calibration, raw lines", "calibration_raw", "calibration_raw", "floor"),
+            ("hold-out, raw lines", "holdout", "holdout_refined", "holdout_floor"),
+            ("cross-validation RSE", "crossvalidation_rse", "crossvalidation_rse", None))
+
+
+def _diagnosis_member(camp, m) -> str:
+    """One member of a DiagnosisResult: verdict, SD before/after beside the floor, ranking, trials, overlay."""
+    from frfcal.campaign._diagnose import overlay_figure
+
+    out = [f"<h3>{_esc(m.label)} ({_esc(', '.join(m.articles))}): {_esc(m.verdict)}</h3><p>{_esc(m.reason)}</p>"]
+    sd = m.sd or {}
+    after = sd.get("after") or {}
+    rows = []
+    for name, kb, ka, kf in _SD_ROWS:
+        after_v = after.get(ka, after.get("holdout")) if ka == "holdout_refined" else after.get(ka)
+        floor = sd.get(kf) if kf else None
+        if kf == "floor" and floor is not None:
+            floor = floor + sd.get("scatter", 0.0)
+        rows.append((name, sd.get(kb), after_v if after else None, floor))
+    out.append(_table(("SD", "calibrated model", "with the accepted effect(s)", "floor"), rows))
+    out.append(_note("floor of the raw calibration lines: noise floor ({}) + test-to-test scatter of the group's "
+                     "articles; of the hold-out: the validation's noise floor".format(sd.get("floor_source", "?"))))
+    if m.channels:
+        out.append(f"<p>most affected channels: {_esc(', '.join(m.channels[:8]))}</p>")
+    if m.n_candidates:
+        out.append(f"<p>candidates screened: {_esc(', '.join(f'{k} {v}' for k, v in m.n_candidates.items()))}</p>")
+    if m.ranked:
+        out.append("<h4>Screening: candidates ranked by the fraction of the residual they explain</h4>" + _table(
+            ("rank", "family", "name", "size", "explained %", "re-fitted", "significant", "description"),
+            [(x["rank"], x["family"], x["name"], x["size"], 100 * x["explained"], x["checked"], x["significant"],
+              x["description"]) for x in m.ranked]))
+    if m.trials:
+        out.append("<h4>Recalibrations tried</h4>" + _table(
+            ("effect(s)", "c", "hold-out SD before", "after", "decision"),
+            [(" + ".join(t["names"]), t["c"], t["holdout_before"], t["holdout_after"],
+              ("accepted: " if t["decision"]["accepted"] else "not accepted: ") + str(t["decision"].get("reason", ""))
+              if "decision" in t else "not decided (a better combination was taken)") for t in m.trials]))
+    if m.accepted:
+        out.append("<h4>Accepted</h4>" + _table(("family", "name", "size", "description"),
+                                                [(a["family"], a["name"], a["size"], a["description"])
+                                                 for a in m.accepted]))
+        bdf = camp.resolve(camp.output.dir) / f"extended_{m.label}.bdf"
+        if bdf.exists():
+            out.append(f"<p>extended deck: {_esc(bdf)}</p>")
+    if m.nonlinear_modes:
+        out.append("<h4>Nonlinearity evidence</h4>" + _table(
+            ("article", "check", "frequency Hz", "levels N", "values", "z sigma"),
+            [(x["article"], x["check"], x.get("frequency_hz"), x.get("levels_n"), x.get("values"), x.get("z"))
+             for x in m.nonlinear_modes]))
+    if m.overlay is not None:
+        fig = overlay_figure(m.overlay, f"[{m.label}] {m.verdict}: {m.overlay['article']}")
+        out.append(_fig(fig, f"{m.label}: test FRF, calibrated model" + (", extended model"
+                                                                         if m.overlay.get("after") is not None else "")
+                        + " at the most affected channels"))
+    return "".join(out)
+
+
 def _diagnosis(camp, r: ReportResults, tmp: Path) -> str:
     d = r.diagnosis
     if d is None:
         raise _Skip("the diagnosis stage did not run")
     if not hasattr(d, "to_dict"):
         raise _Skip(f"the diagnosis result ({type(d).__name__}) has no to_dict(): not shown")
+    gates, members = getattr(d, "gates", None), getattr(d, "members", None)
+    if gates is not None and members is not None and all(hasattr(m, "verdict") for m in members):
+        rows = []
+        for g in gates:
+            nl = g.nonlinearity
+            rows.append((g.article, None if nl is None else nl.flagged, "no check" if nl is None else nl.verdict,
+                         sorted({x.level for x in g.runs}), "; ".join(g.notes)))
+        out = ["<h3>Nonlinearity gate</h3>" + _table(("article", "flagged", "verdict", "levels N", "notes"), rows)]
+        out += [_diagnosis_member(camp, m) for m in members]
+        seps = [dict(x) for x in getattr(d, "separations", ())]
+        if seps:
+            out.append("<h3>Effects fitted per article against the groups</h3>" + _generic({"separations": seps}))
+        return "".join(out)
     out = [_generic(d.to_dict())]
     figs = getattr(d, "figures", None)
     figs = figs() if callable(figs) else figs
@@ -573,6 +646,14 @@ def _summary(camp, r: ReportResults) -> str:
                 if v.floor_ratio is not None:
                     txt += f" ({v.floor_ratio:.2g}x the floor)"
             rows.append((f"member {m.label}", txt))
+    for m in getattr(r.diagnosis, "members", ()):
+        if hasattr(m, "verdict"):
+            acc = "; ".join(f"{a['family']} {a['name']}: {a['size']}" for a in m.accepted)
+            rows.append((f"diagnosis {m.label}", m.verdict + (f": {acc}" if acc else "")))
+    flagged = [g.article for g in getattr(r.diagnosis, "gates", ())
+               if getattr(g, "nonlinearity", None) is not None and g.nonlinearity.flagged]
+    if hasattr(r.diagnosis, "gates"):
+        rows.append(("nonlinear articles", ", ".join(flagged) or "none"))
     return _kv(rows)
 
 

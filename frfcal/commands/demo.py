@@ -11,9 +11,12 @@
    loose part that rattles at the higher force level; the simulated lab sweeps
    each at 0.25 N and 1 N (at 1 N the sharpest resonance reaches about 270 m/s^2 of the 500 m/s^2 accelerometer range); calibration of the 17 parameters on 11 channels,
    hold-out validation on 9, cross-validation, one calibration per article group;
-4. ``frfcal run campaign.toml``: every stage that exists, stored under ``DIR/campaign``;
-5. the level check of every article (the 1 N runs against the 0.25 N runs)
-   and the headline numbers.
+4. ``frfcal run campaign.toml``: every stage, stored under ``DIR/campaign``, through
+   the diagnose stage (its nonlinearity gate compares each article's 1 N run with its
+   0.25 N run) and the report ``DIR/campaign/report.html``;
+5. the closing summary (:func:`closing_summary`, also ``DIR/demo_summary.json``): the
+   report's path, the grouping, SD before/after calibration and diagnosis beside the
+   floor per group, the effect found (or what ranked first), the nonlinear article(s).
 """
 
 from __future__ import annotations
@@ -37,8 +40,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dof", type=int, default=5000, help="approximate model size in DOF (default 5000)")
     parser.add_argument("--band", type=float, nargs=2, default=(100.0, 400.0), metavar=("LO_HZ", "HI_HZ"),
                         help="calibration band, Hz (default 100 400, as in the paper)")
-    parser.add_argument("--starts", type=int, default=3, help="Latin-hypercube starts besides the nominal one (default 3)")
-    parser.add_argument("--realizations", type=int, default=4, help="cross-validation realizations (default 4)")
+    parser.add_argument("--starts", type=int, default=2, help="Latin-hypercube starts besides the nominal one (default 2)")
+    parser.add_argument("--realizations", type=int, default=3, help="cross-validation realizations (default 3)")
     parser.add_argument("--workers", type=int, default=None, help="local worker processes (default: all cores)")
 
 
@@ -157,6 +160,12 @@ n_groups = 2
 
 [crossvalidation]
 realizations = {realizations}
+
+[diagnosis]                 # docs/diagnosis.md; sized for the demo's 5-minute budget on 2 cores
+top_n = 2                   # candidates re-fitted nonlinearly after the linear screening, then recalibrated
+max_effects = 1             # one effect per article group at most
+max_evaluations = 15        # residual evaluations per screening fit stage
+candidates = {{ spread_grids = 15 }}  # ground springs and lumped masses at 15 spread grids (default 40)
 {execution}
 [output]
 dir = "campaign"
@@ -174,7 +183,6 @@ def run(args) -> int:
 
     import femodel
     from frfcal.campaign import load_campaign, run_campaign
-    from frfcal.campaign._acquire import level_checks, runs_by_level
     from labdata import read_layout_file
 
     t_start = time.perf_counter()
@@ -208,42 +216,150 @@ def run(args) -> int:
     _step("[4/4] $ frfcal run campaign.toml")
     camp = load_campaign(campaign)
     res = run_campaign(camp, log=lambda m: print(m, flush=True))
-    runs = runs_by_level(res_paths(out / "campaign" / "runs"))
-    checks = level_checks(runs, settle_tolerance=SETTLE_TOLERANCE)
 
-    _step(f"summary ({time.perf_counter() - t_start:.0f} s)")
-    print("stages: " + ", ".join(f"{k} {v['status']} ({v.get('time_s') or 0:.0f} s)" for k, v in res["stages"].items()))
-    for m in res.get("members", []):
-        v = m.get("validation") or {}
-        print(f"member {m.get('member', '?')}: articles {', '.join(m.get('articles', []))}")
-        print(f"  calibration (equalized identified model): SD {m['sd_calibration_nominal']:.3g} (nominal) -> "
-              f"{m['sd_calibration']:.3g} (calibrated)")
-        if m.get("sd_raw_calibration") is not None:
-            print(f"  calibration lines (raw): SD {m['sd_raw_calibration_start']:.3g} -> {m['sd_raw_calibration']:.3g}")
-        if v:
-            print(f"  hold-out channels: SD {v['sd_nominal']:.3g} (nominal) -> {v['sd_calibrated']:.3g} (calibrated); "
-                  f"noise floor {v.get('sd_floor', float('nan')):.3g}; {v.get('verdict', '')}")
-    for article, ld in checks.items():
-        verdict = ld if isinstance(ld, str) else \
-            "NONLINEAR (the FRF changes with force level beyond noise)" if ld.flagged else "linear"
-        print(f"level check {article} ({', '.join(f'{x:g} N' for x, _ in runs[article])}): {verdict}")
-    nonlinear = [a for a, ld in checks.items() if not isinstance(ld, str) and ld.flagged]
-    print(f"nonlinear article(s): {', '.join(nonlinear) or 'none'}")
-    print("the effect the model lacks: the diagnose stage is not part of this build (its stage is not merged); "
-          f"the truth: the gap is closed on {', '.join(GAP_CLOSED)}")
-    print(f"\nresults: {out / 'campaign'}/calibration.json, figures and stages/; campaign file {campaign}")
-    (out / "demo_summary.json").write_text(json.dumps({
-        "members": [{k: m.get(k) for k in ("member", "articles", "sd_calibration_nominal", "sd_calibration",
-                                           "sd_raw_calibration_start", "sd_raw_calibration", "validation")}
-                    for m in res.get("members", [])],
-        "level_checks": {a: ld if isinstance(ld, str) else ld.flagged for a, ld in checks.items()},
-        "nonlinear": nonlinear,
-        "time_s": time.perf_counter() - t_start}, indent=1, default=str))
+    wall = time.perf_counter() - t_start
+    t = os.times()
+    cpu = t.user + t.system + t.children_user + t.children_system
+    _step(f"summary ({wall:.0f} s wall, {cpu:.0f} s CPU including worker processes)")
+    lines, headline = closing_summary(res, checks=None if res.get("diagnosis") else _level_checks(res, out))
+    for line in lines:
+        print(line)
+    print(f"campaign file {campaign}; every result under {out / 'campaign'} (calibration.json, diagnosis.json, "
+          "figures, stages/)")
+    headline.update(time_s=wall, cpu_s=cpu)
+    (out / "demo_summary.json").write_text(json.dumps(headline, indent=1, default=str))
     return 0
 
 
-def res_paths(directory):
-    """Run files of the acquire stage's directory."""
+def _level_checks(res, out) -> dict:
+    """Level check of every article from the acquired run files (when the diagnose stage did not run):
+    article -> flagged (bool) or the reason it could not be made."""
     from pathlib import Path
 
-    return sorted(Path(directory).glob("*.h5"))
+    from frfcal.campaign._acquire import level_checks, runs_by_level
+
+    runs = runs_by_level(sorted((Path(out) / "campaign" / "runs").glob("*.h5")))
+    return {a: ld if isinstance(ld, str) else bool(ld.flagged)
+            for a, ld in level_checks(runs, settle_tolerance=SETTLE_TOLERANCE).items()}
+
+
+def _g(x, fmt: str = ".3g") -> str:
+    return "-" if x is None else format(float(x), fmt)
+
+
+def _nonlinear(diag: dict) -> dict:
+    """Flagged articles of the diagnosis' nonlinearity gate: article -> evidence in words."""
+    out = {}
+    for gate in diag.get("gates", []):
+        nl = gate.get("nonlinearity") or {}
+        if not nl.get("flagged"):
+            continue
+        why = []
+        for m in nl.get("modes", []):
+            if m.get("levels") and m.get("values"):
+                why.append(f"mode at {m['frequency_hz']:.4g} Hz: {m['quantity']} {m['values'][0]:.4g} -> "
+                           f"{m['values'][-1]:.4g} from {min(m['levels']):g} to {max(m['levels']):g} N "
+                           f"({m['z']:.3g} sigma)")
+        out[gate["article"]] = "; ".join(why[:2]) or nl.get("verdict") or "flagged"
+    return out
+
+
+def closing_summary(res: dict, checks: dict | None = None) -> tuple[list, dict]:
+    """The demo's closing lines and its headline numbers (``demo_summary.json``) from ``run_campaign``'s result.
+
+    Parameters
+    ----------
+    res : dict
+        ``run_campaign``'s result: ``members`` (calibration.json), ``grouping``,
+        ``articles``, ``stages``, and when the late stages ran ``diagnosis``
+        (``write_diagnosis``) and ``report`` (path of report.html).
+    checks : dict, optional
+        article -> level check flagged (bool) or why there is none; used when
+        the result has no diagnosis (else its nonlinearity gate is used).
+
+    Returns
+    -------
+    (lines, headline) : list of str, dict
+        SD values are the toolkit's relative log-magnitude deviation (docs/calibration.md), dimensionless.
+    """
+    lines, head = [], {}
+    report = res.get("report")
+    lines.append(f"report: {report}  (one self-contained HTML page: open it in a browser)" if report else
+                 "report: not written (the report stage did not run)")
+    head["report"] = report
+    lines.append("stages: " + ", ".join(f"{k} {v['status']} ({v.get('time_s') or 0:.0f} s)"
+                                        for k, v in res.get("stages", {}).items()))
+    arts = res.get("articles") or []
+    labels = (res.get("grouping") or {}).get("labels")
+    groups = []
+    if labels is not None and len(labels) == len(arts):
+        for g in sorted(set(labels), key=list(labels).index):
+            groups.append([a for a, lab in zip(arts, labels) if lab == g])
+        lines.append(f"grouping: {len(groups)} article group(s): " + " | ".join(", ".join(g) for g in groups))
+    head["groups"] = groups
+    diag = res.get("diagnosis") or {}
+    dmembers = {d["member"]: d for d in diag.get("members", [])}
+    lines.append("SD (relative log-magnitude deviation; raw = measured lines, equalized = identified model at zeta0)")
+    lines.append(f"  {'':34s} {'nominal':>9s} {'calibrated':>11s} {'diagnosed':>10s} {'floor':>9s}")
+    head["members"] = []
+    for m in res.get("members", []):
+        v = m.get("validation") or {}
+        d = dmembers.get(m.get("member"), {})
+        sd = d.get("sd") or {}
+        after = sd.get("after") or {}
+        floor_cal = None if not sd else sd.get("floor", 0.0) + sd.get("scatter", 0.0)
+        rows = [
+            ("calibration, equalized", m.get("sd_calibration_nominal"), m.get("sd_calibration"),
+             after.get("calibration_equalized"), None),
+            ("calibration, raw lines", m.get("sd_raw_calibration_start"), m.get("sd_raw_calibration"),
+             after.get("calibration_raw"), floor_cal),
+            ("hold-out, raw lines", v.get("sd_nominal"), v.get("sd_calibrated"),
+             after.get("holdout_refined", after.get("holdout")), v.get("sd_floor")),
+        ]
+        lines.append(f"member {m.get('member')} ({', '.join(m.get('articles', []))}):")
+        for name, a, b, c, f in rows:
+            lines.append(f"  {name:34s} {_g(a):>9s} {_g(b):>11s} {_g(c):>10s} {_g(f):>9s}")
+        if sd:
+            lines.append(f"  (raw calibration: 'nominal' is the refinement's start, the equalized optimum; its floor "
+                         f"is noise {_g(sd.get('floor'))} + test-to-test scatter {_g(sd.get('scatter'))}; the "
+                         "hold-out floor is the noise alone)")
+        entry = {"member": m.get("member"), "articles": m.get("articles"),
+                 "sd": {k: {"nominal": a, "calibrated": b, "diagnosed": c, "floor": f} for k, a, b, c, f in rows}}
+        if d:
+            lines.append(f"  diagnosis: {d['verdict']}")
+            acc = d.get("accepted") or []
+            for a in acc:
+                lines.append(f"    accepted: {a['family']} {a['name']}: {a['size']} ({a['description']})")
+            if d["verdict"] not in ("nothing to explain", "nonlinear"):
+                for r in (d.get("ranked") or [])[:3]:
+                    lines.append(f"    ranked {r['rank']}: {r['family']} {r['name']} ({r['size']}), explains "
+                                 f"{100 * r['explained']:.1f} % of the residual")
+                if d.get("candidates"):
+                    lines.append("    candidates screened: " + ", ".join(f"{k} {n}" for k, n in
+                                                                       d["candidates"].items()))
+            if d["verdict"] in ("nonlinear", "no effect accepted", "nothing to explain"):
+                lines.append(f"    {d['reason']}")
+            entry.update(verdict=d["verdict"], accepted=[{k: a.get(k) for k in ("family", "name", "size", "c")}
+                                                         for a in acc],
+                         ranked_first=(d.get("ranked") or [{}])[0].get("name"))
+        head["members"].append(entry)
+    if diag:
+        found = [f"{e['member']}: {a['family']} {a['name']} ({a['size']})" for e in head["members"]
+                 for a in e.get("accepted", [])]
+        lines.append("effect found: " + ("; ".join(found) if found else "none accepted"))
+        sep = diag.get("separating_effects") or []
+        if found:
+            lines.append("effect that separates the groups: " + (", ".join(sep) if sep else
+                                                                 "none established (no per-article separation fit)"))
+        nl = _nonlinear(diag)
+        head["nonlinear"] = sorted(nl)
+        lines.append("nonlinear article(s): " + ("; ".join(f"{a} ({w})" for a, w in nl.items()) if nl else "none"))
+    else:
+        lines.append("effect found: the diagnose stage did not run")
+        nl = sorted(a for a, f in (checks or {}).items() if f is True)
+        head["nonlinear"] = nl
+        lines.append("nonlinear article(s) (level check of the acquired runs): " + (", ".join(nl) or "none"))
+    lines.append(f"the truth: gap closed on {', '.join(GAP_CLOSED)} (contact springs), open on "
+                 f"{', '.join(a for a in ARTICLES if a not in GAP_CLOSED)}; {LOOSE} has a loose part from "
+                 f"{LEVELS_N[-1]:g} N")
+    return lines, head

@@ -197,3 +197,76 @@ def test_simulation_errors_name_the_field(model):
         campaign_from_dict({"model": {"parameters": "p.toml"}, "run": [{"path": "r.h5"}],
                             "channels": {"calibrate": ["a"]}, "band": {"low_hz": 1, "high_hz": 2},
                             "simulation": {"effect": [{"name": "g", "kind": "spring", "articles": ["A1"]}]}})
+
+
+def _result(accepted: bool) -> dict:
+    """A run_campaign result as the demo's two groups leave it: group1 (gap closed) significant, group2 with the
+    loose article flagged by the level check."""
+    cal = [{"member": "group1", "articles": ["SF1", "SF2", "SF3"], "sd_calibration_nominal": 0.61,
+            "sd_calibration": 0.12, "sd_raw_calibration_start": 0.35, "sd_raw_calibration": 0.21,
+            "validation": {"sd_nominal": 0.52, "sd_calibrated": 0.31, "sd_floor": 4.2e-5}},
+           {"member": "group2", "articles": ["SF4", "SF5"], "sd_calibration_nominal": 0.58,
+            "sd_calibration": 0.004, "sd_raw_calibration_start": 0.01, "sd_raw_calibration": 0.0005,
+            "validation": {"sd_nominal": 0.38, "sd_calibrated": 0.0073, "sd_floor": 4.2e-5}}]
+    ranked = [{"rank": 1, "name": "contact_PSHELL21_PSHELL2_1", "family": "contact_spring", "size": "3.1e+05 N/m",
+               "explained": 0.62, "description": "contact springs (z) between PSHELL 21 and PSHELL 2", "c": 8.0},
+              {"rank": 2, "name": "lumped_mass_7", "family": "lumped_mass", "size": "0.21 kg", "explained": 0.05,
+               "description": "lumped mass at grid 7", "c": 1.0}]
+    g1 = {"member": "group1", "articles": ["SF1", "SF2", "SF3"], "ranked": ranked, "candidates": {"contact_spring": 4},
+          "sd": {"floor": 1.6e-5, "scatter": 0.0052},
+          "verdict": "effect(s) found" if accepted else "no effect accepted",
+          "reason": "accepted: ..." if accepted else "the screening ranks contact_spring ... first; not accepted: x",
+          "accepted": [dict(ranked[0], decision={"accepted": True})] if accepted else []}
+    if accepted:
+        g1["sd"]["after"] = {"calibration_equalized": 0.01, "calibration_raw": 0.0009, "holdout": 0.002,
+                             "holdout_refined": 0.0011}
+    g2 = {"member": "group2", "articles": ["SF4", "SF5"], "verdict": "nonlinear", "reason": "SF5: level dependence",
+          "sd": {"floor": 1.6e-5, "scatter": 0.0004}, "ranked": [], "accepted": []}
+    gates = [{"article": a, "nonlinearity": {"flagged": a == "SF5", "verdict": "nonlinear" if a == "SF5" else "linear",
+                                             "modes": [{"frequency_hz": 389.0, "quantity": "frequency_hz",
+                                                        "levels": [0.25, 1.0], "values": [389.0, 387.8], "z": 41.0}]
+                                             if a == "SF5" else []}} for a in ("SF1", "SF2", "SF3", "SF4", "SF5")]
+    return {"members": cal, "articles": ["SF1", "SF2", "SF3", "SF4", "SF5"], "grouping": {"labels": [0, 0, 0, 1, 1]},
+            "stages": {"calibrate": {"status": "ran", "time_s": 80.0}}, "report": "/x/campaign/report.html",
+            "diagnosis": {"gates": gates, "members": [g1, g2], "separating_effects": []}}
+
+
+@pytest.mark.parametrize("accepted", [True, False])
+def test_closing_summary_headline(accepted):
+    """The demo's closing lines name the report, the groups, the SD before/after beside the floor, the effect found
+    (or what ranked first) and the nonlinear article; the headline JSON carries the same numbers."""
+    from frfcal.commands.demo import closing_summary
+
+    lines, head = closing_summary(_result(accepted))
+    text = "\n".join(lines)
+    assert lines[0].startswith("report: /x/campaign/report.html")
+    assert "grouping: 2 article group(s): SF1, SF2, SF3 | SF4, SF5" in text
+    row = next(ln for ln in lines if ln.strip().startswith("hold-out, raw lines"))
+    vals = row.split()[-4:]
+    assert vals[0] == "0.52" and vals[1] == "0.31" and vals[3] == "4.2e-05"
+    assert vals[2] == ("0.0011" if accepted else "-")  # the refined hold-out after the effect, else none
+    assert "nonlinear article(s): SF5 (mode at 389 Hz: frequency_hz 389 -> 387.8 from 0.25 to 1 N (41 sigma))" in text
+    assert head["nonlinear"] == ["SF5"] and head["groups"] == [["SF1", "SF2", "SF3"], ["SF4", "SF5"]]
+    g1 = head["members"][0]
+    assert g1["sd"]["hold-out, raw lines"]["calibrated"] == 0.31
+    if accepted:
+        assert "effect found: group1: contact_spring contact_PSHELL21_PSHELL2_1 (3.1e+05 N/m)" in text
+        assert g1["accepted"][0]["name"] == "contact_PSHELL21_PSHELL2_1"
+    else:
+        assert "effect found: none accepted" in text
+        assert "ranked 1: contact_spring contact_PSHELL21_PSHELL2_1 (3.1e+05 N/m), explains 62.0 %" in text
+        assert g1["ranked_first"] == "contact_PSHELL21_PSHELL2_1" and g1["accepted"] == []
+    # the group whose verdict is "nonlinear" gives its reason, not a ranking
+    assert "SF5: level dependence" in text
+
+
+def test_closing_summary_without_diagnosis():
+    """Without the diagnose stage the summary says so and takes the nonlinear articles from the level checks."""
+    from frfcal.commands.demo import closing_summary
+
+    res = _result(False)
+    del res["diagnosis"], res["report"]
+    lines, head = closing_summary(res, checks={"SF4": False, "SF5": True, "SF1": "one level"})
+    text = "\n".join(lines)
+    assert "report: not written" in text and "effect found: the diagnose stage did not run" in text
+    assert "nonlinear article(s) (level check of the acquired runs): SF5" in text and head["nonlinear"] == ["SF5"]

@@ -392,3 +392,43 @@ def test_sweep_quality_of_simulated_acquisitions_at_two_levels(campaign, tmp_pat
         assert cells["lines within tolerance %"] == "100"
         assert float(cells["max THD response %"]) < 1.0
     assert "SF01: the same article at 0.5, 1 N" in text
+
+
+def test_diagnosis_result_rendered_per_member(campaign, tmp_path):
+    """The diagnose stage's DiagnosisResult: gate table, per member the verdict, SD before/after beside the floor,
+    the ranking, the recalibrations tried and the before/after FRF overlay."""
+    from frfcal.campaign._diagnose import ArticleGate, DiagnosisResult, LevelRun, MemberDiagnosis
+
+    _, camp, _, _, r = campaign
+    f = np.linspace(100.0, 400.0, 60)
+    H = (1.0 / (1 - (f / 250.0) ** 2 + 0.02j))[:, None, None] * np.ones((1, 2, 1))
+    overlay = {"article": "A1", "freq_hz": f, "channels": ["acc1", "acc2"], "drives": ["force1"], "test": H,
+               "before": 1.1 * H, "after": 1.01 * H}
+    ranked = ({"rank": 1, "name": "contact_p1_p2_1", "family": "contact_spring", "size": "2.4e+05 N/m",
+               "explained": 0.81, "checked": True, "significant": True, "description": "contact springs (z)"},
+              {"rank": 2, "name": "mass_g7", "family": "lumped_mass", "size": "0.2 kg", "explained": 0.07,
+               "checked": True, "significant": False, "description": "lumped mass at grid 7"})
+    trial = {"names": ["contact_p1_p2_1"], "c": [2.4], "holdout_before": 0.0123, "holdout_after": 0.0043,
+             "decision": {"accepted": True, "reason": "hold-out SD x0.35"}}
+    sd = {"calibration_equalized": 0.02, "calibration_raw": 0.0123, "holdout": 0.0125, "holdout_floor": 0.0039,
+          "crossvalidation_rse": 0.011, "floor": 0.003, "scatter": 0.001, "floor_source": "per-line standard errors",
+          "after": {"calibration_equalized": 0.004, "calibration_raw": 0.0041, "holdout": 0.0043,
+                    "holdout_refined": 0.0042, "crossvalidation_rse": 0.004}}
+    m = MemberDiagnosis("all", ("A1", "A2"), "effect(s) found", "accepted: contact springs (z): 2.4e+05 N/m", None,
+                        sd=sd, channels=("acc2", "acc1"), n_candidates={"contact_spring": 3, "lumped_mass": 40},
+                        ranked=ranked, accepted=(dict(ranked[0]),), trials=(trial,), overlay=overlay)
+    gate = ArticleGate("A1", None, (LevelRun("A1", tmp_path / "a.h5", 1.0, "run file", "up"),),
+                       ("A1: one run file: no level-dependence check",))
+    d = DiagnosisResult((gate,), (m,))
+    text = write_report(camp, tmp_path, replace(r, diagnosis=d, max_stabilization=0), log=lambda m: None).read_text()
+    assert "all (A1, A2): effect(s) found" in text
+    assert _rows(text, "hold-out, raw lines")[0][1:] == ["0.0125", "0.0042", "0.0039"]
+    assert _rows(text, "calibration, raw lines")[0][1:] == ["0.0123", "0.0041", "0.004"]  # floor = noise + scatter
+    assert [x[1:5] for x in _rows(text, "2") if "mass_g7" in x] == [["lumped_mass", "mass_g7", "0.2 kg", "7"]]
+    assert len(_rows(text, "contact_p1_p2_1")) == 1 and len(_rows(text, "contact_spring")) == 1  # tried, accepted
+    assert "accepted: hold-out SD x0.35" in text
+    assert [x[:3] for x in _rows(text, "A1") if "no check" in x] == [["A1", "&ndash;", "no check"]]
+    assert "all: test FRF, calibrated model, extended model at the most affected channels" in text
+    assert "is drawn in the Diagnosis section" in text
+    assert _rows(text, "diagnosis all") == [["diagnosis all", "effect(s) found: contact_spring contact_p1_p2_1: 2.4e+05 N/m"]]
+    assert _rows(text, "nonlinear articles") == [["nonlinear articles", "none"]]
