@@ -161,7 +161,7 @@ def test_contact_springs_never_join_grids_an_element_already_joins(which, frame_
 def test_clusters_partition_each_property_group(shell_pm, frame_pm):
     for pm in (shell_pm, frame_pm):
         ctx = candidate_context(pm)
-        cands = generate_candidates(pm, families=["element_cluster"])
+        cands = generate_candidates(pm, families=["element_cluster"], options=CandidateOptions(cluster_radii=()))
         by_part: dict = {}
         for c in cands:
             assert len(c.parts) == 1 and c.term.kind == "K"
@@ -177,6 +177,29 @@ def test_clusters_partition_each_property_group(shell_pm, frame_pm):
             rows = np.flatnonzero(np.isin(ctx.element_ids, c.term.elements))
             span = np.ptp(ctx.element_centers[rows], axis=0)
             assert np.all(span <= 3.0 * np.median(ctx.element_sizes[rows]) * 1.5 + 1e-12)
+
+
+def test_element_centred_clusters_match_a_region_the_cubes_split(frame_pm):
+    """The frame's standard cluster (frfcal.effects: 5 bars within 2 element sizes of element 9) falls on three
+    cubes of the tiling; the element-centred balls (default radii 1 and 2 element sizes) offer it whole."""
+    ctx = candidate_context(frame_pm)
+    truth = {7, 8, 9, 10, 11}
+    cubes = generate_candidates(frame_pm, families=["element_cluster"], options=CandidateOptions(cluster_radii=()))
+    split = [set(c.term.elements) & truth for c in cubes if set(c.term.elements) & truth]
+    assert len(split) == 3 and max(len(s) for s in split) == 2
+    cands = generate_candidates(frame_pm, families=["element_cluster"])
+    sets = [frozenset(c.term.elements) for c in cands]
+    assert len(set(sets)) == len(sets)  # no element set offered twice
+    assert {frozenset(s) for s in ({8, 9, 10}, truth)} <= set(sets)  # radius 1 and 2 around element 9
+    ball = next(c for c in cands if set(c.term.elements) == truth)
+    assert ball.term.name == "cluster_PBAR1_e9_r2_K" and "within 0.2 of element 9" in ball.description
+    assert np.allclose(ball.center, [0.85, -0.4, 0.0]) and ball.size == pytest.approx(0.1)
+    for c in cands:  # every ball lies within its radius of its seed, in one property group
+        rows = np.flatnonzero(np.isin(ctx.element_ids, c.term.elements))
+        assert len(c.parts) == 1 and set(ctx.element_parts[rows].tolist()) == set(c.parts)
+    # the seeds are capped per group and radius
+    few = generate_candidates(frame_pm, families=["element_cluster"], options=CandidateOptions(cluster_seeds=2))
+    assert len(cubes) < len(few) <= len(cubes) + 3 * 2 * 2
 
 
 def test_cluster_mass_kind_and_bounds_by_option(frame_pm):
@@ -286,9 +309,13 @@ def test_counts_on_the_5k_shell(tmp_path):
     assert 200 <= len(cands) <= 2000
     assert fams["element_cluster"] >= 100 and fams["sensor_masses"] == 24 and fams["ground_spring"] == 120
     ctx = candidate_context(pm)
-    # clusters of three element sizes: about (group extent / 3 h) cells per group, far fewer than elements
+    # cubes of three element sizes: about (group extent / 3 h) cells per group, far fewer than elements;
+    # element-centred balls at most cluster_seeds per group and radius
     n_fac = int(ctx.factorable.sum())
-    assert fams["element_cluster"] < n_fac / 3
+    n_cubes = len(generate_candidates(pm, families=["element_cluster"], options=CandidateOptions(cluster_radii=())))
+    assert n_cubes < n_fac / 3
+    n_parts = len(set(ctx.element_parts[ctx.factorable].tolist()))
+    assert fams["element_cluster"] <= min(n_cubes + n_parts * 60 * 2, 500)
     # the cap spreads evenly and deterministically
     capped = generate_candidates(pm, sensors=sensors, drives=drives, options=CandidateOptions(max_per_family=30))
     assert max(Counter(c.family for c in capped).values()) == 30
@@ -343,6 +370,8 @@ def test_registry_user_family_and_errors(frame_pm, monkeypatch):
     (dict(contact_hops=0), "contact_hops"),
     (dict(contact_axis_deg=90.0), "contact_axis_deg"),
     (dict(cluster_kinds=("K", "X")), "cluster_kinds"),
+    (dict(cluster_radii=(1.0, -2.0)), "cluster_radii"),
+    (dict(cluster_seeds=0), "cluster_seeds"),
     (dict(factor_bounds=(0.1, 2.0)), "factor_bounds"),
     (dict(ground_components=(4,)), "ground_components"),
     (dict(spread_grids=2.5), "spread_grids"),
