@@ -375,21 +375,30 @@ class CandidateContext:
         """Metres to the deck's length unit."""
         return np.asarray(x_m, dtype=float) / self.length_m
 
-    def spread(self, points, k: int) -> np.ndarray:
+    def spread(self, points, k: int, away_from=None) -> np.ndarray:
         """Indices of ``k`` of ``points`` (n, 3) spread evenly (farthest-point sampling, deterministic).
 
         Starts at the point farthest from the centroid, then repeatedly takes
         the point farthest from those taken (ties: the lowest index), so the
-        extremes of the structure come first. Returns all indices when
-        n <= k, else k sorted indices.
+        extremes of the structure come first. With ``away_from`` ((m, 3)
+        points, m >= 1) those count as taken already: the first index is the
+        point farthest from all of them, then the regions farthest from them
+        and from each other. Returns all indices when n <= k, else k sorted
+        indices.
         """
         pts = np.asarray(points, dtype=float)
         n = pts.shape[0]
         if n <= k:
             return np.arange(n)
-        d = np.linalg.norm(pts - pts.mean(axis=0), axis=1)
-        taken = [int(np.argmax(d))]
-        dist = np.linalg.norm(pts - pts[taken[0]], axis=1)
+        if away_from is not None and len(away_from):
+            ref = np.asarray(away_from, dtype=float).reshape(-1, 3)
+            dist = np.min(np.linalg.norm(pts[:, None, :] - ref[None], axis=2), axis=1)
+            taken = []
+            k += 1  # the loop below takes the first point too
+        else:
+            d = np.linalg.norm(pts - pts.mean(axis=0), axis=1)
+            taken = [int(np.argmax(d))]
+            dist = np.linalg.norm(pts - pts[taken[0]], axis=1)
         for _ in range(k - 1):
             i = int(np.argmax(dist))
             taken.append(i)
@@ -739,11 +748,20 @@ def ground_spring_family(ctx: CandidateContext):
 
 
 def lumped_mass_family(ctx: CandidateContext):
-    """An unmodelled lumped mass at ``spread_grids`` grids spread over the structure
-    (sensor grids excluded): p = 1 is ``lumped_mass_fraction`` of the total mass."""
+    """An unmodelled lumped mass at ``spread_grids`` grids spread over the structure and at
+    ``spread_grids // 4`` grids spread away from the sensors and drives (the grid farthest from
+    every one of them first; sensor grids excluded): p = 1 is ``lumped_mass_fraction`` of the
+    total mass."""
     rows = _structural_rows(ctx)
     rows = rows[np.any(ctx.free[rows, :3], axis=1) & ~np.isin(ctx.grid_ids[rows], list(ctx.sensors))]
-    rows = rows[ctx.spread(ctx.xyz[rows], ctx.options.spread_grids)]
+    pick = set(ctx.spread(ctx.xyz[rows], ctx.options.spread_grids).tolist())
+    measured = list(dict.fromkeys(list(ctx.sensors) + [g for g, _ in ctx.drives]))
+    if measured and rows.size:
+        # and the grids farthest from every sensor and drive, where nothing measured is near a missing mass
+        far = ctx.spread(ctx.xyz[rows], max(ctx.options.spread_grids // 4, 1),
+                         away_from=ctx.xyz[ctx.grid_index(measured)])
+        pick |= set(far.tolist())
+    rows = rows[np.array(sorted(pick), dtype=int)]
     scale = ctx.options.lumped_mass_fraction * ctx.total_mass
     for r in rows.tolist():
         g = int(ctx.grid_ids[r])

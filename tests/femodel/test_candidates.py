@@ -226,7 +226,8 @@ def test_setup_families_at_the_given_grids(frame_pm):
     assert stinger.term.dofs == ((drives[0][0], 3, 0, 0),)
     assert stinger.term.scale == pytest.approx(total * (2 * np.pi * 10.0) ** 2)
     assert all(c.term.grids[0] not in sensors for c in fam["lumped_mass"])
-    assert len(fam["lumped_mass"]) == 40 and len(fam["ground_spring"]) == 3 * 40
+    # 40 spread grids and up to 40 // 4 = 10 more spread away from the sensors and drives
+    assert 40 < len(fam["lumped_mass"]) <= 50 and len(fam["ground_spring"]) == 3 * 40
     # the spread reaches the frame's extremes: x range of the ground-spring grids = the deck's
     fe = frame_pm.assembly.model
     gx = np.array([c.center[0] for c in fam["ground_spring"]])
@@ -404,3 +405,26 @@ def test_setup_errors_name_the_grid(frame_pm):
         generate_candidates(frame_pm, drives=[(1, (0, 0, 0))])
     with pytest.raises(ParameterError, match="FEModel or a ParametricModel"):
         generate_candidates("frame.bdf")
+
+
+def test_lumped_masses_also_far_from_every_sensor_and_drive(frame_pm):
+    """Besides the spread grids, spread_grids // 4 grids spread away from the measured grids: the first is the
+    grid farthest from every sensor and drive (where an unmeasured mass hides; frfcal.effects puts its
+    lumped mass there)."""
+    sensors, drives = _setup(frame_pm)
+    ctx = candidate_context(frame_pm, sensors=sensors, drives=drives)
+    opts = CandidateOptions(spread_grids=4)
+    got = generate_candidates(frame_pm, sensors=sensors, drives=drives, families=["lumped_mass"], options=opts)
+    rows = np.flatnonzero(np.array([bool(p) for p in ctx.grid_parts]))
+    rows = rows[np.any(ctx.free[rows, :3], axis=1) & ~np.isin(ctx.grid_ids[rows], sensors)]
+    measured = ctx.xyz[ctx.grid_index(list(sensors) + [g for g, _ in drives])]
+    far = np.min(np.linalg.norm(ctx.xyz[rows][:, None] - measured[None], axis=2), axis=1)
+    farthest = int(ctx.grid_ids[rows[np.argmax(far)]])
+    grids = [c.grids[0] for c in got]
+    assert farthest in grids and not set(grids) & set(sensors)
+    plain = generate_candidates(frame_pm, families=["lumped_mass"], options=opts)  # no set-up: spread only
+    assert len(plain) == 4 and 4 < len(got) <= 5
+    # away_from: the farthest point from the given ones comes first, then farthest from those and it
+    pts = np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0], [10, 0, 0]])
+    assert ctx.spread(pts, 1, away_from=[[0.0, 0, 0]]).tolist() == [4]
+    assert ctx.spread(pts, 2, away_from=[[0.0, 0, 0]]).tolist() == [3, 4]  # 3 is 3 from 0 and 7 from 10
