@@ -19,9 +19,11 @@ family                     generates
 ``contact_spring``         springs between facing grids of different parts that no
                            element joins, one candidate per patch of pairs
 ``ground_spring``          a spring to ground at spread grids, per direction
-``lumped_mass``            an unmodelled mass at spread grids (not the sensor grids)
+``lumped_mass``            an unmodelled mass at spread grids and at grids spread
+                           away from the sensors and drives (not the sensor grids)
 ``element_cluster``        stiffness (optionally mass) factor of a sub-region of a
-                           property group, clusters of a few element sizes
+                           property group: cubes of a few element sizes and
+                           element-centred balls of 1 and 2 element sizes
 ========================== =========================================================
 
 Geometry is SI inside (as :class:`~femodel.FEModel`); a candidate's
