@@ -13,7 +13,7 @@ Families (registry :data:`CANDIDATE_FAMILIES`, extended with
 family                     generates
 ========================== =========================================================
 ``sensor_mass``            one common mass on all sensor grids (AddedMass)
-``sensor_masses``          one mass per sensor grid (AddedMass)
+``sensor_masses``          one mass per sensor grid that is not a drive grid (AddedMass)
 ``shaker_attachment_mass`` a mass at each drive grid (force sensor, stinger end)
 ``stinger_spring``         a spring to ground at each drive grid along the drive axis
 ``contact_spring``         springs between facing grids of different parts that no
@@ -678,9 +678,11 @@ def sensor_mass_family(ctx: CandidateContext):
 
 def sensor_masses_family(ctx: CandidateContext):
     """One mass per sensor grid (a heavier sensor or cable clamp): p = 1 is
-    ``sensor_mass_fraction`` of the total mass."""
+    ``sensor_mass_fraction`` of the total mass. Drive grids are left out: the shaker
+    attachment mass there is the same term (one candidate per physical effect)."""
     scale = ctx.options.sensor_mass_fraction * ctx.total_mass
-    for g in _movable(ctx, ctx.sensors):
+    driven = {g for g, _ in ctx.drives}
+    for g in _movable(ctx, [g for g in ctx.sensors if g not in driven]):
         term = AddedMass(f"sensor_mass_g{g}", (g,), scale, 0.0, ctx.options.upper, f"sensor mass at grid {g}")
         yield ctx.candidate("sensor_masses", term, (g,),
                             f"sensor mass {scale:.3g} kg x p at sensor {ctx.grid_label(g)}")
