@@ -18,6 +18,8 @@ for a reason measured and not fixed here is an ``xfail(strict=True)`` naming the
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -57,7 +59,7 @@ XFAIL: dict = {
 }
 
 #: the two fastest cases run by default, the others with -m slow
-_SLOW = ("shaker_attachment", "element_cluster")
+_SLOW = ("shaker_attachment", "ground_spring")
 
 
 def _xfail(request, family, test):
@@ -73,8 +75,6 @@ def case(request, tmp_path_factory):
     tmp = tmp_path_factory.mktemp(f"diag_{family}")
     camp, pm, effects, sc, hold = _frame_campaign(tmp, family)
     assert main(["diagnose", str(camp), "--quiet"]) == 0
-    import json
-
     d = json.loads((tmp / "out" / "diagnosis.json").read_text())
     return family, pm, effects, d["members"][0], sc.floor_sd(channels=hold)
 
