@@ -13,15 +13,17 @@ Families (registry :data:`CANDIDATE_FAMILIES`, extended with
 family                     generates
 ========================== =========================================================
 ``sensor_mass``            one common mass on all sensor grids (AddedMass)
-``sensor_masses``          one mass per sensor grid (AddedMass)
+``sensor_masses``          one mass per sensor grid that is not a drive grid (AddedMass)
 ``shaker_attachment_mass`` a mass at each drive grid (force sensor, stinger end)
 ``stinger_spring``         a spring to ground at each drive grid along the drive axis
 ``contact_spring``         springs between facing grids of different parts that no
                            element joins, one candidate per patch of pairs
 ``ground_spring``          a spring to ground at spread grids, per direction
-``lumped_mass``            an unmodelled mass at spread grids (not the sensor grids)
+``lumped_mass``            an unmodelled mass at spread grids and at grids spread
+                           away from the sensors and drives (not the sensor grids)
 ``element_cluster``        stiffness (optionally mass) factor of a sub-region of a
-                           property group, clusters of a few element sizes
+                           property group: cubes of a few element sizes and
+                           element-centred balls of 1 and 2 element sizes
 ========================== =========================================================
 
 Geometry is SI inside (as :class:`~femodel.FEModel`); a candidate's
@@ -92,6 +94,19 @@ class CandidateOptions:
     cluster_size : float
         Edge of an element cluster in element sizes of its property group
         (voxel binning of element centroids). Default 3.
+    cluster_radii : tuple of float
+        Radii, in element sizes of the property group, of the element-centred
+        clusters offered besides the cube tiling: around a seed element, the
+        elements of its group whose centres lie within radius x the group's
+        median element size of the seed's centre. They overlap, so a
+        stiffness change of a region of a few element sizes anywhere in the
+        group is matched by one candidate, not split over two or three cubes.
+        Default (1.0, 2.0) (on a line of elements: 3 and 5 elements); ()
+        for the cube tiling alone.
+    cluster_seeds : int
+        At most this many seed elements per property group and radius
+        (farthest-point sampling of the element centres when the group has
+        more). Default 60.
     cluster_kinds : tuple of {"K", "M"}
         Which factors the clusters get. Default ("K",): a local stiffness
         change (weld, joint, damage, thickness) is the common unmodelled
@@ -136,6 +151,8 @@ class CandidateOptions:
     contact_patch: float = 4.0
     contact_fraction: float = 0.1
     cluster_size: float = 3.0
+    cluster_radii: tuple = (1.0, 2.0)
+    cluster_seeds: int = 60
     cluster_kinds: tuple = ("K",)
     factor_bounds: tuple = (-0.9, 3.0)
     ground_components: tuple = (1, 2, 3)
@@ -159,7 +176,7 @@ class CandidateOptions:
                 bad(name, "must be a positive finite number")
         if not 0.0 < float(self.contact_axis_deg) < 90.0:
             bad("contact_axis_deg", "must be in (0, 90) degrees")
-        for name, lo in (("contact_hops", 1), ("spread_grids", 1), ("max_per_family", 1)):
+        for name, lo in (("contact_hops", 1), ("spread_grids", 1), ("max_per_family", 1), ("cluster_seeds", 1)):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
                 bad(name, f"must be an integer >= {lo}")
@@ -167,6 +184,11 @@ class CandidateOptions:
         if not kinds or not set(kinds) <= {"K", "M"} or len(set(kinds)) != len(kinds):
             bad("cluster_kinds", "must be a non-empty subset of ('K', 'M')")
         object.__setattr__(self, "cluster_kinds", kinds)
+        radii = tuple(self.cluster_radii)
+        if not all(not isinstance(r, bool) and isinstance(r, (int, float)) and math.isfinite(r) and r > 0
+                   for r in radii) or len(set(radii)) != len(radii):
+            bad("cluster_radii", "must be distinct positive finite numbers (element sizes)")
+        object.__setattr__(self, "cluster_radii", tuple(float(r) for r in radii))
         fb = tuple(self.factor_bounds)
         if len(fb) != 2 or not all(isinstance(x, (int, float)) and math.isfinite(x) for x in fb) \
                 or not -1.0 < fb[0] < 0.0 < fb[1]:
@@ -355,21 +377,30 @@ class CandidateContext:
         """Metres to the deck's length unit."""
         return np.asarray(x_m, dtype=float) / self.length_m
 
-    def spread(self, points, k: int) -> np.ndarray:
+    def spread(self, points, k: int, away_from=None) -> np.ndarray:
         """Indices of ``k`` of ``points`` (n, 3) spread evenly (farthest-point sampling, deterministic).
 
         Starts at the point farthest from the centroid, then repeatedly takes
         the point farthest from those taken (ties: the lowest index), so the
-        extremes of the structure come first. Returns all indices when
-        n <= k, else k sorted indices.
+        extremes of the structure come first. With ``away_from`` ((m, 3)
+        points, m >= 1) those count as taken already: the first index is the
+        point farthest from all of them, then the regions farthest from them
+        and from each other. Returns all indices when n <= k, else k sorted
+        indices.
         """
         pts = np.asarray(points, dtype=float)
         n = pts.shape[0]
         if n <= k:
             return np.arange(n)
-        d = np.linalg.norm(pts - pts.mean(axis=0), axis=1)
-        taken = [int(np.argmax(d))]
-        dist = np.linalg.norm(pts - pts[taken[0]], axis=1)
+        if away_from is not None and len(away_from):
+            ref = np.asarray(away_from, dtype=float).reshape(-1, 3)
+            dist = np.min(np.linalg.norm(pts[:, None, :] - ref[None], axis=2), axis=1)
+            taken = []
+            k += 1  # the loop below takes the first point too
+        else:
+            d = np.linalg.norm(pts - pts.mean(axis=0), axis=1)
+            taken = [int(np.argmax(d))]
+            dist = np.linalg.norm(pts - pts[taken[0]], axis=1)
         for _ in range(k - 1):
             i = int(np.argmax(dist))
             taken.append(i)
@@ -647,9 +678,11 @@ def sensor_mass_family(ctx: CandidateContext):
 
 def sensor_masses_family(ctx: CandidateContext):
     """One mass per sensor grid (a heavier sensor or cable clamp): p = 1 is
-    ``sensor_mass_fraction`` of the total mass."""
+    ``sensor_mass_fraction`` of the total mass. Drive grids are left out: the shaker
+    attachment mass there is the same term (one candidate per physical effect)."""
     scale = ctx.options.sensor_mass_fraction * ctx.total_mass
-    for g in _movable(ctx, ctx.sensors):
+    driven = {g for g, _ in ctx.drives}
+    for g in _movable(ctx, [g for g in ctx.sensors if g not in driven]):
         term = AddedMass(f"sensor_mass_g{g}", (g,), scale, 0.0, ctx.options.upper, f"sensor mass at grid {g}")
         yield ctx.candidate("sensor_masses", term, (g,),
                             f"sensor mass {scale:.3g} kg x p at sensor {ctx.grid_label(g)}")
@@ -719,11 +752,20 @@ def ground_spring_family(ctx: CandidateContext):
 
 
 def lumped_mass_family(ctx: CandidateContext):
-    """An unmodelled lumped mass at ``spread_grids`` grids spread over the structure
-    (sensor grids excluded): p = 1 is ``lumped_mass_fraction`` of the total mass."""
+    """An unmodelled lumped mass at ``spread_grids`` grids spread over the structure and at
+    ``spread_grids // 4`` grids spread away from the sensors and drives (the grid farthest from
+    every one of them first; sensor grids excluded): p = 1 is ``lumped_mass_fraction`` of the
+    total mass."""
     rows = _structural_rows(ctx)
     rows = rows[np.any(ctx.free[rows, :3], axis=1) & ~np.isin(ctx.grid_ids[rows], list(ctx.sensors))]
-    rows = rows[ctx.spread(ctx.xyz[rows], ctx.options.spread_grids)]
+    pick = set(ctx.spread(ctx.xyz[rows], ctx.options.spread_grids).tolist())
+    measured = list(dict.fromkeys(list(ctx.sensors) + [g for g, _ in ctx.drives]))
+    if measured and rows.size:
+        # and the grids farthest from every sensor and drive, where nothing measured is near a missing mass
+        far = ctx.spread(ctx.xyz[rows], max(ctx.options.spread_grids // 4, 1),
+                         away_from=ctx.xyz[ctx.grid_index(measured)])
+        pick |= set(far.tolist())
+    rows = rows[np.array(sorted(pick), dtype=int)]
     scale = ctx.options.lumped_mass_fraction * ctx.total_mass
     for r in rows.tolist():
         g = int(ctx.grid_ids[r])
@@ -733,38 +775,60 @@ def lumped_mass_family(ctx: CandidateContext):
 
 def element_cluster_family(ctx: CandidateContext):
     """Stiffness (``cluster_kinds``) factors 1 + p of sub-regions of each property group with
-    MAT1 material: element centroids binned into cubes of ``cluster_size`` element sizes.
+    MAT1 material.
 
-    The clusters of a group are disjoint and cover its factorable elements.
+    Two kinds of region per group: the cubes of ``cluster_size`` element sizes (element centroids
+    binned from the group's lowest corner; disjoint, they cover the group), and element-centred
+    balls of ``cluster_radii`` element sizes around up to ``cluster_seeds`` seed elements
+    (overlapping: a region of a few element sizes anywhere has a candidate centred on it). An
+    element set offered twice (a ball equal to a cube or to a smaller ball) is offered once.
     """
     o = ctx.options
     fac = np.flatnonzero(ctx.factorable)
     parts = ctx.element_parts[fac]
+
+    def offer(part, sel, name, how):
+        eids = tuple(int(e) for e in ctx.element_ids[sel])
+        listed = ", ".join(str(e) for e in eids[:2]) + (f", ..., {eids[-1]}" if len(eids) > 2 else "")
+        grids = sorted({g for e in sel for g in ctx.element_grids[e]})
+        size = float(np.median(ctx.element_sizes[sel]))
+        c = ctx.deck_length(ctx.element_centers[sel].mean(axis=0))
+        for kind in o.cluster_kinds:
+            what = "stiffness" if kind == "K" else "mass"
+            term = ElementFactor(f"{name}_{kind}", eids, kind, o.factor_bounds[0], o.factor_bounds[1],
+                                 f"{what} of {len(eids)} elements of {part}")
+            yield ctx.candidate(
+                "element_cluster", term, grids,
+                f"{what} of {len(eids)} {part} elements ({ctx.element_cards[sel[0]]} {listed}) "
+                f"{how} around ({c[0]:.4g}, {c[1]:.4g}, {c[2]:.4g}) (deck length unit), times 1 + p",
+                parts=(part,), points=ctx.element_centers[sel], size=size)
+
     for part in sorted(set(parts.tolist())):
         els = fac[parts == part]
-        edge = o.cluster_size * float(np.median(ctx.element_sizes[els]))
+        h = float(np.median(ctx.element_sizes[els]))
+        edge = o.cluster_size * h
         pts = ctx.element_centers[els]
         keys = np.floor((pts - pts.min(axis=0)) / edge).astype(np.int64)
         _, inv = np.unique(keys, axis=0, return_inverse=True)
         inv = inv.ravel()
         order = np.argsort(inv, kind="stable")
         cells = np.split(els[order], np.cumsum(np.bincount(inv))[:-1])
+        seen = set()
         for n, sel in enumerate(cells):
-            eids = tuple(int(e) for e in ctx.element_ids[sel])
-            listed = ", ".join(str(e) for e in eids[:2]) + (f", ..., {eids[-1]}" if len(eids) > 2 else "")
-            grids = sorted({g for e in sel for g in ctx.element_grids[e]})
-            size = float(np.median(ctx.element_sizes[sel]))
-            c = ctx.deck_length(ctx.element_centers[sel].mean(axis=0))
-            for kind in o.cluster_kinds:
-                what = "stiffness" if kind == "K" else "mass"
-                term = ElementFactor(f"cluster_{_slug(part)}_{n + 1}_{kind}", eids, kind, o.factor_bounds[0],
-                                     o.factor_bounds[1], f"{what} of {len(eids)} elements of {part}")
-                yield ctx.candidate(
-                    "element_cluster", term, grids,
-                    f"{what} of {len(eids)} {part} elements ({ctx.element_cards[sel[0]]} {listed}) "
-                    f"in a cube of {ctx.deck_length(edge):.4g} "
-                    f"around ({c[0]:.4g}, {c[1]:.4g}, {c[2]:.4g}) (deck length unit), times 1 + p",
-                    parts=(part,), points=ctx.element_centers[sel], size=size)
+            seen.add(frozenset(sel.tolist()))
+            yield from offer(part, sel, f"cluster_{_slug(part)}_{n + 1}", f"in a cube of {ctx.deck_length(edge):.4g}")
+        seeds = ctx.spread(pts, o.cluster_seeds)
+        for r in sorted(o.cluster_radii):
+            for i in seeds.tolist():
+                near = np.linalg.norm(pts - pts[i], axis=1) <= r * h * (1 + 1e-9)
+                sel = els[near]
+                key = frozenset(sel.tolist())
+                if sel.size < 2 or key in seen:
+                    continue
+                seen.add(key)
+                tag = f"{r:g}".replace(".", "p")
+                yield from offer(part, np.sort(sel), f"cluster_{_slug(part)}_e{int(ctx.element_ids[els[i]])}_r{tag}",
+                                 f"within {ctx.deck_length(r * h):.4g} of element {int(ctx.element_ids[els[i]])}")
 
 
 def _incidence(ctx: CandidateContext) -> sp.csr_matrix:

@@ -161,7 +161,7 @@ def test_contact_springs_never_join_grids_an_element_already_joins(which, frame_
 def test_clusters_partition_each_property_group(shell_pm, frame_pm):
     for pm in (shell_pm, frame_pm):
         ctx = candidate_context(pm)
-        cands = generate_candidates(pm, families=["element_cluster"])
+        cands = generate_candidates(pm, families=["element_cluster"], options=CandidateOptions(cluster_radii=()))
         by_part: dict = {}
         for c in cands:
             assert len(c.parts) == 1 and c.term.kind == "K"
@@ -177,6 +177,29 @@ def test_clusters_partition_each_property_group(shell_pm, frame_pm):
             rows = np.flatnonzero(np.isin(ctx.element_ids, c.term.elements))
             span = np.ptp(ctx.element_centers[rows], axis=0)
             assert np.all(span <= 3.0 * np.median(ctx.element_sizes[rows]) * 1.5 + 1e-12)
+
+
+def test_element_centred_clusters_match_a_region_the_cubes_split(frame_pm):
+    """The frame's standard cluster (frfcal.effects: 5 bars within 2 element sizes of element 9) falls on three
+    cubes of the tiling; the element-centred balls (default radii 1 and 2 element sizes) offer it whole."""
+    ctx = candidate_context(frame_pm)
+    truth = {7, 8, 9, 10, 11}
+    cubes = generate_candidates(frame_pm, families=["element_cluster"], options=CandidateOptions(cluster_radii=()))
+    split = [set(c.term.elements) & truth for c in cubes if set(c.term.elements) & truth]
+    assert len(split) == 3 and max(len(s) for s in split) == 2
+    cands = generate_candidates(frame_pm, families=["element_cluster"])
+    sets = [frozenset(c.term.elements) for c in cands]
+    assert len(set(sets)) == len(sets)  # no element set offered twice
+    assert {frozenset(s) for s in ({8, 9, 10}, truth)} <= set(sets)  # radius 1 and 2 around element 9
+    ball = next(c for c in cands if set(c.term.elements) == truth)
+    assert ball.term.name == "cluster_PBAR1_e9_r2_K" and "within 0.2 of element 9" in ball.description
+    assert np.allclose(ball.center, [0.85, -0.4, 0.0]) and ball.size == pytest.approx(0.1)
+    for c in cands:  # every ball lies within its radius of its seed, in one property group
+        rows = np.flatnonzero(np.isin(ctx.element_ids, c.term.elements))
+        assert len(c.parts) == 1 and set(ctx.element_parts[rows].tolist()) == set(c.parts)
+    # the seeds are capped per group and radius
+    few = generate_candidates(frame_pm, families=["element_cluster"], options=CandidateOptions(cluster_seeds=2))
+    assert len(cubes) < len(few) <= len(cubes) + 3 * 2 * 2
 
 
 def test_cluster_mass_kind_and_bounds_by_option(frame_pm):
@@ -195,7 +218,8 @@ def test_setup_families_at_the_given_grids(frame_pm):
     assert total == pytest.approx(131.28608, rel=1e-6)  # FrameExample.mass_kg
     (common,) = fam["sensor_mass"]
     assert common.term.grids == tuple(sensors) and common.term.scale == pytest.approx(1e-3 * total)
-    assert [c.term.grids for c in fam["sensor_masses"]] == [(g,) for g in sensors]
+    # the drive grid's mass is the shaker attachment's, not offered twice
+    assert [c.term.grids for c in fam["sensor_masses"]] == [(g,) for g in sensors if g != drives[0][0]]
     (shaker,) = fam["shaker_attachment_mass"]
     assert shaker.term.grids == (drives[0][0],)
     (stinger,) = fam["stinger_spring"]
@@ -203,7 +227,8 @@ def test_setup_families_at_the_given_grids(frame_pm):
     assert stinger.term.dofs == ((drives[0][0], 3, 0, 0),)
     assert stinger.term.scale == pytest.approx(total * (2 * np.pi * 10.0) ** 2)
     assert all(c.term.grids[0] not in sensors for c in fam["lumped_mass"])
-    assert len(fam["lumped_mass"]) == 40 and len(fam["ground_spring"]) == 3 * 40
+    # 40 spread grids and up to 40 // 4 = 10 more spread away from the sensors and drives
+    assert 40 < len(fam["lumped_mass"]) <= 50 and len(fam["ground_spring"]) == 3 * 40
     # the spread reaches the frame's extremes: x range of the ground-spring grids = the deck's
     fe = frame_pm.assembly.model
     gx = np.array([c.center[0] for c in fam["ground_spring"]])
@@ -261,8 +286,8 @@ def test_generic_deck_with_every_card_and_cylindrical_displacement_systems(tmp_p
     cands = generate_candidates(pm, sensors=[1, 9, 13], drives=[(13, (1.0, 0.0, 0.0))],
                                 options=CandidateOptions(spread_grids=6))
     fams = Counter(c.family for c in cands)
-    # grid 1 is clamped: no sensor mass there
-    assert fams["sensor_masses"] == 2 and fams["stinger_spring"] == 1 and fams["element_cluster"] > 0
+    # grid 1 is clamped: no sensor mass there; grid 13 is the drive: its mass is the shaker attachment's
+    assert fams["sensor_masses"] == 1 and fams["stinger_spring"] == 1 and fams["element_cluster"] > 0
     # CONROD, CELAS, CBUSH, CONM2 are never in an element factor; the PBEAML has no write-back copy
     ctx = candidate_context(pm)
     clustered = {e for c in cands if c.family == "element_cluster" for e in c.term.elements}
@@ -284,11 +309,15 @@ def test_counts_on_the_5k_shell(tmp_path):
     cands = generate_candidates(pm, sensors=sensors, drives=drives)
     fams = Counter(c.family for c in cands)
     assert 200 <= len(cands) <= 2000
-    assert fams["element_cluster"] >= 100 and fams["sensor_masses"] == 24 and fams["ground_spring"] == 120
+    assert fams["element_cluster"] >= 100 and fams["sensor_masses"] == 23 and fams["ground_spring"] == 120
     ctx = candidate_context(pm)
-    # clusters of three element sizes: about (group extent / 3 h) cells per group, far fewer than elements
+    # cubes of three element sizes: about (group extent / 3 h) cells per group, far fewer than elements;
+    # element-centred balls at most cluster_seeds per group and radius
     n_fac = int(ctx.factorable.sum())
-    assert fams["element_cluster"] < n_fac / 3
+    n_cubes = len(generate_candidates(pm, families=["element_cluster"], options=CandidateOptions(cluster_radii=())))
+    assert n_cubes < n_fac / 3
+    n_parts = len(set(ctx.element_parts[ctx.factorable].tolist()))
+    assert fams["element_cluster"] <= min(n_cubes + n_parts * 60 * 2, 500)
     # the cap spreads evenly and deterministically
     capped = generate_candidates(pm, sensors=sensors, drives=drives, options=CandidateOptions(max_per_family=30))
     assert max(Counter(c.family for c in capped).values()) == 30
@@ -343,6 +372,8 @@ def test_registry_user_family_and_errors(frame_pm, monkeypatch):
     (dict(contact_hops=0), "contact_hops"),
     (dict(contact_axis_deg=90.0), "contact_axis_deg"),
     (dict(cluster_kinds=("K", "X")), "cluster_kinds"),
+    (dict(cluster_radii=(1.0, -2.0)), "cluster_radii"),
+    (dict(cluster_seeds=0), "cluster_seeds"),
     (dict(factor_bounds=(0.1, 2.0)), "factor_bounds"),
     (dict(ground_components=(4,)), "ground_components"),
     (dict(spread_grids=2.5), "spread_grids"),
@@ -375,3 +406,26 @@ def test_setup_errors_name_the_grid(frame_pm):
         generate_candidates(frame_pm, drives=[(1, (0, 0, 0))])
     with pytest.raises(ParameterError, match="FEModel or a ParametricModel"):
         generate_candidates("frame.bdf")
+
+
+def test_lumped_masses_also_far_from_every_sensor_and_drive(frame_pm):
+    """Besides the spread grids, spread_grids // 4 grids spread away from the measured grids: the first is the
+    grid farthest from every sensor and drive (where an unmeasured mass hides; frfcal.effects puts its
+    lumped mass there)."""
+    sensors, drives = _setup(frame_pm)
+    ctx = candidate_context(frame_pm, sensors=sensors, drives=drives)
+    opts = CandidateOptions(spread_grids=4)
+    got = generate_candidates(frame_pm, sensors=sensors, drives=drives, families=["lumped_mass"], options=opts)
+    rows = np.flatnonzero(np.array([bool(p) for p in ctx.grid_parts]))
+    rows = rows[np.any(ctx.free[rows, :3], axis=1) & ~np.isin(ctx.grid_ids[rows], sensors)]
+    measured = ctx.xyz[ctx.grid_index(list(sensors) + [g for g, _ in drives])]
+    far = np.min(np.linalg.norm(ctx.xyz[rows][:, None] - measured[None], axis=2), axis=1)
+    farthest = int(ctx.grid_ids[rows[np.argmax(far)]])
+    grids = [c.grids[0] for c in got]
+    assert farthest in grids and not set(grids) & set(sensors)
+    plain = generate_candidates(frame_pm, families=["lumped_mass"], options=opts)  # no set-up: spread only
+    assert len(plain) == 4 and 4 < len(got) <= 5
+    # away_from: the farthest point from the given ones comes first, then farthest from those and it
+    pts = np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0], [10, 0, 0]])
+    assert ctx.spread(pts, 1, away_from=[[0.0, 0, 0]]).tolist() == [4]
+    assert ctx.spread(pts, 2, away_from=[[0.0, 0, 0]]).tolist() == [3, 4]  # 3 is 3 from 0 and 7 from 10
