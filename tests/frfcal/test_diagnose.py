@@ -367,7 +367,7 @@ def gap_ensemble(tmp_path_factory):
     return pm, effects, json.loads((tmp / "out" / "diagnosis.json").read_text())
 
 
-@pytest.mark.slow  # about 6 min wall under load (synthesis 36 s, identification 31 s, calibration 166 s, diagnose 80 s)
+@pytest.mark.slow  # 224 s wall under load (synthesis, identification, calibration of 2 groups, diagnose)
 def test_gap_closed_on_three_articles_open_on_two_groups_and_the_contact_separates(gap_ensemble):
     pm, effects, d = gap_ensemble
     eff = effects[0]
