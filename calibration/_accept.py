@@ -200,6 +200,7 @@ def separating_effect(
     max_nfev: int = 50,
     n_sigma: float = 3.0,
     c_tol: float = 0.0,
+    continuation=(),
 ) -> Separation:
     """Fit an effect's magnitude per article and test whether it separates the article groups.
 
@@ -223,6 +224,13 @@ def separating_effect(
         Required gap between group means in pooled within-group standard deviations.
     c_tol : float
         Absolute resolution of c added to the scatter (a gap must exceed it too).
+    continuation : sequence of (zeta, article_data)
+        Damping-continuation stages run first (wider damping first), each
+        with the articles' data equalized at that damping, in the order of
+        ``article_data``. An effect that moves modes by many half-power
+        bandwidths between the groups (a gap closed on some articles, open
+        on others) leaves the articles of the other group far outside the
+        metric's smooth range at ``zeta``; the wider stages bring them in.
 
     Returns
     -------
@@ -239,17 +247,22 @@ def separating_effect(
     uniq = np.unique(labels)
     if uniq.size < 2:
         raise CalibrationError("separating_effect needs at least two groups")
+    stages = [(float(z), [list(d) for d in stage]) for z, stage in continuation]
+    for z, stage in stages:
+        if len(stage) != len(sets):
+            raise CalibrationError(f"separating_effect: continuation stage at zeta {z:g} has {len(stage)} articles, "
+                                   f"article_data {len(sets)}")
     j = int(index) % sur.n_params
     mags, ps, sds, names = [], [], [], []
     for k, d in enumerate(sets):
-        obj = Objective(sur, d, zeta, quantity)
+        objs = [Objective(sur, stage[k], z, quantity) for z, stage in stages] + [Objective(sur, d, zeta, quantity)]
         names.append(d[0].article or f"article {k}")
         if refit_p:
-            out = run_start(([obj], x, lower, upper, max_nfev, 1e-10))
+            out = run_start((objs, x, lower, upper, max_nfev, 1e-10))
             xk = out.p
         else:
-            sub = _OneParameter(obj, x, j)
-            out = run_start(([sub], x[[j]], lower[[j]], upper[[j]], max_nfev, 1e-10))
+            subs = [_OneParameter(obj, x, j) for obj in objs]
+            out = run_start((subs, x[[j]], lower[[j]], upper[[j]], max_nfev, 1e-10))
             xk = x.copy()
             xk[j] = out.p[0]
         mags.append(xk[j])

@@ -944,6 +944,13 @@ def contact_spring_family(ctx: CandidateContext):
     the gap component when the gap lies within ``contact_axis_deg`` of an
     axis, else on x, y and z. p = 1 is ``contact_fraction`` of the smaller
     K-diagonal entry of the two grids (median over the patch).
+
+    A part pair with several patches gets unions as well: per connected
+    stretch cut into several cells, the whole stretch (``..._join<k>``), and,
+    when there are several stretches, every pair of the two parts
+    (``..._all``). A gap that closes over its whole length is one term with
+    one rate (one patch standing in for it is locally stiffer and misplaces
+    the stiffness); the screening decides between the whole and a part.
     """
     from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
@@ -971,48 +978,71 @@ def contact_spring_family(ctx: CandidateContext):
         patch = patch.ravel()
         order = sorted(range(patch.max() + 1), key=lambda q: int(ctx.grid_ids[pr[patch == q]].min()))
         for n, q in enumerate(order):
-            sel = pr[patch == q]
-            # orient each pair part a -> part b for the description
-            sel = np.array([(i, j) if part_of[i] == pa else (j, i) for i, j in sel.tolist()])
-            gap = ctx.xyz[sel[:, 1]] - ctx.xyz[sel[:, 0]]
-            dist = np.linalg.norm(gap, axis=1)
-            dofs, rates = [], []
-            comps_used = set()
-            for (i, j), v, d in zip(sel.tolist(), gap, dist):
-                if d > 0:
-                    c, cos = _local_axis(ctx, i, v / d)
-                    comps = (c,) if cos >= cos_tol else (1, 2, 3)
-                else:
-                    comps = (1, 2, 3)
-                for c in comps:
-                    if not (ctx.free[i, c - 1] or ctx.free[j, c - 1]):
-                        continue
-                    dofs.append((int(ctx.grid_ids[i]), c, int(ctx.grid_ids[j]), c))
-                    comps_used.add(c)
-                    kk = [x for x in (kd[i, c - 1], kd[j, c - 1]) if x > 0]
-                    if kk:
-                        rates.append(min(kk))
-            if not dofs or not rates:
+            cand = _contact_candidate(ctx, pr[patch == q], pa, pb, f"contact_{_slug(pa)}_{_slug(pb)}_{n + 1}",
+                                      part_of, kd, cos_tol)
+            if cand is not None:
+                yield cand
+        if len(order) < 2:
+            continue
+        # one physical gap cut into several patches: the union of the patches of one connected stretch, and of
+        # every patch of the part pair, as one term (one common rate), so the whole gap can be one effect
+        unions = []
+        for k in np.unique(comp):
+            in_comp = np.unique(patch[comp == k])
+            if in_comp.size > 1:
+                unions.append((f"contact_{_slug(pa)}_{_slug(pb)}_join{len(unions) + 1}", comp == k))
+        if np.unique(comp).size > 1 or not unions:
+            unions.append((f"contact_{_slug(pa)}_{_slug(pb)}_all", np.ones(len(pr), bool)))
+        for name, keep in unions:
+            cand = _contact_candidate(ctx, pr[keep], pa, pb, name, part_of, kd, cos_tol)
+            if cand is not None:
+                yield cand
+
+
+def _contact_candidate(ctx: CandidateContext, sel, pa: str, pb: str, name: str, part_of, kd, cos_tol: float):
+    """The contact-spring Candidate of the grid pairs ``sel`` ((k, 2) grid rows) of parts ``pa`` and ``pb``:
+    one common rate on every pair (None when no pair has a free, stiff component)."""
+    o = ctx.options
+    # orient each pair part a -> part b for the description
+    sel = np.array([(i, j) if part_of[i] == pa else (j, i) for i, j in sel.tolist()])
+    gap = ctx.xyz[sel[:, 1]] - ctx.xyz[sel[:, 0]]
+    dist = np.linalg.norm(gap, axis=1)
+    dofs, rates = [], []
+    comps_used = set()
+    for (i, j), v, d in zip(sel.tolist(), gap, dist):
+        if d > 0:
+            c, cos = _local_axis(ctx, i, v / d)
+            comps = (c,) if cos >= cos_tol else (1, 2, 3)
+        else:
+            comps = (1, 2, 3)
+        for c in comps:
+            if not (ctx.free[i, c - 1] or ctx.free[j, c - 1]):
                 continue
-            scale = o.contact_fraction * float(np.median(rates))
-            gi, gj = int(ctx.grid_ids[sel[0, 0]]), int(ctx.grid_ids[sel[0, 1]])
-            axes = ",".join(_AXES[c - 1] for c in sorted(comps_used))
-            name = f"contact_{_slug(pa)}_{_slug(pb)}_{n + 1}"
-            term = AddedSpring(name, tuple(dofs), scale, 0.0, o.upper,
-                               f"contact springs between {pa} and {pb}")
-            if len(sel) == 1:
-                text = (f"contact springs ({axes}) {scale:.3g} N/m x p between {ctx.grid_label(gi)} and "
-                        f"{ctx.grid_label(gj)}, {ctx.mm(dist[0])} apart")
-            else:
-                listed = ", ".join(f"{int(ctx.grid_ids[i])}-{int(ctx.grid_ids[j])}" for i, j in sel[:4].tolist())
-                text = (f"contact springs ({axes}) {scale:.3g} N/m x p on {len(sel)} grid pairs between {pa} and "
-                        f"{pb} ({listed}{', ...' if len(sel) > 4 else ''}), "
-                        f"{ctx.mm(dist.min())} to {ctx.mm(dist.max())} apart")
-            grids = tuple(sorted(set(ctx.grid_ids[sel.ravel()].tolist())))
-            yield ctx.candidate("contact_spring", term, grids, text, parts=(pa, pb),
-                                points=np.vstack([ctx.xyz[sel[:, 0]], ctx.xyz[sel[:, 1]]]),
-                                size=float(np.median(np.maximum(ctx.grid_sizes[sel[:, 0]],
-                                                                ctx.grid_sizes[sel[:, 1]]))))
+            dofs.append((int(ctx.grid_ids[i]), c, int(ctx.grid_ids[j]), c))
+            comps_used.add(c)
+            kk = [x for x in (kd[i, c - 1], kd[j, c - 1]) if x > 0]
+            if kk:
+                rates.append(min(kk))
+    if not dofs or not rates:
+        return None
+    scale = o.contact_fraction * float(np.median(rates))
+    gi, gj = int(ctx.grid_ids[sel[0, 0]]), int(ctx.grid_ids[sel[0, 1]])
+    axes = ",".join(_AXES[c - 1] for c in sorted(comps_used))
+    term = AddedSpring(name, tuple(dofs), scale, 0.0, o.upper,
+                       f"contact springs between {pa} and {pb}")
+    if len(sel) == 1:
+        text = (f"contact springs ({axes}) {scale:.3g} N/m x p between {ctx.grid_label(gi)} and "
+                f"{ctx.grid_label(gj)}, {ctx.mm(dist[0])} apart")
+    else:
+        listed = ", ".join(f"{int(ctx.grid_ids[i])}-{int(ctx.grid_ids[j])}" for i, j in sel[:4].tolist())
+        text = (f"contact springs ({axes}) {scale:.3g} N/m x p on {len(sel)} grid pairs between {pa} and "
+                f"{pb} ({listed}{', ...' if len(sel) > 4 else ''}), "
+                f"{ctx.mm(dist.min())} to {ctx.mm(dist.max())} apart")
+    grids = tuple(sorted(set(ctx.grid_ids[sel.ravel()].tolist())))
+    return ctx.candidate("contact_spring", term, grids, text, parts=(pa, pb),
+                        points=np.vstack([ctx.xyz[sel[:, 0]], ctx.xyz[sel[:, 1]]]),
+                        size=float(np.median(np.maximum(ctx.grid_sizes[sel[:, 0]],
+                                                        ctx.grid_sizes[sel[:, 1]]))))
 
 
 # ----------------------------------------------------------------------------

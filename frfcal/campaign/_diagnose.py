@@ -762,7 +762,7 @@ def diagnose_stage(camp: Campaign, load, pm, model, articles, eq, cal, val, xval
                 extended = (tuple(ctx["cands"][[cd.name for cd in ctx["cands"]].index(a["name"])] for a in acc),
                             fit[1])
                 frfs_after = fit[2]
-                fits.append((m, acc, fit[0]))
+                fits.append((m, acc, fit[0], extended[0]))
                 reason = "accepted: " + "; ".join(f"{a['description']}: {a['size']}" for a in acc)
             else:
                 verdict = "no effect accepted"
@@ -780,7 +780,42 @@ def diagnose_stage(camp: Campaign, load, pm, model, articles, eq, cal, val, xval
         out.append(MemberDiagnosis(m.label, names, verdict, reason, check, nl_modes, sd, chans, counts, rows, scr,
                                    acc, trials, None if extended is None else extended[0],
                                    None if extended is None else np.asarray(extended[1], float), overlay))
-    return DiagnosisResult(gates, tuple(out))
+    return DiagnosisResult(gates, tuple(out), _separations(camp, articles, eq, groups, fits, log))
+
+
+def _separations(camp: Campaign, articles, eq, groups, fits, log) -> tuple:
+    """Every accepted effect fitted per article (all parameters re-fitted, from the member's common point,
+    through the damping continuation) against the group stage's article groups (``separating_effect``).
+
+    Returns a tuple of dicts: ``member``, ``name``, ``family``, ``separates``, ``separation``
+    (``Separation.to_dict()``, c normalized), ``value`` (per-article physical magnitude) and ``unit``.
+    """
+    from calibration import separating_effect
+
+    if groups is None or len(groups.members) < 2 or not fits:
+        return ()
+    label = np.full(len(articles), -1)
+    for g, (_, idx) in enumerate(groups.members):
+        label[list(idx)] = g
+    use = [i for i in range(len(articles)) if label[i] >= 0]
+    data = [[eq.data[i]] for i in use]
+    cont = [(z, [[d[i]] for i in use]) for z, d in eq.continuation]
+    out = []
+    for m, acc, fit, cands in fits:
+        n_p = fit.surrogate.n_params - len(acc)
+        for j, (a, cd) in enumerate(zip(acc, cands)):
+            t0 = time.perf_counter()
+            sep = separating_effect(fit.surrogate, fit.x, data, camp.calibration.zeta0, label[use], fit.lower,
+                                    fit.upper, index=n_p + j, refit_p=True, continuation=cont,
+                                    max_nfev=camp.diagnosis.max_evaluations)
+            per = [float(_physical(cd.term, float(c))[0]) for c in sep.magnitude]
+            log(f"[{m.label}] {a['name']} per article: "
+                + ", ".join(f"{n} {c:.3g}" for n, c in zip(sep.articles, sep.magnitude))
+                + f": {'SEPARATES' if sep.separates else 'does not separate'} the groups ({sep.reason}; "
+                + f"{time.perf_counter() - t0:.1f} s)")
+            out.append({"member": m.label, "name": a["name"], "family": a["family"], "separates": bool(sep.separates),
+                        "separation": sep.to_dict(), "value": per, "unit": a["unit"]})
+    return tuple(out)
 
 
 def new_cards(pm, extended, x, path: Path) -> list:

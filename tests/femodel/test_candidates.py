@@ -137,9 +137,15 @@ def test_gap_deck_contact_distance_cap_and_patches(tmp_path):
                                options=CandidateOptions(contact_max_gap_m=0.0019)) == ()
     # patches of at most one element size: the five pairs split, each pair in exactly one patch
     small = generate_candidates(fe, families=["contact_spring"], options=CandidateOptions(contact_patch=1.0))
-    assert len(small) > 1
-    pairs = [p for c in small for p in _contact_pairs(c)]
+    patches = [c for c in small if not c.name.endswith(("_all", "_join1"))]
+    assert len(patches) > 1
+    pairs = [p for c in patches for p in _contact_pairs(c)]
     assert len(pairs) == len(set(pairs)) == len(expected)
+    # and the whole gap once more as one term (its patches are one connected stretch): one common rate on
+    # every pair, so a gap closed over its whole length is one effect
+    (union,) = [c for c in small if c not in patches]
+    assert union.name.endswith("_join1") and _contact_pairs(union) == set(pairs)
+    assert union.term.scale == pytest.approx(generate_candidates(fe, families=["contact_spring"])[0].term.scale)
     # one-hop exclusion only: the same pairs (none of them shares a neighbour grid across the plates)
     one = generate_candidates(fe, families=["contact_spring"], options=CandidateOptions(contact_hops=1))
     assert _contact_pairs(one[0]) == _contact_pairs(generate_candidates(fe, families=["contact_spring"])[0])
