@@ -867,11 +867,16 @@ def _adjacency(ctx: CandidateContext, inc: sp.csr_matrix) -> sp.csr_matrix:
     return adj
 
 
+def _part_label(parts) -> str:
+    """A grid's part label: its part, or its parts joined by '+' at a junction ("" for none)."""
+    return "+".join(sorted(parts))
+
+
 def contact_pairs(ctx: CandidateContext) -> np.ndarray:
     """Candidate contact pairs: (n_pairs, 2) grid rows (i < j).
 
-    Both grids belong to exactly one part (a grid of two parts is a
-    junction), the parts differ, the distance is within
+    The two grids share no part (a grid of two parts, a junction, may face
+    a third part: a sheet at a welded corner), the distance is within
     min(``contact_factor`` x local size, ``contact_max_gap_m``) of either
     grid, each is the other's nearest grid of its part (mutual nearest:
     facing grids, not the diagonals of a fine mesh nor the overhang at the
@@ -884,7 +889,7 @@ def contact_pairs(ctx: CandidateContext) -> np.ndarray:
     from scipy.spatial import cKDTree
 
     o = ctx.options
-    single = np.flatnonzero(np.array([len(p) == 1 for p in ctx.grid_parts], dtype=bool))
+    single = np.flatnonzero(np.array([len(p) >= 1 for p in ctx.grid_parts], dtype=bool))
     single = single[np.any(ctx.free[single, :3], axis=1)]
     if single.size < 2:
         return np.zeros((0, 2), np.int64)
@@ -896,9 +901,16 @@ def contact_pairs(ctx: CandidateContext) -> np.ndarray:
     b = np.fromiter((j for f in found for j in f), dtype=np.int64, count=int(counts.sum()))
     a, b = single[a], single[b]
     part_of = np.full(ctx.grid_ids.size, -1, dtype=np.int64)
-    _, inv = np.unique(np.array([ctx.grid_parts[i][0] for i in single.tolist()], dtype=object), return_inverse=True)
+    _, inv = np.unique(np.array([_part_label(ctx.grid_parts[i]) for i in single.tolist()], dtype=object),
+                       return_inverse=True)
     part_of[single] = inv.ravel()
     keep = part_of[a] != part_of[b]
+    # a junction grid (of two parts) may face a third part; grids sharing a part are the same part
+    mixed = np.flatnonzero(keep)
+    mixed = mixed[[len(ctx.grid_parts[i]) > 1 or len(ctx.grid_parts[j]) > 1
+                   for i, j in zip(a[mixed].tolist(), b[mixed].tolist())]]
+    keep[mixed] = [not set(ctx.grid_parts[i]) & set(ctx.grid_parts[j])
+                   for i, j in zip(a[mixed].tolist(), b[mixed].tolist())]
     # the union over the two grids' radii: a pair found from either side once
     pairs = np.unique(np.column_stack([np.minimum(a[keep], b[keep]), np.maximum(a[keep], b[keep])]), axis=0)
     if pairs.size == 0:
@@ -959,7 +971,7 @@ def contact_spring_family(ctx: CandidateContext):
     pairs = contact_pairs(ctx)
     if pairs.size == 0:
         return
-    part_of = [p[0] if p else "" for p in ctx.grid_parts]
+    part_of = [_part_label(p) for p in ctx.grid_parts]
     keyset = {}
     for k, (i, j) in enumerate(pairs.tolist()):
         keyset.setdefault(tuple(sorted((part_of[i], part_of[j]))), []).append(k)

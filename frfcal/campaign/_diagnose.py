@@ -455,7 +455,7 @@ def _nonlinear_modes(gate: ArticleGate) -> list:
     return rows
 
 
-def _screen_member(camp: Campaign, pm, model, load, eq, m, quantity, log):
+def _screen_member(camp: Campaign, pm, model, load, eq, m, quantity, log, executor=None):
     """Candidates of the deck and set-up, screened on the member's equalized data (with continuation)."""
     from calibration import build_surrogate, screen
 
@@ -468,7 +468,8 @@ def _screen_member(camp: Campaign, pm, model, load, eq, m, quantity, log):
         sur, T = build_surrogate(model, m.p, (lo, hi), c.basis_factor, enrich=c.enrich)
     data, cont = eq.member(m.articles)
     scr = screen(sur, T, m.p, data, c.zeta0, terms, pm.lower, pm.upper, quantity=quantity, model=model, n_check=cfg.top_n,
-                 shift_hz=max(lo / 4.0, hi / 50.0), continuation=cont, max_nfev=cfg.max_evaluations)
+                 shift_hz=max(lo / 4.0, hi / 50.0), continuation=cont, max_nfev=cfg.max_evaluations,
+                 executor=executor)
     counts: dict = {}
     for cd in cands:
         counts[cd.family] = counts.get(cd.family, 0) + 1
@@ -558,6 +559,14 @@ def _holdout_floor(camp, check) -> float:
     return float(sum(x.expected * x.n_values for x in rows) / n) if n else float(check.floor)
 
 
+def _overlap(ctx, name_a: str, name_b: str) -> bool:
+    """Whether two candidates are element-subset factors sharing an element (a model cannot hold both)."""
+    cands = {cd.name: cd.term for cd in ctx["cands"]}
+    a, b = cands.get(name_a), cands.get(name_b)
+    ea, eb = getattr(a, "elements", None), getattr(b, "elements", None)
+    return ea is not None and eb is not None and bool(set(ea) & set(eb))
+
+
 def _accept_member(camp, load, pm, model, articles, m, check, rows, ctx, quantity, executor, log):
     """Recalibrate with the top candidates (singly, then greedily combined), accept by hold-out and
     cross-validation beyond their scatter with a per-parameter penalty, stop at the floor.
@@ -584,8 +593,8 @@ def _accept_member(camp, load, pm, model, articles, m, check, rows, ctx, quantit
     for _ in range(cfg.max_effects):
         best = None
         for r in order:
-            if any(r["name"] == a["name"] for a in accepted):
-                continue
+            if any(r["name"] == a["name"] or _overlap(ctx, r["name"], a["name"]) for a in accepted):
+                continue  # the same effect, or an element subset sharing elements with an accepted one
             names = [a["name"] for a in accepted] + [r["name"]]
             c0 = [a["c"] for a in accepted] + [r["c"]]
             fit = fit_with(sur, T, model, [by_name[n] for n in names], data, c.zeta0, pm.lower, pm.upper,
@@ -752,7 +761,7 @@ def diagnose_stage(camp: Campaign, load, pm, model, articles, eq, cal, val, xval
                       f"nonlinearly: {what}; no linear effect is accepted in its place")
         else:
             quantity = articles[m.articles[0]].quantity
-            counts, rows, scr, ctx = _screen_member(camp, pm, model, load, eq, m, quantity, log)
+            counts, rows, scr, ctx = _screen_member(camp, pm, model, load, eq, m, quantity, log, executor)
             acc, trials, after, fit = _accept_member(camp, load, pm, model, articles, m, check, rows, ctx,
                                                      quantity, executor, log)
             if after is not None:

@@ -37,8 +37,9 @@ def gap_deck(path, h=H, dx=0.0):
     Plate B: grids 101..112 at x = 10..40 mm (+ ``dx``), same y, z = 2 mm. Three of the nine facing
     pairs are joined: (2, 101) by a CELAS2, (6, 105) by a CELAS1 (PELAS 9),
     (12, 111) by an RBE2. A CBAR (PBAR 3) hangs off grid 4 away from plate
-    B: grid 4 is a PSHELL 1 / PBAR 3 junction, so (4, 103) is no contact
-    candidate either. No element joins the other five. SI.
+    B: grid 4 is a PSHELL 1 / PBAR 3 junction facing plate B, so (4, 103) is a
+    contact candidate of its own (part "PBAR 3+PSHELL 1" against "PSHELL 2";
+    :func:`_plain` leaves it out). No element joins the other five. SI.
     """
     lines = ["SOL 103", "CEND", "BEGIN BULK", "MAT1,1,2.1+11,,0.3,7850.", "PSHELL,1,1,0.002,1,,1",
              "PSHELL,2,1,0.0015,1,,1", "PBAR,3,1,1.0-5,1.0-10,1.0-10,2.0-10", "PELAS,9,1.0+5"]
@@ -87,6 +88,11 @@ def _setup(pm, n_sensors=10):
     return sensors, [(sensors[1], (0.1, 0.2, -1.0))]
 
 
+def _plain(cands):
+    """The candidates between single-part grids (the junction grid 4 facing plate B is a part pair of its own)."""
+    return tuple(c for c in cands if not any("+" in p for p in c.parts))
+
+
 def _contact_pairs(c):
     return {(min(g1, g2), max(g1, g2)) for g1, _, g2, _ in c.term.dofs}
 
@@ -100,7 +106,10 @@ def test_gap_deck_contact_finds_exactly_the_unjoined_facing_pairs_of_single_part
     # at h = 5 mm the diagonal neighbours (5.4 mm) are within 1.5 element sizes too: only facing pairs count
     path, expected, joined = gap_deck(tmp_path / "gap.bdf", h)
     fe = read_bdf(path)
-    cands = generate_candidates(fe, families=["contact_spring"])
+    every = generate_candidates(fe, families=["contact_spring"])
+    (junction,) = [c for c in every if c not in _plain(every)]
+    assert _contact_pairs(junction) == {(4, 103)} and junction.parts == ("PBAR 3+PSHELL 1", "PSHELL 2")
+    cands = _plain(every)
     assert len(cands) == 1
     c = cands[0]
     assert _contact_pairs(c) == {(min(a, b), max(a, b)) for a, b in expected}
@@ -124,7 +133,7 @@ def test_gap_deck_contact_finds_exactly_the_unjoined_facing_pairs_of_single_part
 def test_contact_spring_components_follow_the_gap_direction(tmp_path, dx, comps):
     # gap (dx, 0, 2 mm): 8.5 deg off z -> z only; 26.6 deg (> contact_axis_deg = 20) -> x, y and z
     path, expected, _ = gap_deck(tmp_path / "gap.bdf", dx=dx)
-    (c,) = generate_candidates(read_bdf(path), families=["contact_spring"])
+    (c,) = _plain(generate_candidates(read_bdf(path), families=["contact_spring"]))
     assert _contact_pairs(c) == {(min(a, b), max(a, b)) for a, b in expected}
     assert {(d[1], d[3]) for d in c.term.dofs} == comps
     assert len(c.term.dofs) == len(expected) * len(comps)
@@ -135,8 +144,9 @@ def test_gap_deck_contact_distance_cap_and_patches(tmp_path):
     fe = read_bdf(path)
     assert generate_candidates(fe, families=["contact_spring"],
                                options=CandidateOptions(contact_max_gap_m=0.0019)) == ()
+    plain = lambda **kw: _plain(generate_candidates(fe, families=["contact_spring"], **kw))  # noqa: E731
     # patches of at most one element size: the five pairs split, each pair in exactly one patch
-    small = generate_candidates(fe, families=["contact_spring"], options=CandidateOptions(contact_patch=1.0))
+    small = plain(options=CandidateOptions(contact_patch=1.0))
     patches = [c for c in small if not c.name.endswith(("_all", "_join1"))]
     assert len(patches) > 1
     pairs = [p for c in patches for p in _contact_pairs(c)]
@@ -145,10 +155,10 @@ def test_gap_deck_contact_distance_cap_and_patches(tmp_path):
     # every pair, so a gap closed over its whole length is one effect
     (union,) = [c for c in small if c not in patches]
     assert union.name.endswith("_join1") and _contact_pairs(union) == set(pairs)
-    assert union.term.scale == pytest.approx(generate_candidates(fe, families=["contact_spring"])[0].term.scale)
+    assert union.term.scale == pytest.approx(plain()[0].term.scale)
     # one-hop exclusion only: the same pairs (none of them shares a neighbour grid across the plates)
-    one = generate_candidates(fe, families=["contact_spring"], options=CandidateOptions(contact_hops=1))
-    assert _contact_pairs(one[0]) == _contact_pairs(generate_candidates(fe, families=["contact_spring"])[0])
+    one = plain(options=CandidateOptions(contact_hops=1))
+    assert _contact_pairs(one[0]) == _contact_pairs(plain()[0])
 
 
 @pytest.mark.parametrize("which", ["frame", "shell"])
@@ -435,3 +445,15 @@ def test_lumped_masses_also_far_from_every_sensor_and_drive(frame_pm):
     pts = np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0], [10, 0, 0]])
     assert ctx.spread(pts, 1, away_from=[[0.0, 0, 0]]).tolist() == [4]
     assert ctx.spread(pts, 2, away_from=[[0.0, 0, 0]]).tolist() == [3, 4]  # 3 is 3 from 0 and 7 from 10
+
+
+def test_a_gap_facing_a_welded_corner_is_one_contact_candidate(tmp_path):
+    # the subframe's doubler faces rail grids that are web/skin junctions: a junction grid may face a third part
+    ex = example_subframe(tmp_path, target_dof=1500, gap_mm=2.0)
+    cands = generate_candidates(parametric_model(ex.params), families=["contact_spring"])
+    gap = {(min(a, b), max(a, b)) for a, b in ex.gap_pairs}
+    whole = [c for c in cands if _contact_pairs(c) == gap]
+    assert len(whole) == 1 and "PSHELL 21" in whole[0].parts
+    assert all(_contact_pairs(c) <= gap for c in cands)  # nothing else faces anything in this deck
+    plain = example_subframe(tmp_path / "plain", target_dof=1500)
+    assert generate_candidates(parametric_model(plain.params), families=["contact_spring"]) == ()
