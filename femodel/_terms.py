@@ -208,8 +208,11 @@ class AddedSpring:
         return {"K": m}
 
     def write_cards(self, value: float, editor) -> None:
-        """CELAS2 cards of rate ``value`` (SI) for every pair (fresh element ids)."""
-        k = editor.deck_value(value, "rot_spring" if self.rotational else "trans_spring")
+        """CELAS2 cards of rate ``value`` (SI) for every pair (fresh element ids), small field (the rate
+        rounded to its 8-character spelling: a relative change below 1e-4)."""
+        from femodel._writeback import small_field_value
+
+        k = small_field_value(editor.deck_value(value, "rot_spring" if self.rotational else "trans_spring"))
         for g1, c1, g2, c2 in self.dofs:
             editor.add(["CELAS2", editor.new_id("element"), k, g1, c1, g2 or None, c2 if g2 else None])
 
@@ -265,8 +268,11 @@ class AddedMass:
         return {"M": sp.csr_matrix((np.full(len(idx), float(self.scale)), (idx, idx)), shape=(n, n))}
 
     def write_cards(self, value: float, editor) -> None:
-        """CONM2 cards of mass ``value`` (kg) on every grid (fresh element ids, CID 0)."""
-        m = editor.deck_value(value, "mass")
+        """CONM2 cards of mass ``value`` (kg) on every grid (fresh element ids, CID 0), small field (the mass
+        rounded to its 8-character spelling: a relative change below 1e-4)."""
+        from femodel._writeback import small_field_value
+
+        m = small_field_value(editor.deck_value(value, "mass"))
         for g in self.grids:
             editor.add(["CONM2", editor.new_id("element"), g, 0, m])
 

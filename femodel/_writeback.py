@@ -113,6 +113,19 @@ def _decimal_strings(x: float):
     return sci, pos
 
 
+def small_field_value(value: float) -> float:
+    """The value nearest ``value`` (fewest significant digits dropped) whose spelling fits a small 8-character
+    field: an added card of a fitted magnitude is then written in small field, exactly as it will be read."""
+    v = float(value)
+    if not np.isfinite(v):
+        raise ParameterError(f"card field {value!r} is not finite")
+    for digits in range(17, 0, -1):
+        x = float(f"{v:.{digits - 1}e}")
+        if any(len(c) <= 8 for c in _decimal_strings(x)):
+            return x
+    raise ParameterError(f"card field {value!r} does not fit in 8 characters")  # pragma: no cover
+
+
 def _real_field(value: float, width: int) -> tuple[str, bool]:
     """The most precise spelling of a real in ``width`` characters and whether it is exact.
 

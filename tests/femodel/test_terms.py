@@ -325,3 +325,19 @@ def test_term_on_constrained_dof_is_rejected(tmp_path):
     pm = parametric_model(FRAME_PARAMS, deck)
     with pytest.raises(ParameterError, match="k_g.*constrained"):
         pm.with_terms([AddedSpring("k_g", ((1, 3, 0, 0),), 1.0)])
+
+
+def test_added_cards_of_a_fitted_magnitude_are_small_field(frame, tmp_path):
+    # a fitted magnitude has 17 significant digits; its CELAS2/CONM2 are written in small field, rounded to
+    # 8 characters (relative change below 1e-4), and read back as written
+    d, pm, ext = frame
+    p = FRAME_P.copy()
+    p[3:6] = [0.812345678901, 1.23456789012, 0.61234567891]
+    out = ext.write_bdf(tmp_path / "fitted.bdf", p)
+    added = out.read_text().split("$ cards written by frfcal")[1]
+    new = [ln for ln in added.splitlines() if ln.startswith(("CELAS2", "CONM2")) and "," not in ln]  # not 200's
+    assert len(new) == 5 and not any(ln.startswith(("CELAS2*", "CONM2*")) for ln in new)
+    asm = femodel.assemble(femodel.read_bdf(out, units="si"))
+    for A, B in ((asm.stiffness(), ext.stiffness(p)), (asm.mass(), ext.mass(p))):
+        diff = abs(sp.csr_matrix(A) - sp.csr_matrix(B))
+        assert diff.max() <= 1e-4 * abs(sp.csr_matrix(B)).max()
