@@ -68,26 +68,7 @@ def pretest_stage(camp: Campaign, outdir: Path, log=print) -> LayoutResult:
     import pretest
 
     s = camp.pretest
-    cfg = pretest.PretestConfig(
-        n_sensors=s.sensors,
-        n_modes=s.modes if (s.modes is not None or s.band_hz or s.mode_numbers) else 20,
-        band_hz=tuple(s.band_hz) if s.band_hz else None,
-        mode_numbers=tuple(s.mode_numbers) if s.mode_numbers else None,
-        direction=s.direction,
-        triax=s.triax,
-        candidate_grids=tuple(s.candidates) if s.candidates else None,
-        candidate_pids=tuple(s.pids) if s.pids else None,
-        include_grids=tuple(s.include),
-        exclude_grids=tuple(s.exclude),
-        min_distance_m=s.min_distance_m,
-        n_drives=s.drives,
-        n_shaker_candidates=s.shaker_candidates,
-        collocated_drive=not s.free_drive,
-        drive_criterion=s.drive_criterion,
-        sensor_mass_kg=s.sensor_mass_g * 1e-3,
-        drive_mass_kg=s.drive_mass_g * 1e-3,
-        refine_automac_decades=s.refine_automac,
-    )
+    cfg = s.config()
     bdf, units = deck(camp)
     model = femodel.read_bdf(bdf, units=units)
     res = pretest.plan_pretest(model, cfg)

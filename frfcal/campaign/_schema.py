@@ -65,7 +65,35 @@ class PretestSection(_Strict):
     sensor_mass_g: float = Field(0.5, ge=0, description="mass of one sensor, g")
     drive_mass_g: float = Field(5.0, ge=0, description="force sensor + stinger mass, g")
     refine_automac: float | None = Field(None, gt=0, description="autoMAC refinement, decades of det(FIM) given up")
+    box_m: tuple[float, float, float, float, float, float] | None = Field(
+        None, description="candidate grids inside this box: xmin, xmax, ymin, ymax, zmin, zmax, m")
     figures: bool = Field(True, description="write the layout and autoMAC figures beside the layout")
+
+    def config(self):
+        """The :class:`pretest.PretestConfig` of these settings (``frfcal pretest`` builds the same)."""
+        import pretest
+
+        return pretest.PretestConfig(
+            n_sensors=self.sensors,
+            n_modes=self.modes if (self.modes is not None or self.band_hz or self.mode_numbers) else 20,
+            band_hz=tuple(self.band_hz) if self.band_hz else None,
+            mode_numbers=tuple(self.mode_numbers) if self.mode_numbers else None,
+            direction=self.direction,
+            triax=self.triax,
+            candidate_grids=tuple(self.candidates) if self.candidates else None,
+            candidate_pids=tuple(self.pids) if self.pids else None,
+            candidate_box_m=tuple(self.box_m) if self.box_m else None,
+            include_grids=tuple(self.include),
+            exclude_grids=tuple(self.exclude),
+            min_distance_m=self.min_distance_m,
+            n_drives=self.drives,
+            n_shaker_candidates=self.shaker_candidates,
+            collocated_drive=not self.free_drive,
+            drive_criterion=self.drive_criterion,
+            sensor_mass_kg=self.sensor_mass_g * 1e-3,
+            drive_mass_kg=self.drive_mass_g * 1e-3,
+            refine_automac_decades=self.refine_automac,
+        )
 
     @model_validator(mode="after")
     def _one_target(self):

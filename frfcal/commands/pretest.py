@@ -74,27 +74,17 @@ def run(args) -> int:
     direction = args.direction
     if not args.triax:
         pretest.parse_direction(direction)
-    cfg = pretest.PretestConfig(
-        n_sensors=args.sensors,
-        n_modes=args.modes if (args.modes is not None or args.band or args.mode_numbers) else 20,
-        band_hz=tuple(args.band) if args.band else None,
-        mode_numbers=tuple(args.mode_numbers) if args.mode_numbers else None,
-        direction=direction,
-        triax=args.triax,
-        candidate_grids=tuple(args.candidates) if args.candidates else None,
-        candidate_pids=tuple(args.pids) if args.pids else None,
-        candidate_box_m=tuple(args.box) if args.box else None,
-        include_grids=tuple(args.include),
-        exclude_grids=tuple(args.exclude),
-        min_distance_m=args.min_distance,
-        n_drives=args.drives,
-        n_shaker_candidates=args.shaker_candidates,
-        collocated_drive=not args.free_drive,
-        drive_criterion=args.drive_criterion,
-        sensor_mass_kg=args.sensor_mass_g * 1e-3,
-        drive_mass_kg=args.drive_mass_g * 1e-3,
-        refine_automac_decades=args.refine_automac,
-    )
+    from frfcal.campaign._schema import PretestSection
+
+    # the campaign's [pretest] settings from the options, unvalidated here: PretestConfig checks them as before
+    cfg = PretestSection.model_construct(
+        sensors=args.sensors, modes=args.modes, band_hz=args.band, mode_numbers=args.mode_numbers,
+        direction=direction, triax=args.triax, candidates=args.candidates, pids=args.pids, include=args.include,
+        exclude=args.exclude, min_distance_m=args.min_distance, drives=args.drives,
+        shaker_candidates=args.shaker_candidates, free_drive=args.free_drive, drive_criterion=args.drive_criterion,
+        sensor_mass_g=args.sensor_mass_g, drive_mass_g=args.drive_mass_g, refine_automac=args.refine_automac,
+        box_m=args.box,
+    ).config()
     model = femodel.read_bdf(args.model, units=args.units)
     if args.evaluate:
         return _evaluate(args, cfg, model)
