@@ -49,7 +49,7 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from femodel import AffineMatrix, FactorizationError, factorize
+from femodel import AffineMatrix, FactorizationError, factorize, start_vector
 
 from calibration._errors import CalibrationError
 from calibration._threads import blas_threads as _blas_threads  # module-local name as before; shared with _fit.single_thread
@@ -296,7 +296,8 @@ def _shift_invert_modes(Ks, Ms, s, solve, max_hz: float, max_modes: int, k0: int
     with _blas_threads(1):  # single-vector Lanczos: extra BLAS threads only spin
         while True:
             ncv = min(n, max(2 * k + 1, k + 20))
-            lam, vec = spla.eigsh(Ks, k=k, M=Ms, sigma=-s, which="LM", OPinv=op, mode="normal", ncv=ncv, tol=1e-5)
+            lam, vec = spla.eigsh(Ks, k=k, M=Ms, sigma=-s, which="LM", OPinv=op, mode="normal", ncv=ncv, tol=1e-5,
+                                  v0=start_vector(n))
             order = np.argsort(lam)
             lam, vec = lam[order], vec[:, order]
             if lam[-1] > (2 * np.pi * max_hz) ** 2 or k >= min(max_modes, n - 2):

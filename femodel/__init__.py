@@ -10,7 +10,7 @@ from femodel._matrices import ImportedMatrices, read_dmig, read_matrices, read_o
 from femodel._model import CoordSystem, FEModel, ModelError, RBE2, RBE3, Table
 from femodel._factor import (BackendInfo, Factorization, FactorizationError, NotPositiveDefiniteError,
                              available_backends, default_backend, factorize)
-from femodel._modes import Modes, normal_modes, solve_modes
+from femodel._modes import Modes, normal_modes, solve_modes, start_vector
 from femodel._reader import read_bdf
 from femodel._sensors import MassProperties, mass_properties, rigid_body_vectors, sensor_matrix
 from femodel._units import UNIT_SYSTEMS, UnitSystem, unit_system
@@ -28,7 +28,7 @@ from femodel._example_frame import FrameExample, example_frame
 __all__ = [
     "Assembly", "MatrixTerm", "assemble", "DofMap", "ImportedMatrices", "read_dmig", "read_matrices",
     "read_op2_matrices", "read_op4", "CoordSystem", "FEModel", "ModelError", "RBE2", "RBE3", "Table",
-    "Modes", "normal_modes", "solve_modes", "read_bdf", "MassProperties", "mass_properties",
+    "Modes", "normal_modes", "solve_modes", "start_vector", "read_bdf", "MassProperties", "mass_properties",
     "rigid_body_vectors", "sensor_matrix", "UNIT_SYSTEMS", "UnitSystem", "unit_system",
     "AffineMatrix", "ElementGeometryError", "shell_stiffness", "shell_mass", "solid_stiffness", "solid_mass", "laminate_abd", "orthotropic_q",
     "Parameter", "ParameterError", "ParameterSet", "read_parameters", "ParametricModel", "SeriesAffineMatrix", "parametric_model",
