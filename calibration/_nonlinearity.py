@@ -432,9 +432,12 @@ class LevelPair:
     noise_sd: float  # delta expected from noise (+ repeatability); NaN if no noise floor
     z: float
     flagged: bool
+    #: the line where the two FRFs differ most against their noise (sum over channels of |eps|^2 / var), Hz
+    peak_hz: float = float("nan")
 
     def to_dict(self) -> dict:
-        return {k: getattr(self, k) for k in ("level_low", "level_high", "n_values", "sd", "noise_sd", "z", "flagged")}
+        return {k: getattr(self, k)
+                for k in ("level_low", "level_high", "n_values", "sd", "noise_sd", "z", "flagged", "peak_hz")}
 
 
 @dataclass(frozen=True)
@@ -600,27 +603,32 @@ def level_dependence(
             hi = min(hi, 0.5 * (modes[r + 1] + fr))
         bands.append((lo, hi))
 
-    fits = []
+    # a mode whose local fit cannot be made at some level (too few lines in its band, no resonance inside
+    # it) is left out with the reason, and the others are checked: one crowded band does not void the check
+    fits, failed = [], {}
     for d in levels:
         Y, S = _receptance(d)
         Y = Y.reshape(Y.shape[0], -1)
         S = None if S is None else S.reshape(S.shape[0], -1)
         z0 = np.clip(zeta0, 1e-5, 0.2)
-        fits.append(
-            tuple(
-                _fit_mode(d.frequency_hz, Y, S, fr, z0[r], bands[r], f"{d.name}, mode {r + 1}")
-                for r, fr in enumerate(modes)
-            )
-        )
+        row = []
+        for r, fr in enumerate(modes):
+            try:
+                row.append(_fit_mode(d.frequency_hz, Y, S, fr, z0[r], bands[r], f"{d.name}, mode {r + 1}"))
+            except CalibrationError as exc:
+                failed.setdefault(r, str(exc))
+                row.append(None)
+        fits.append(tuple(row))
     # a "mode" that does not stand min_snr above the noise at every level is a noise bump: dropped
-    snr = np.array([[fl[r].peak_snr for fl in fits] for r in range(modes.size)])
-    weak = snr.min(axis=1) < min_snr
+    snr = np.array([[np.nan if fl[r] is None else fl[r].peak_snr for fl in fits] for r in range(modes.size)])
+    weak = np.array([r in failed or snr[r].min() < min_snr for r in range(modes.size)])
     dropped = [
+        f"mode near {modes[r]:.5g} Hz left out: {failed[r]}" if r in failed else
         f"peak near {modes[r]:.5g} Hz left out: modal peak only {snr[r].min():.3g}x the noise (< {min_snr:g})"
         for r in np.nonzero(weak)[0]
     ]
     if weak.all():
-        raise CalibrationError(f"no resonance stands {min_snr:g}x above the noise in {names}: {'; '.join(dropped)}")
+        raise CalibrationError(f"no resonance could be checked in {names}: {'; '.join(dropped)}")
     modes = modes[~weak]
     fits = [tuple(fl[r] for r in np.nonzero(~weak)[0]) for fl in fits]
     has_se = all(d.std_error is not None for d in levels)
@@ -675,6 +683,10 @@ def level_dependence(
         # it is an allowance subtracted from the statistic, which is then judged against noise
         t = float(np.sum(2 * (np.abs(eps) ** 2 - scatter_delta) / var))
         z = _chi2_z(max(t, 0.0), 2 * eps.size)
+        # where the difference is: the line with the largest noise-normalised excess, over its channels
+        per_line = np.zeros(keep.shape[0])
+        np.add.at(per_line, np.nonzero(keep)[0], 2 * (np.abs(eps) ** 2 - scatter_delta) / var)
+        peak_hz = float(ref.frequency_hz[ia][int(np.argmax(per_line))])
         pairs.append(
             LevelPair(
                 level_low=float(ref.level),
@@ -684,6 +696,7 @@ def level_dependence(
                 noise_sd=float(np.mean(var) + scatter_delta),
                 z=z,
                 flagged=bool(z > z_threshold),
+                peak_hz=peak_hz,
             )
         )
 
@@ -724,6 +737,7 @@ def level_dependence(
             ev.append(
                 f"FRF at {p.level_high:.3g} vs {p.level_low:.3g} {unit}: SD {p.sd:.3g} vs {p.noise_sd:.3g} from noise"
                 f" ({p.z:.3g} sigma{'' if p.flagged else ', within noise'})"
+                + (f", largest at {p.peak_hz:.5g} Hz" if p.flagged else "")
             )
     ev.insert(
         0,

@@ -387,7 +387,7 @@ def runs_by_level(runs) -> dict:
 
 
 def level_checks(by_level, *, settle_tolerance: float | None = None, max_relative_noise: float = 0.05,
-                 **options) -> dict:
+                 modes_hz: dict | None = None, **options) -> dict:
     """Level dependence (``calibration.level_dependence``) of every article measured at two or more levels.
 
     Parameters
@@ -404,6 +404,10 @@ def level_checks(by_level, *, settle_tolerance: float | None = None, max_relativ
     max_relative_noise : float
         Lines with more relative noise are left out of the model-free check
         (antiresonances: a standard error from a few blocks is unreliable there).
+    modes_hz : dict, optional
+        Article -> the modes to check (Hz), e.g. the identified modes of its lowest-level run: closely spaced
+        modes that the channel-averaged magnitude shows as one peak are then checked apart (without them,
+        ``calibration.find_modes`` on the lowest level).
     **options
         Passed to ``calibration.level_dependence`` (e.g. ``z_threshold``).
 
@@ -428,7 +432,8 @@ def level_checks(by_level, *, settle_tolerance: float | None = None, max_relativ
             run = read_run(path)
             levels.append(frf_level_from_run(run, level=level))
         try:
-            out[article] = level_dependence(levels, **options)
+            modes = (modes_hz or {}).get(article)
+            out[article] = level_dependence(levels, list(modes) if modes else None, **options)
         except CalibrationError as exc:
             out[article] = f"not checked: {exc}"
     return out

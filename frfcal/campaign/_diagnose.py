@@ -444,6 +444,12 @@ def _nonlinear_modes(gate: ArticleGate) -> list:
     rows = [{"article": gate.article, "check": "level dependence", "mode": c.mode, "frequency_hz": c.frequency_hz,
              "quantity": c.quantity, "levels_n": list(c.levels), "values": list(c.values), "ratio": c.ratio,
              "z": c.z} for c in nl.modes]
+    if nl.level is not None:  # the model-free FRF difference between levels, where it is largest
+        fm = np.asarray(nl.level.modes_hz, float)
+        rows += [{"article": gate.article, "check": "FRF level difference", "frequency_hz": p.peak_hz,
+                  "nearest_mode_hz": float(fm[np.argmin(np.abs(fm - p.peak_hz))]) if fm.size else None,
+                  "levels_n": [p.level_low, p.level_high], "z": p.z} for p in nl.level.pairs
+                 if p.flagged and np.isfinite(p.peak_hz)]
     if nl.distortion is not None:
         for x in nl.distortion.lines:
             rows.append({"article": gate.article, "check": "harmonic distortion", "mode": x.mode,

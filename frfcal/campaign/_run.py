@@ -372,12 +372,15 @@ def _diagnose(ctx: StageContext):
     r = ctx.results
     return diagnose_stage(ctx.camp, r["load"], ctx.pm, ctx.model, ctx.articles, r["equalize"], r["calibrate"],
                           r["validate"], r["crossvalidate"], ctx.executor(), ctx.log, r["group"],
-                          level_checks=_acquired_level_checks(r.get("acquired")))
+                          level_checks=_acquired_level_checks(r.get("acquired"), ctx.articles))
 
 
-def _acquired_level_checks(acquired) -> dict:
+def _acquired_level_checks(acquired, articles=()) -> dict:
     """Level dependence of every acquired article swept at several force levels (the campaign calibrates on the
-    lowest; docs/campaign.md): article -> (LevelDependence or reason, ((level N, path), ...))."""
+    lowest; docs/campaign.md): article -> (LevelDependence or reason, ((level N, path), ...)).
+
+    The modes checked are those identified on the article's lowest-level run (``articles``, with their
+    identification) when it was identified, else the peaks of its channel-averaged magnitude."""
     if acquired is None:
         return {}
     from acquisition.runfile import read_run
@@ -390,7 +393,13 @@ def _acquired_level_checks(acquired) -> dict:
         return {}
     first = next(iter(by_level.values()))[0][1]
     tol = ((read_run(first).plan or {}).get("settle") or {}).get("tolerance")
-    checks = level_checks(by_level, settle_tolerance=tol)
+    ident = {Path(a.path).resolve(): a.identification for a in articles if a.identification is not None}
+    modes = {}
+    for art, entries in by_level.items():
+        idn = ident.get(Path(entries[0][1]).resolve())
+        if idn is not None and getattr(idn, "modal", None) is not None:
+            modes[art] = sorted(float(f) for f in idn.modal.frequency_hz if f > 0)
+    checks = level_checks(by_level, settle_tolerance=tol, modes_hz=modes)
     return {a: (checks[a], tuple(by_level[a])) for a in checks}
 
 

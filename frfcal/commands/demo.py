@@ -249,6 +249,7 @@ def _g(x, fmt: str = ".3g") -> str:
 
 def _nonlinear(diag: dict) -> dict:
     """Flagged articles of the diagnosis' nonlinearity gate: article -> evidence in words."""
+    import math
     out = {}
     for gate in diag.get("gates", []):
         nl = gate.get("nonlinearity") or {}
@@ -260,6 +261,13 @@ def _nonlinear(diag: dict) -> dict:
                 why.append(f"mode at {m['frequency_hz']:.4g} Hz: {m['quantity']} {m['values'][0]:.4g} -> "
                            f"{m['values'][-1]:.4g} from {min(m['levels']):g} to {max(m['levels']):g} N "
                            f"({m['z']:.3g} sigma)")
+        level = nl.get("level") or {}
+        fm = [f for f in level.get("modes_hz", []) if f is not None]
+        for p in level.get("pairs", []):
+            if p.get("flagged") and p.get("peak_hz") is not None and math.isfinite(p["peak_hz"]):
+                near = min(fm, key=lambda f: abs(f - p["peak_hz"])) if fm else None
+                why.append(f"FRFs at {p['level_high']:g} and {p['level_low']:g} N differ by {p['z']:.3g} sigma, "
+                           f"most at {p['peak_hz']:.4g} Hz" + (f" (nearest mode {near:.4g} Hz)" if near else ""))
         out[gate["article"]] = "; ".join(why[:2]) or nl.get("verdict") or "flagged"
     return out
 

@@ -114,6 +114,33 @@ def test_cubic_stiffening_flags_the_right_mode(seed):
     assert r.pairs[0].flagged and r.pairs[0].sd > 10 * r.pairs[0].noise_sd
 
 
+def test_the_model_free_difference_is_located_at_the_changed_mode():
+    """The lines where the two levels differ most lie in the changed mode's half-power band."""
+    rng = np.random.default_rng(11)
+    f = _lines()
+    lo = _level(f, _accelerance(f), 0.5, rng)
+    hi = _level(f, _accelerance(f, F_HZ * [1, 1.002, 1]), 2.0, rng)
+    p = level_dependence([lo, hi]).pairs[0]
+    assert p.flagged
+    assert abs(p.peak_hz - F_HZ[1]) < 3 * ZETA[1] * F_HZ[1], p.peak_hz
+    assert p.to_dict()["peak_hz"] == p.peak_hz
+
+
+def test_a_mode_that_cannot_be_fitted_is_left_out_and_the_others_checked():
+    """A given mode with no resonance in its band (a spurious identified pole, or a band too crowded for six
+    lines) is dropped with the reason; the other modes are still checked (it used to void the whole check)."""
+    rng = np.random.default_rng(4)
+    f = _lines()
+    lo = _level(f, _accelerance(f), 0.5, rng)
+    hi = _level(f, _accelerance(f, F_HZ * [1, 1.005, 1]), 2.0, rng)
+    r = level_dependence([lo, hi], [50.0, 85.0, 120.0, 210.0])  # no mode and no line near 85 Hz
+    np.testing.assert_allclose(r.modes_hz, F_HZ, rtol=1e-4)
+    assert {(c.mode, c.quantity) for c in r.changes if c.flagged} == {(2, "frequency")}
+    assert any(e.startswith("mode near 85 Hz left out") and "lines" in e for e in r.evidence), r.evidence
+    with pytest.raises(CalibrationError, match="no resonance could be checked"):
+        level_dependence([lo, hi], [85.0, 90.0])
+
+
 def test_level_dependent_damping_three_levels():
     """Mode 1 damping 0.10 -> 0.13 -> 0.16 % over 0.2-2 N: flagged as damping of mode 1, trend positive."""
     rng = np.random.default_rng(5)

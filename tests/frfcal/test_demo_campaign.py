@@ -141,11 +141,22 @@ def test_runs_per_article_and_level(acquired):
 
 
 def test_level_dependence_flags_the_loose_article_only(acquired):
-    _, _, _, _, runs, _ = acquired
+    _, _, _, arts, runs, _ = acquired
     checks = level_checks(runs_by_level(runs), settle_tolerance=3e-3)
     assert set(checks) == {"A1", "A3"}
     assert checks["A3"].flagged, checks["A3"].to_dict()
     assert not checks["A1"].flagged, checks["A1"].to_dict()
+    # given the article's modes (as the campaign passes its identified ones), the change is located at the
+    # loose mode: a flagged mode row or the model-free difference's largest line nearest to it
+    a3 = next(a for a in arts if a.name == "A3")
+    fm = np.asarray(a3.plant.frequencies_hz, float)
+    fm = fm[(fm > DATA[0]) & (fm < DATA[1])]
+    loose_hz = float(a3.plant.frequencies_hz[a3.loose_mode])
+    given = level_checks(runs_by_level(runs), settle_tolerance=3e-3, modes_hz={"A3": fm.tolist()})["A3"]
+    assert given.flagged, given.to_dict()
+    where = [c.frequency_hz for c in given.changes if c.flagged] + [p.peak_hz for p in given.pairs if p.flagged]
+    near = [fm[np.argmin(np.abs(fm - w))] for w in where]
+    assert near and all(abs(n - loose_hz) < 1e-6 * loose_hz for n in near), (loose_hz, where, fm)
 
 
 def test_reduced_campaign_calibrates_to_the_noise_floor(acquired):
