@@ -360,8 +360,7 @@ def import_uff(path, out, *, article: str | None = None, overwrite: bool = False
     nan_q = LineQuality(force_n=np.full(len(drives), np.nan), std_error=np.full((len(sensors), len(drives)), np.nan),
                         thd=np.full(len(sensors) + len(drives), np.nan))
     try:
-        for k in range(f.size):
-            w.append_line(f[k], frf[k], nan_q)
+        w.append_lines(f, frf, nan_q)
     except RunFileError:
         w.close("aborted")
         raise
