@@ -36,9 +36,34 @@ from labdata import CHANNEL_UNITS, RESPONSE_QUANTITY
 _SPEC = {"accelerance": 12, "mobility": 11, "receptance": 8}
 _SPEC_INV = {v: k for k, v in _SPEC.items()}
 _QTY = {q: (r, CHANNEL_UNITS[r]) for q, r in RESPONSE_QUANTITY.items()}
+_IN, _FT, _LBF = 0.0254, 0.3048, 4.4482216152605
 _SCALE_NUM = {"m/s^2": 1.0, "m/s2": 1.0, "g": 9.80665, "mm/s^2": 1e-3, "mm/s2": 1e-3, "m/s": 1.0, "mm/s": 1e-3,
-              "m": 1.0, "mm": 1e-3, "none": 1.0, "": 1.0}
-_SCALE_DEN = {"n": 1.0, "kn": 1e3, "none": 1.0, "": 1.0}
+              "m": 1.0, "mm": 1e-3, "in/s^2": _IN, "in/s2": _IN, "ft/s^2": _FT, "ft/s2": _FT, "in/s": _IN,
+              "ft/s": _FT, "in": _IN, "none": 1.0, "": 1.0}
+#: FRF quantity each ordinate unit implies (blank/NONE: none, the ordinate type decides)
+_KIND_NUM = {**{u: "accelerance" for u in ("m/s^2", "m/s2", "g", "mm/s^2", "mm/s2", "in/s^2", "in/s2", "ft/s^2",
+                                            "ft/s2")},
+             **{u: "mobility" for u in ("m/s", "mm/s", "in/s", "ft/s")},
+             **{u: "receptance" for u in ("m", "mm", "in")}}
+_SCALE_DEN = {"n": 1.0, "kn": 1e3, "lbf": _LBF, "lb": _LBF, "none": 1.0, "": 1.0}
+
+
+def _unit_labels(num, den) -> tuple[str, str]:
+    """Normalized (ordinate, denominator) unit labels: lower case, no blanks or parentheses, ``²``/``**2`` as
+    ``^2``; a force in the ordinate label (``g/N``, ``(m/s^2)/lbf``) moves to the denominator when that is blank."""
+    def norm(t):
+        t = str(t or "").strip().lower().replace(" ", "").replace("(", "").replace(")", "")
+        return t.replace("²", "^2").replace("**2", "^2")
+    num, den = norm(num), norm(den)
+    for force in ("kn", "lbf", "lb", "n"):
+        if num.endswith("/" + force):
+            if den in ("", "none"):
+                den = force
+            if den != force:
+                raise ValueError(f"the ordinate unit names the force {force!r} but the denominator unit is {den!r}")
+            num = num[: -len(force) - 1]
+            break
+    return num, den
 
 
 class UffError(ValueError):
@@ -280,12 +305,20 @@ def import_uff(path, out, *, article: str | None = None, overwrite: bool = False
         if not np.iscomplexobj(data):
             raise UffError(f"{path}: {rec(n, s)}: real ordinate data (type {s.get('ord_data_type')}); an FRF "
                            "needs complex data (type 5 or 6)")
-        unit_num = str(s.get("ordinate_axis_units_lab", "")).strip().lower().split("/n")[0]
-        unit_den = str(s.get("orddenom_axis_units_lab", "")).strip().lower()
+        try:
+            unit_num, unit_den = _unit_labels(s.get("ordinate_axis_units_lab", ""), s.get("orddenom_axis_units_lab", ""))
+        except ValueError as exc:
+            raise UffError(f"{path}: {rec(n, s)}: {exc}") from None
         if unit_num not in _SCALE_NUM:
-            raise UffError(f"{path}: {rec(n, s)}: unknown ordinate unit {s.get('ordinate_axis_units_lab')!r}")
+            raise UffError(f"{path}: {rec(n, s)}: unknown ordinate unit {s.get('ordinate_axis_units_lab')!r} "
+                           f"(known: {', '.join(u for u in _SCALE_NUM if u not in ('', 'none'))})")
         if unit_den not in _SCALE_DEN:
-            raise UffError(f"{path}: {rec(n, s)}: unknown denominator unit {s.get('orddenom_axis_units_lab')!r}")
+            raise UffError(f"{path}: {rec(n, s)}: unknown denominator unit {s.get('orddenom_axis_units_lab')!r} "
+                           f"(known: N, kN, lbf)")
+        if _KIND_NUM.get(unit_num, q) != q:
+            raise UffError(f"{path}: {rec(n, s)}: ordinate unit {s.get('ordinate_axis_units_lab')!r} is a "
+                           f"unit of {_KIND_NUM[unit_num]} but the ordinate type {s.get('ordinate_spec_data_type')} "
+                           f"says {q}")
         scale = _SCALE_NUM[unit_num] / _SCALE_DEN[unit_den]
         label = f"{s.get('ordinate_axis_units_lab')}/{s.get('orddenom_axis_units_lab')}"
         scale_of.setdefault(scale, []).append((n, label))

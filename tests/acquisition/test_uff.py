@@ -187,3 +187,39 @@ def test_cli_imports_mimo(tmp_path, capsys):
     _foreign(tmp_path / "d.uff", _mimo_cells() + [_mimo_cells()[0]])
     assert main(["import-uff", str(tmp_path / "d.uff"), "--out", str(tmp_path / "d.h5")]) == 2
     assert "repeats the (response, reference) pair" in capsys.readouterr().err
+
+
+def _labelled(path, num, den, spec=12, value=2.0 + 1.0j):
+    import pyuff
+
+    ds = pyuff.prepare_58(binary=0, func_type=4, rsp_node=7, rsp_dir=-3, ref_node=7, ref_dir=3, ord_data_type=6,
+                          abscissa_spacing=1, abscissa_min=10.0, abscissa_inc=0.5, data=np.full(10, value),
+                          x=10 + 0.5 * np.arange(10), ordinate_spec_data_type=spec, orddenom_spec_data_type=13,
+                          ordinate_axis_units_lab=num, orddenom_axis_units_lab=den, abscissa_spec_data_type=18)
+    ds["type"] = 58
+    pyuff.UFF(str(path)).write_sets([ds], mode="overwrite")
+    return path
+
+
+@pytest.mark.parametrize("num, den, factor", [
+    ("m/s²", "N", 1.0),                    # superscript two, as m+p and Testlab exports write it
+    ("m/s**2", "N", 1.0),
+    ("(m/s^2)/N", "", 1.0),                # the whole ratio in the ordinate label
+    ("g", "lbf", 9.80665 / 4.4482216152605),
+    ("in/s^2", "lbf", 0.0254 / 4.4482216152605),
+    ("g/lbf", "", 9.80665 / 4.4482216152605),
+])
+def test_unit_labels_labs_write_are_converted(tmp_path, num, den, factor):
+    run = import_uff(_labelled(tmp_path / "u.uff", num, den), tmp_path / "u.h5")
+    np.testing.assert_allclose(run.frf[:, 0, 0], (2.0 + 1.0j) * factor, rtol=1e-12)
+
+
+@pytest.mark.parametrize("num, den, spec, message", [
+    ("m/s", "N", 12, r"'m/s' is a unit of mobility but the ordinate type 12 says accelerance"),
+    ("g", "N", 11, r"'g' is a unit of accelerance but the ordinate type 11 says mobility"),
+    ("g/N", "lbf", 12, r"names the force 'n' but the denominator unit is 'lbf'"),
+    ("furlong/s^2", "N", 12, r"unknown ordinate unit 'furlong/s\^2' \(known: m/s\^2"),
+])
+def test_contradictory_or_unknown_unit_labels_are_refused(tmp_path, num, den, spec, message):
+    with pytest.raises(UffError, match=message):
+        import_uff(_labelled(tmp_path / "u.uff", num, den, spec), tmp_path / "u.h5")
