@@ -50,4 +50,6 @@ def run(args) -> int:
         print(f"{args.out}: {info['n_lines']} lines {lo:.3f}-{hi:.3f} Hz, "
               f"{len(info['sensors'])} x {len(info['drives'])} {info['quantity']}, article {info['article']!r}")
         print("references: " + ", ".join(info["drives"]))
+        # the names to put in a campaign's [channels] (they come from the records' node, direction and entity)
+        print("responses: " + ", ".join(info["sensors"]))
     return 0

@@ -182,6 +182,9 @@ def test_cli_imports_mimo(tmp_path, capsys):
     assert main(["import-uff", str(tmp_path / "m.uff"), "--out", str(tmp_path / "m.h5")]) == 0
     out = capsys.readouterr().out
     assert "20 x 2 accelerance" in out and "references: shaker (1+Z), shaker (2-X)" in out
+    # the response names too: they are what a campaign's [channels] lists
+    (resp,) = [ln for ln in out.splitlines() if ln.startswith("responses: ")]
+    assert len(resp[len("responses: "):].split(", ")) == 20
     assert main(["import-uff", str(tmp_path / "m.uff"), "--out", str(tmp_path / "m.h5"), "--force", "--json"]) == 0
     assert '"drive_grids": [1, 2]' in capsys.readouterr().out
     _foreign(tmp_path / "d.uff", _mimo_cells() + [_mimo_cells()[0]])
