@@ -388,8 +388,21 @@ def import_uff(path, out, *, article: str | None = None, overwrite: bool = False
     if article is None:
         id1 = str(s0.get("id1", ""))
         article = id1.split("article=", 1)[1].strip() if "article=" in id1 else path.stem
+    plan = {"source": "uff58", "file": str(path)}
+    bad = ~np.isfinite(f) | (f < 0)
+    if bad.any():
+        raise UffError(f"{path}: the abscissa has {int(bad.sum())} negative or non-finite frequencies "
+                       f"(first: {f[bad][0]!r} Hz)")
+    dc = f == 0
+    if dc.any():
+        # an FFT analyzer's records start at the DC line (0 Hz, often an exact 0): no FRF line, a run holds
+        # positive frequencies only; the plan records what was left out
+        plan["dropped_hz"] = f[dc].tolist()
+        f, frf = f[~dc], frf[~dc]
+        if f.size == 0:
+            raise UffError(f"{path}: no line above 0 Hz")
     w = create_run(out, article=article, sensors=sensors, drives=drives, quantity=quantity,
-                   plan={"source": "uff58", "file": str(path)}, hardware={"source": "imported"}, overwrite=overwrite)
+                   plan=plan, hardware={"source": "imported"}, overwrite=overwrite)
     nan_q = LineQuality(force_n=np.full(len(drives), np.nan), std_error=np.full((len(sensors), len(drives)), np.nan),
                         thd=np.full(len(sensors) + len(drives), np.nan))
     try:

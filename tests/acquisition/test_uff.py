@@ -226,3 +226,27 @@ def test_unit_labels_labs_write_are_converted(tmp_path, num, den, factor):
 def test_contradictory_or_unknown_unit_labels_are_refused(tmp_path, num, den, spec, message):
     with pytest.raises(UffError, match=message):
         import_uff(_labelled(tmp_path / "u.uff", num, den, spec), tmp_path / "u.h5")
+
+
+def test_the_dc_line_of_an_analyzer_file_is_left_out(tmp_path, capsys):
+    # FFT analyzers write 0 .. fmax: the 0 Hz line (here an exact 0) stopped the import with
+    # "r.h5: line frequency must be positive and finite, got 0.0"
+    import pyuff
+
+    f = 0.5 * np.arange(12)
+    data = (1 + 2j) * np.arange(12.0)
+    sets = [pyuff.prepare_58(binary=0, func_type=4, rsp_node=7, rsp_dir=3, ref_node=7, ref_dir=3, ord_data_type=6,
+                             abscissa_spacing=1, abscissa_min=0.0, abscissa_inc=0.5, data=data, x=f,
+                             ordinate_spec_data_type=12, orddenom_spec_data_type=13, ordinate_axis_units_lab="m/s^2",
+                             orddenom_axis_units_lab="N", abscissa_spec_data_type=18)]
+    sets[0]["type"] = 58
+    pyuff.UFF(str(tmp_path / "dc.uff")).write_sets(sets, mode="overwrite")
+    run = import_uff(tmp_path / "dc.uff", tmp_path / "dc.h5")
+    assert np.array_equal(run.frequency_hz, f[1:]) and np.array_equal(run.frf[:, 0, 0], data[1:])
+    assert run.plan["dropped_hz"] == [0.0]
+    assert main(["import-uff", str(tmp_path / "dc.uff"), "--out", str(tmp_path / "cli.h5")]) == 0
+    assert "left out 1 line(s) at 0 Hz" in capsys.readouterr().out
+    sets[0]["x"] = f - 1.0  # a negative frequency is not a DC line: refused, naming the UFF file
+    pyuff.UFF(str(tmp_path / "neg.uff")).write_sets(sets, mode="overwrite")
+    with pytest.raises(UffError, match=r"neg.uff: the abscissa has 2 negative or non-finite frequencies"):
+        import_uff(tmp_path / "neg.uff", tmp_path / "neg.h5")
