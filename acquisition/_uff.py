@@ -189,16 +189,35 @@ def _point_label(node: int, code: int, direction) -> str:
     return f"{node}(" + ",".join(f"{x:.6g}" for x in direction) + ")"
 
 
-def _read_records(path: Path) -> list[tuple[int, dict]]:
-    """(1-based dataset number in the file, dataset) of every UFF58 record."""
+def _read_records(path: Path, types_wanted=(58,)) -> list[tuple[int, dict]]:
+    """(1-based dataset number in the file, dataset) of every record of the wanted dataset types (UFF58)."""
     import pyuff
 
     try:
         uff = pyuff.UFF(str(path))
         types = list(uff.get_set_types())
-        return [(k + 1, uff.read_sets(k)) for k, t in enumerate(types) if int(t) == 58]
+        return [(k + 1, uff.read_sets(k)) for k, t in enumerate(types) if int(t) in types_wanted]
     except Exception as exc:  # pyuff raises bare Exceptions on malformed files
         raise UffError(f"{path}: cannot parse as a universal file: {exc}") from None
+
+
+def _file_units_scale(path: Path, units) -> float | None:
+    """FRF factor to SI (force factor / length factor) of the file's units dataset 164, None without one.
+
+    Dataset 164 gives the factors that convert the file's units to SI ("divide by the
+    factor"): an FRF (length over force) in file units times force / length is SI.
+    """
+    if not units:
+        return None
+    got = {(float(u.get("length", 1.0)), float(u.get("force", 1.0))) for _, u in units}
+    if len(got) > 1:
+        raise UffError(f"{path}: units datasets (164) {_listing(n for n, _ in units)} disagree: "
+                       f"(length, force) factors {sorted(got)}")
+    ((length, force),) = got
+    if not (np.isfinite(length) and np.isfinite(force) and length > 0 and force > 0):
+        raise UffError(f"{path}: units dataset (164) {units[0][0]}: length/force factors must be positive, "
+                       f"got {length}, {force}")
+    return force / length
 
 
 def _listing(items, limit: int = 6) -> str:
@@ -258,6 +277,8 @@ def import_uff(path, out, *, article: str | None = None, overwrite: bool = False
     records = _read_records(path)
     if not records:
         raise UffError(f"{path}: no UFF58 records")
+    # records without unit labels are in the file's unit system (dataset 164), when it has one
+    file_scale = _file_units_scale(path, _read_records(path, (164,)))
 
     def rec(n: int, s: dict) -> str:
         return (f"record {n} (response {int(s.get('rsp_node', 0))}/{int(s.get('rsp_dir', 0))}, "
@@ -321,6 +342,8 @@ def import_uff(path, out, *, article: str | None = None, overwrite: bool = False
                            f"says {q}")
         scale = _SCALE_NUM[unit_num] / _SCALE_DEN[unit_den]
         label = f"{s.get('ordinate_axis_units_lab')}/{s.get('orddenom_axis_units_lab')}"
+        if file_scale is not None and unit_num in ("", "none") and unit_den in ("", "none"):
+            scale, label = file_scale, "the units of dataset 164"
         scale_of.setdefault(scale, []).append((n, label))
 
         keys = []

@@ -250,3 +250,35 @@ def test_the_dc_line_of_an_analyzer_file_is_left_out(tmp_path, capsys):
     pyuff.UFF(str(tmp_path / "neg.uff")).write_sets(sets, mode="overwrite")
     with pytest.raises(UffError, match=r"neg.uff: the abscissa has 2 negative or non-finite frequencies"):
         import_uff(tmp_path / "neg.uff", tmp_path / "neg.h5")
+
+
+def _with_units_dataset(path, length, force, num="NONE", den="NONE", second=None):
+    import pyuff
+
+    sets = []
+    for lf in [(length, force)] + ([second] if second else []):
+        u = pyuff.prepare_164(units_code=9, units_description="lab", temp_mode=2, length=lf[0], force=lf[1],
+                              temp=1.0, temp_offset=273.15)
+        u["type"] = 164
+        sets.append(u)
+    ds = pyuff.prepare_58(binary=0, func_type=4, rsp_node=7, rsp_dir=3, ref_node=7, ref_dir=3, ord_data_type=6,
+                          abscissa_spacing=1, abscissa_min=10.0, abscissa_inc=0.5, data=np.full(10, 2.0 + 1.0j),
+                          x=10 + 0.5 * np.arange(10), ordinate_spec_data_type=12, orddenom_spec_data_type=13,
+                          ordinate_axis_units_lab=num, orddenom_axis_units_lab=den, abscissa_spec_data_type=18)
+    ds["type"] = 58
+    pyuff.UFF(str(path)).write_sets(sets + [ds], mode="overwrite")
+    return path
+
+
+def test_records_without_unit_labels_take_the_units_dataset_164(tmp_path):
+    # mm and N (164: length factor 1000, force factor 1) with NONE labels: was read as SI, 1000x too large
+    run = import_uff(_with_units_dataset(tmp_path / "mm.uff", 1000.0, 1.0), tmp_path / "mm.h5")
+    np.testing.assert_allclose(run.frf[:, 0, 0], (2.0 + 1.0j) / 1000.0, rtol=1e-12)
+    # in and lbf (BG-like user system): factors 1/0.0254 and 1/4.448...
+    run = import_uff(_with_units_dataset(tmp_path / "in.uff", 1 / 0.0254, 1 / 4.4482216152605), tmp_path / "in.h5")
+    np.testing.assert_allclose(run.frf[:, 0, 0], (2.0 + 1.0j) * 0.0254 / 4.4482216152605, rtol=1e-9)
+    # explicit labels keep deciding
+    run = import_uff(_with_units_dataset(tmp_path / "lab.uff", 1000.0, 1.0, "g", "N"), tmp_path / "lab.h5")
+    np.testing.assert_allclose(run.frf[:, 0, 0], (2.0 + 1.0j) * 9.80665, rtol=1e-12)
+    with pytest.raises(UffError, match=r"units datasets \(164\) 1, 2 disagree"):
+        import_uff(_with_units_dataset(tmp_path / "two.uff", 1000.0, 1.0, second=(1.0, 1.0)), tmp_path / "two.h5")
