@@ -36,9 +36,34 @@ from labdata import CHANNEL_UNITS, RESPONSE_QUANTITY
 _SPEC = {"accelerance": 12, "mobility": 11, "receptance": 8}
 _SPEC_INV = {v: k for k, v in _SPEC.items()}
 _QTY = {q: (r, CHANNEL_UNITS[r]) for q, r in RESPONSE_QUANTITY.items()}
+_IN, _FT, _LBF = 0.0254, 0.3048, 4.4482216152605
 _SCALE_NUM = {"m/s^2": 1.0, "m/s2": 1.0, "g": 9.80665, "mm/s^2": 1e-3, "mm/s2": 1e-3, "m/s": 1.0, "mm/s": 1e-3,
-              "m": 1.0, "mm": 1e-3, "none": 1.0, "": 1.0}
-_SCALE_DEN = {"n": 1.0, "kn": 1e3, "none": 1.0, "": 1.0}
+              "m": 1.0, "mm": 1e-3, "in/s^2": _IN, "in/s2": _IN, "ft/s^2": _FT, "ft/s2": _FT, "in/s": _IN,
+              "ft/s": _FT, "in": _IN, "none": 1.0, "": 1.0}
+#: FRF quantity each ordinate unit implies (blank/NONE: none, the ordinate type decides)
+_KIND_NUM = {**{u: "accelerance" for u in ("m/s^2", "m/s2", "g", "mm/s^2", "mm/s2", "in/s^2", "in/s2", "ft/s^2",
+                                            "ft/s2")},
+             **{u: "mobility" for u in ("m/s", "mm/s", "in/s", "ft/s")},
+             **{u: "receptance" for u in ("m", "mm", "in")}}
+_SCALE_DEN = {"n": 1.0, "kn": 1e3, "lbf": _LBF, "lb": _LBF, "none": 1.0, "": 1.0}
+
+
+def _unit_labels(num, den) -> tuple[str, str]:
+    """Normalized (ordinate, denominator) unit labels: lower case, no blanks or parentheses, ``²``/``**2`` as
+    ``^2``; a force in the ordinate label (``g/N``, ``(m/s^2)/lbf``) moves to the denominator when that is blank."""
+    def norm(t):
+        t = str(t or "").strip().lower().replace(" ", "").replace("(", "").replace(")", "")
+        return t.replace("²", "^2").replace("**2", "^2")
+    num, den = norm(num), norm(den)
+    for force in ("kn", "lbf", "lb", "n"):
+        if num.endswith("/" + force):
+            if den in ("", "none"):
+                den = force
+            if den != force:
+                raise ValueError(f"the ordinate unit names the force {force!r} but the denominator unit is {den!r}")
+            num = num[: -len(force) - 1]
+            break
+    return num, den
 
 
 class UffError(ValueError):
@@ -164,16 +189,35 @@ def _point_label(node: int, code: int, direction) -> str:
     return f"{node}(" + ",".join(f"{x:.6g}" for x in direction) + ")"
 
 
-def _read_records(path: Path) -> list[tuple[int, dict]]:
-    """(1-based dataset number in the file, dataset) of every UFF58 record."""
+def _read_records(path: Path, types_wanted=(58,)) -> list[tuple[int, dict]]:
+    """(1-based dataset number in the file, dataset) of every record of the wanted dataset types (UFF58)."""
     import pyuff
 
     try:
         uff = pyuff.UFF(str(path))
         types = list(uff.get_set_types())
-        return [(k + 1, uff.read_sets(k)) for k, t in enumerate(types) if int(t) == 58]
+        return [(k + 1, uff.read_sets(k)) for k, t in enumerate(types) if int(t) in types_wanted]
     except Exception as exc:  # pyuff raises bare Exceptions on malformed files
         raise UffError(f"{path}: cannot parse as a universal file: {exc}") from None
+
+
+def _file_units_scale(path: Path, units) -> float | None:
+    """FRF factor to SI (force factor / length factor) of the file's units dataset 164, None without one.
+
+    Dataset 164 gives the factors that convert the file's units to SI ("divide by the
+    factor"): an FRF (length over force) in file units times force / length is SI.
+    """
+    if not units:
+        return None
+    got = {(float(u.get("length", 1.0)), float(u.get("force", 1.0))) for _, u in units}
+    if len(got) > 1:
+        raise UffError(f"{path}: units datasets (164) {_listing(n for n, _ in units)} disagree: "
+                       f"(length, force) factors {sorted(got)}")
+    ((length, force),) = got
+    if not (np.isfinite(length) and np.isfinite(force) and length > 0 and force > 0):
+        raise UffError(f"{path}: units dataset (164) {units[0][0]}: length/force factors must be positive, "
+                       f"got {length}, {force}")
+    return force / length
 
 
 def _listing(items, limit: int = 6) -> str:
@@ -233,6 +277,8 @@ def import_uff(path, out, *, article: str | None = None, overwrite: bool = False
     records = _read_records(path)
     if not records:
         raise UffError(f"{path}: no UFF58 records")
+    # records without unit labels are in the file's unit system (dataset 164), when it has one
+    file_scale = _file_units_scale(path, _read_records(path, (164,)))
 
     def rec(n: int, s: dict) -> str:
         return (f"record {n} (response {int(s.get('rsp_node', 0))}/{int(s.get('rsp_dir', 0))}, "
@@ -280,14 +326,24 @@ def import_uff(path, out, *, article: str | None = None, overwrite: bool = False
         if not np.iscomplexobj(data):
             raise UffError(f"{path}: {rec(n, s)}: real ordinate data (type {s.get('ord_data_type')}); an FRF "
                            "needs complex data (type 5 or 6)")
-        unit_num = str(s.get("ordinate_axis_units_lab", "")).strip().lower().split("/n")[0]
-        unit_den = str(s.get("orddenom_axis_units_lab", "")).strip().lower()
+        try:
+            unit_num, unit_den = _unit_labels(s.get("ordinate_axis_units_lab", ""), s.get("orddenom_axis_units_lab", ""))
+        except ValueError as exc:
+            raise UffError(f"{path}: {rec(n, s)}: {exc}") from None
         if unit_num not in _SCALE_NUM:
-            raise UffError(f"{path}: {rec(n, s)}: unknown ordinate unit {s.get('ordinate_axis_units_lab')!r}")
+            raise UffError(f"{path}: {rec(n, s)}: unknown ordinate unit {s.get('ordinate_axis_units_lab')!r} "
+                           f"(known: {', '.join(u for u in _SCALE_NUM if u not in ('', 'none'))})")
         if unit_den not in _SCALE_DEN:
-            raise UffError(f"{path}: {rec(n, s)}: unknown denominator unit {s.get('orddenom_axis_units_lab')!r}")
+            raise UffError(f"{path}: {rec(n, s)}: unknown denominator unit {s.get('orddenom_axis_units_lab')!r} "
+                           f"(known: N, kN, lbf)")
+        if _KIND_NUM.get(unit_num, q) != q:
+            raise UffError(f"{path}: {rec(n, s)}: ordinate unit {s.get('ordinate_axis_units_lab')!r} is a "
+                           f"unit of {_KIND_NUM[unit_num]} but the ordinate type {s.get('ordinate_spec_data_type')} "
+                           f"says {q}")
         scale = _SCALE_NUM[unit_num] / _SCALE_DEN[unit_den]
         label = f"{s.get('ordinate_axis_units_lab')}/{s.get('orddenom_axis_units_lab')}"
+        if file_scale is not None and unit_num in ("", "none") and unit_den in ("", "none"):
+            scale, label = file_scale, "the units of dataset 164"
         scale_of.setdefault(scale, []).append((n, label))
 
         keys = []
@@ -355,13 +411,25 @@ def import_uff(path, out, *, article: str | None = None, overwrite: bool = False
     if article is None:
         id1 = str(s0.get("id1", ""))
         article = id1.split("article=", 1)[1].strip() if "article=" in id1 else path.stem
+    plan = {"source": "uff58", "file": str(path)}
+    bad = ~np.isfinite(f) | (f < 0)
+    if bad.any():
+        raise UffError(f"{path}: the abscissa has {int(bad.sum())} negative or non-finite frequencies "
+                       f"(first: {f[bad][0]!r} Hz)")
+    dc = f == 0
+    if dc.any():
+        # an FFT analyzer's records start at the DC line (0 Hz, often an exact 0): no FRF line, a run holds
+        # positive frequencies only; the plan records what was left out
+        plan["dropped_hz"] = f[dc].tolist()
+        f, frf = f[~dc], frf[~dc]
+        if f.size == 0:
+            raise UffError(f"{path}: no line above 0 Hz")
     w = create_run(out, article=article, sensors=sensors, drives=drives, quantity=quantity,
-                   plan={"source": "uff58", "file": str(path)}, hardware={"source": "imported"}, overwrite=overwrite)
+                   plan=plan, hardware={"source": "imported"}, overwrite=overwrite)
     nan_q = LineQuality(force_n=np.full(len(drives), np.nan), std_error=np.full((len(sensors), len(drives)), np.nan),
                         thd=np.full(len(sensors) + len(drives), np.nan))
     try:
-        for k in range(f.size):
-            w.append_line(f[k], frf[k], nan_q)
+        w.append_lines(f, frf, nan_q)
     except RunFileError:
         w.close("aborted")
         raise

@@ -271,44 +271,72 @@ class RunWriter:
             FRF of the run's quantity, SI.
         quality : LineQuality
         """
-        if self.closed:
-            raise RunFileError(f"{self.path}: run is closed; resume it to append lines")
         frf = np.asarray(frf, dtype=complex)
         if frf.shape != (self.n_out, self.n_in):
             raise RunFileError(f"{self.path}: frf line must be {(self.n_out, self.n_in)}, got {frf.shape}")
-        if not np.isfinite(frequency_hz) or frequency_hz <= 0:
-            raise RunFileError(f"{self.path}: line frequency must be positive and finite, got {frequency_hz}")
-        values = {
-            "frequency_hz": float(frequency_hz),
-            "frf": frf,
-            "std_error": quality.std_error,
-            "force_n": quality.force_n,
-            "thd": quality.thd,
-            "settle_metric": quality.settle_metric,
-            "overload": bool(quality.overload),
-            "flags": int(quality.flags),
-            "drive_v": quality.drive_v,
-            "time_s": quality.time_s,
-            "settle_time_s": quality.settle_time_s,
-            "n_blocks": int(quality.n_blocks),
-            "linearity": quality.linearity,
+        self.append_lines(np.array([frequency_hz], dtype=float), frf[None], [quality])
+
+    def append_lines(self, frequency_hz, frf, quality) -> None:
+        """Append a block of lines in one write and flush them (a kill leaves all or none of them).
+
+        The bulk form of :meth:`append_line` for data that arrive whole (UFF58
+        import, synthesized data): each dataset is resized and written once, then
+        ``/lines/count`` covers the block. Writing 1,561 lines of an 18 x 2 run
+        takes a fraction of a second instead of ~10 s line by line.
+
+        Parameters
+        ----------
+        frequency_hz : (n,) float
+            Actual line frequencies, Hz.
+        frf : (n, n_out, n_in) complex
+            FRF of the run's quantity, SI.
+        quality : LineQuality or sequence of n LineQuality
+            One quality shared by every line, or one per line.
+        """
+        if self.closed:
+            raise RunFileError(f"{self.path}: run is closed; resume it to append lines")
+        f = np.asarray(frequency_hz, dtype=float).reshape(-1)
+        n = f.size
+        frf = np.asarray(frf, dtype=complex)
+        if frf.shape != (n, self.n_out, self.n_in):
+            raise RunFileError(f"{self.path}: frf block must be {(n, self.n_out, self.n_in)}, got {frf.shape}")
+        bad = ~np.isfinite(f) | (f <= 0)
+        if bad.any():
+            raise RunFileError(f"{self.path}: line frequency must be positive and finite, got {f[bad][0]}")
+        if n == 0:
+            return
+        qs = [quality] * n if isinstance(quality, LineQuality) else list(quality)
+        if len(qs) != n:
+            raise RunFileError(f"{self.path}: {len(qs)} line qualities for {n} lines")
+        per_line = {
+            "std_error": lambda q: q.std_error, "force_n": lambda q: q.force_n, "thd": lambda q: q.thd,
+            "settle_metric": lambda q: q.settle_metric, "overload": lambda q: bool(q.overload),
+            "flags": lambda q: int(q.flags), "drive_v": lambda q: q.drive_v, "time_s": lambda q: q.time_s,
+            "settle_time_s": lambda q: q.settle_time_s, "n_blocks": lambda q: int(q.n_blocks),
+            "linearity": lambda q: q.linearity,
         }
+        values = {"frequency_hz": f, "frf": frf}
+        for name, get in per_line.items():
+            shape = self._specs[name][0]
+            col = []
+            for q in qs:
+                arr = np.asarray(get(q))
+                if arr.shape != shape:
+                    raise RunFileError(f"{self.path}: quality field '{name}' must have shape {shape}, got {arr.shape}")
+                col.append(arr)
+            values[name] = np.stack(col)
         k = self._count
-        for name, (shape, _) in self._specs.items():
-            arr = np.asarray(values[name])
-            if arr.shape != shape:
-                raise RunFileError(f"{self.path}: quality field '{name}' must have shape {shape}, got {arr.shape}")
         for name in self._specs:
             ds = self._h5["lines"][name]
-            if ds.shape[0] < k + 1:
-                ds.resize(k + 1, axis=0)
-            ds[k] = values[name]
+            if ds.shape[0] < k + n:
+                ds.resize(k + n, axis=0)
+            ds[k:k + n] = values[name]
             ds.flush()
         self._set_updated()
         cnt = self._h5["lines/count"]
-        cnt[0] = k + 1
+        cnt[0] = k + n
         cnt.flush()
-        self._count = k + 1
+        self._count = k + n
 
     def _set_updated(self) -> None:
         ds = self._h5["updated_utc"]

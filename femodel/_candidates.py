@@ -401,10 +401,15 @@ class CandidateContext:
             d = np.linalg.norm(pts - pts.mean(axis=0), axis=1)
             taken = [int(np.argmax(d))]
             dist = np.linalg.norm(pts - pts[taken[0]], axis=1)
+            dist[taken[0]] = -1.0
+        # a taken point is marked -1 so that it is never taken again: with coincident points (grids of two
+        # parts at one place, the x/y/z candidates of one grid) every distance left can be 0, and argmax
+        # would return an index already taken
         for _ in range(k - 1):
             i = int(np.argmax(dist))
             taken.append(i)
             np.minimum(dist, np.linalg.norm(pts - pts[i], axis=1), out=dist)
+            dist[i] = -1.0
         return np.sort(np.array(taken))
 
     def candidate(self, family: str, term, grids, description: str, *, parts=None, points=None,

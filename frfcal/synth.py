@@ -774,10 +774,9 @@ def synthesize(bdf, parameters, out_dir, *, sensors, drives, band_hz, units=None
         path = out / f"{name}.h5"
         with create_run(path, article=name, sensors=sens_spec, drives=drive_spec, quantity="accelerance",
                         plan=plan, hardware={"driver": "frfcal.synth (synthetic truth data)"}, overwrite=True) as w:
-            for k in range(f.size):
-                q = LineQuality(force_n=np.ones(n_in), std_error=sigma[k], thd=np.zeros(n_out + n_in), flags=0,
-                                n_blocks=1, time_s=float(k), settle_time_s=0.0, settle_metric=0.0)
-                w.append_line(float(f[k]), Hn[k], q)
+            w.append_lines(f, Hn, [LineQuality(force_n=np.ones(n_in), std_error=sigma[k], thd=np.zeros(n_out + n_in),
+                                               flags=0, n_blocks=1, time_s=float(k), settle_time_s=0.0,
+                                               settle_metric=0.0) for k in range(f.size)])
         runs.append(path)
         if write_uff:
             upath = out / f"{name}.uff"

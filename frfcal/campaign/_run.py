@@ -115,6 +115,38 @@ def front_keys(camp: Campaign) -> dict:
     return k
 
 
+def stored_front(camp: Campaign, store: StageStore) -> Campaign:
+    """The campaign with its ``[[run]]`` entries resolved from the *stored* front stages (nothing is run).
+
+    The UFF58 entries become the run files the stored import stage wrote, an
+    ``[acquisition]`` campaign gets the stored acquire stage's runs (the layout
+    from the stored pretest stage or ``[layout] file``). For readers of a
+    campaign that has run (``frfcal report``); a front stage that is missing
+    or stale (changed UFF files, plan, layout) is a :class:`CalibrationError`
+    naming it.
+    """
+    fk = front_keys(camp)
+    if "import" not in fk and camp.acquisition is None:
+        return camp
+
+    def got(name, key):
+        res = store.load(name, key)
+        if res is None:
+            raise CalibrationError(f"{store.directory}: no stored {name} stage matching the campaign (its inputs "
+                                   "changed, or it has not run): run 'frfcal run' on the campaign first")
+        return res
+
+    imported = got("import", fk["import"]) if "import" in fk else None
+    acquired = None
+    if camp.acquisition is not None:
+        layout = camp.resolve(camp.layout.file) if camp.layout is not None else None
+        if camp.pretest is not None:
+            layout = got("pretest", fk["pretest"]).path
+        plan = campaign_plan(camp, layout)
+        acquired = got("acquire", fingerprint(VERSION, "acquire", plan_inputs(camp, plan)))
+    return resolved_runs(camp, imported, acquired)
+
+
 def stage_keys(camp: Campaign, model, load: str) -> dict:
     """The fingerprint of every stage after load, from the campaign, the model and the load fingerprint."""
     k = {"load": load}

@@ -390,7 +390,12 @@ def group_stage(camp: Campaign, articles, equalize: EqualizeResult, log=print) -
         return GroupResult((("all", tuple(range(len(articles)))),))
     if mode == "article":
         return GroupResult(tuple((a.name, (i,)) for i, a in enumerate(articles)))
-    D = pairwise_sd([d.frf for d in equalize.data])
+    # the pairs without signal (left out of calibration and validation) are left out here too: an identified
+    # model's FRF at a noise-only pair is arbitrary and would swamp the articles' differences
+    masks = None
+    if any(d.mask is not None for d in equalize.data):
+        masks = [np.ones(d.frf.shape, bool) if d.mask is None else d.mask for d in equalize.data]
+    D = pairwise_sd([d.frf for d in equalize.data], masks)
     floors = []
     for a in articles:
         se = raw_std_error(a, camp.channels.calibrate)

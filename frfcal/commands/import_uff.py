@@ -34,7 +34,8 @@ def uff_to_run(uff, out, *, article=None, overwrite=False) -> dict:
     return {"path": str(out), "article": r.article, "quantity": r.quantity, "n_lines": r.n_lines,
             "sensors": [c.name for c in r.sensors], "drives": [c.name for c in r.drives],
             "sensor_grids": [c.grid for c in r.sensors], "drive_grids": [c.grid for c in r.drives],
-            "band_hz": [float(r.frequency_hz.min()), float(r.frequency_hz.max())]}
+            "band_hz": [float(r.frequency_hz.min()), float(r.frequency_hz.max())],
+            "dropped_hz": list(r.plan.get("dropped_hz", []))}
 
 
 def run(args) -> int:
@@ -49,5 +50,9 @@ def run(args) -> int:
         lo, hi = full["band_hz"]
         print(f"{args.out}: {info['n_lines']} lines {lo:.3f}-{hi:.3f} Hz, "
               f"{len(info['sensors'])} x {len(info['drives'])} {info['quantity']}, article {info['article']!r}")
+        if info["dropped_hz"]:
+            print(f"left out {len(info['dropped_hz'])} line(s) at 0 Hz (the analyzer's DC line: no FRF line)")
         print("references: " + ", ".join(info["drives"]))
+        # the names to put in a campaign's [channels] (they come from the records' node, direction and entity)
+        print("responses: " + ", ".join(info["sensors"]))
     return 0

@@ -44,9 +44,11 @@ def stored_results(camp, *, campaign_file=None, log=print):
     from calibration import CalibrationError
     from frfcal.campaign import STAGES, StageStore, build_model, load_key, stage_keys
     from frfcal.campaign._html import ReportResults
+    from frfcal.campaign._run import stored_front
 
     outdir = camp.resolve(camp.output.dir)
     store = StageStore(outdir / "stages")
+    camp = stored_front(camp, store)  # UFF58 or acquired runs: the run files the stored front stages wrote
     lk = load_key(camp)
     load = store.load("load", lk)
     if load is None:

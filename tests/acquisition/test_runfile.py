@@ -42,6 +42,35 @@ def test_round_trip_and_status(tmp_path):
         assert h5.attrs["status"] == "completed"
 
 
+def test_append_lines_block_equals_line_by_line(tmp_path):
+    # the bulk write (UFF58 import) stores exactly what line-by-line appends store, after earlier lines
+    rng = np.random.default_rng(3)
+    frf = rng.normal(size=(9, 3, 1)) + 1j * rng.normal(size=(9, 3, 1))
+    f = 50.0 + np.arange(9) * 0.25
+    qs = [_q(k, FLAG_FORCE if k == 5 else 0) for k in range(9)]
+    one, block = tmp_path / "one.h5", tmp_path / "block.h5"
+    with create_run(one, article="a", sensors=SENS, drives=DRV) as w:
+        for k in range(9):
+            w.append_line(f[k], frf[k], qs[k])
+    with create_run(block, article="a", sensors=SENS, drives=DRV) as w:
+        w.append_line(f[0], frf[0], qs[0])
+        w.append_lines(f[1:], frf[1:], qs[1:])
+        assert read_run(block).n_lines == 9
+        w.append_lines(f[:0], frf[:0], _q(0))  # an empty block is a no-op
+    a, b = read_run(one), read_run(block)
+    for name in ("frequency_hz", "frf", "std_error", "force_n", "thd", "flags", "drive_v", "time_s", "n_blocks"):
+        assert np.array_equal(getattr(a, name), getattr(b, name)), name
+    with create_run(tmp_path / "shared.h5", article="a", sensors=SENS, drives=DRV) as w:
+        w.append_lines(f, frf, _q(1))  # one quality shared by every line
+        with pytest.raises(RunFileError, match=r"frf block must be \(9, 3, 1\)"):
+            w.append_lines(f, frf[:, :2], _q(1))
+        with pytest.raises(RunFileError, match="2 line qualities for 9 lines"):
+            w.append_lines(f, frf, qs[:2])
+        with pytest.raises(RunFileError, match="positive and finite"):
+            w.append_lines(-f, frf, _q(1))
+    assert np.allclose(read_run(tmp_path / "shared.h5").std_error, 1e-4)
+
+
 def test_context_manager_marks_aborted_and_resume_continues(tmp_path):
     path = tmp_path / "r.h5"
     with pytest.raises(RuntimeError):

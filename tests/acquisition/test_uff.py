@@ -182,8 +182,103 @@ def test_cli_imports_mimo(tmp_path, capsys):
     assert main(["import-uff", str(tmp_path / "m.uff"), "--out", str(tmp_path / "m.h5")]) == 0
     out = capsys.readouterr().out
     assert "20 x 2 accelerance" in out and "references: shaker (1+Z), shaker (2-X)" in out
+    # the response names too: they are what a campaign's [channels] lists
+    (resp,) = [ln for ln in out.splitlines() if ln.startswith("responses: ")]
+    assert len(resp[len("responses: "):].split(", ")) == 20
     assert main(["import-uff", str(tmp_path / "m.uff"), "--out", str(tmp_path / "m.h5"), "--force", "--json"]) == 0
     assert '"drive_grids": [1, 2]' in capsys.readouterr().out
     _foreign(tmp_path / "d.uff", _mimo_cells() + [_mimo_cells()[0]])
     assert main(["import-uff", str(tmp_path / "d.uff"), "--out", str(tmp_path / "d.h5")]) == 2
     assert "repeats the (response, reference) pair" in capsys.readouterr().err
+
+
+def _labelled(path, num, den, spec=12, value=2.0 + 1.0j):
+    import pyuff
+
+    ds = pyuff.prepare_58(binary=0, func_type=4, rsp_node=7, rsp_dir=-3, ref_node=7, ref_dir=3, ord_data_type=6,
+                          abscissa_spacing=1, abscissa_min=10.0, abscissa_inc=0.5, data=np.full(10, value),
+                          x=10 + 0.5 * np.arange(10), ordinate_spec_data_type=spec, orddenom_spec_data_type=13,
+                          ordinate_axis_units_lab=num, orddenom_axis_units_lab=den, abscissa_spec_data_type=18)
+    ds["type"] = 58
+    pyuff.UFF(str(path)).write_sets([ds], mode="overwrite")
+    return path
+
+
+@pytest.mark.parametrize("num, den, factor", [
+    ("m/s²", "N", 1.0),                    # superscript two, as m+p and Testlab exports write it
+    ("m/s**2", "N", 1.0),
+    ("(m/s^2)/N", "", 1.0),                # the whole ratio in the ordinate label
+    ("g", "lbf", 9.80665 / 4.4482216152605),
+    ("in/s^2", "lbf", 0.0254 / 4.4482216152605),
+    ("g/lbf", "", 9.80665 / 4.4482216152605),
+])
+def test_unit_labels_labs_write_are_converted(tmp_path, num, den, factor):
+    run = import_uff(_labelled(tmp_path / "u.uff", num, den), tmp_path / "u.h5")
+    np.testing.assert_allclose(run.frf[:, 0, 0], (2.0 + 1.0j) * factor, rtol=1e-12)
+
+
+@pytest.mark.parametrize("num, den, spec, message", [
+    ("m/s", "N", 12, r"'m/s' is a unit of mobility but the ordinate type 12 says accelerance"),
+    ("g", "N", 11, r"'g' is a unit of accelerance but the ordinate type 11 says mobility"),
+    ("g/N", "lbf", 12, r"names the force 'n' but the denominator unit is 'lbf'"),
+    ("furlong/s^2", "N", 12, r"unknown ordinate unit 'furlong/s\^2' \(known: m/s\^2"),
+])
+def test_contradictory_or_unknown_unit_labels_are_refused(tmp_path, num, den, spec, message):
+    with pytest.raises(UffError, match=message):
+        import_uff(_labelled(tmp_path / "u.uff", num, den, spec), tmp_path / "u.h5")
+
+
+def test_the_dc_line_of_an_analyzer_file_is_left_out(tmp_path, capsys):
+    # FFT analyzers write 0 .. fmax: the 0 Hz line (here an exact 0) stopped the import with
+    # "r.h5: line frequency must be positive and finite, got 0.0"
+    import pyuff
+
+    f = 0.5 * np.arange(12)
+    data = (1 + 2j) * np.arange(12.0)
+    sets = [pyuff.prepare_58(binary=0, func_type=4, rsp_node=7, rsp_dir=3, ref_node=7, ref_dir=3, ord_data_type=6,
+                             abscissa_spacing=1, abscissa_min=0.0, abscissa_inc=0.5, data=data, x=f,
+                             ordinate_spec_data_type=12, orddenom_spec_data_type=13, ordinate_axis_units_lab="m/s^2",
+                             orddenom_axis_units_lab="N", abscissa_spec_data_type=18)]
+    sets[0]["type"] = 58
+    pyuff.UFF(str(tmp_path / "dc.uff")).write_sets(sets, mode="overwrite")
+    run = import_uff(tmp_path / "dc.uff", tmp_path / "dc.h5")
+    assert np.array_equal(run.frequency_hz, f[1:]) and np.array_equal(run.frf[:, 0, 0], data[1:])
+    assert run.plan["dropped_hz"] == [0.0]
+    assert main(["import-uff", str(tmp_path / "dc.uff"), "--out", str(tmp_path / "cli.h5")]) == 0
+    assert "left out 1 line(s) at 0 Hz" in capsys.readouterr().out
+    sets[0]["x"] = f - 1.0  # a negative frequency is not a DC line: refused, naming the UFF file
+    pyuff.UFF(str(tmp_path / "neg.uff")).write_sets(sets, mode="overwrite")
+    with pytest.raises(UffError, match=r"neg.uff: the abscissa has 2 negative or non-finite frequencies"):
+        import_uff(tmp_path / "neg.uff", tmp_path / "neg.h5")
+
+
+def _with_units_dataset(path, length, force, num="NONE", den="NONE", second=None):
+    import pyuff
+
+    sets = []
+    for lf in [(length, force)] + ([second] if second else []):
+        u = pyuff.prepare_164(units_code=9, units_description="lab", temp_mode=2, length=lf[0], force=lf[1],
+                              temp=1.0, temp_offset=273.15)
+        u["type"] = 164
+        sets.append(u)
+    ds = pyuff.prepare_58(binary=0, func_type=4, rsp_node=7, rsp_dir=3, ref_node=7, ref_dir=3, ord_data_type=6,
+                          abscissa_spacing=1, abscissa_min=10.0, abscissa_inc=0.5, data=np.full(10, 2.0 + 1.0j),
+                          x=10 + 0.5 * np.arange(10), ordinate_spec_data_type=12, orddenom_spec_data_type=13,
+                          ordinate_axis_units_lab=num, orddenom_axis_units_lab=den, abscissa_spec_data_type=18)
+    ds["type"] = 58
+    pyuff.UFF(str(path)).write_sets(sets + [ds], mode="overwrite")
+    return path
+
+
+def test_records_without_unit_labels_take_the_units_dataset_164(tmp_path):
+    # mm and N (164: length factor 1000, force factor 1) with NONE labels: was read as SI, 1000x too large
+    run = import_uff(_with_units_dataset(tmp_path / "mm.uff", 1000.0, 1.0), tmp_path / "mm.h5")
+    np.testing.assert_allclose(run.frf[:, 0, 0], (2.0 + 1.0j) / 1000.0, rtol=1e-12)
+    # in and lbf (BG-like user system): factors 1/0.0254 and 1/4.448...
+    run = import_uff(_with_units_dataset(tmp_path / "in.uff", 1 / 0.0254, 1 / 4.4482216152605), tmp_path / "in.h5")
+    np.testing.assert_allclose(run.frf[:, 0, 0], (2.0 + 1.0j) * 0.0254 / 4.4482216152605, rtol=1e-9)
+    # explicit labels keep deciding
+    run = import_uff(_with_units_dataset(tmp_path / "lab.uff", 1000.0, 1.0, "g", "N"), tmp_path / "lab.h5")
+    np.testing.assert_allclose(run.frf[:, 0, 0], (2.0 + 1.0j) * 9.80665, rtol=1e-12)
+    with pytest.raises(UffError, match=r"units datasets \(164\) 1, 2 disagree"):
+        import_uff(_with_units_dataset(tmp_path / "two.uff", 1000.0, 1.0, second=(1.0, 1.0)), tmp_path / "two.h5")

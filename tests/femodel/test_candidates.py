@@ -447,6 +447,22 @@ def test_lumped_masses_also_far_from_every_sensor_and_drive(frame_pm):
     assert ctx.spread(pts, 2, away_from=[[0.0, 0, 0]]).tolist() == [3, 4]  # 3 is 3 from 0 and 7 from 10
 
 
+def test_spread_never_repeats_a_point_when_points_coincide(frame_pm):
+    # ground springs give three candidates (x, y, z) per grid at one centre, and two parts' grids can
+    # coincide (a bolted plate over a frame): once every distinct place is taken the distances left are
+    # all 0, and the spread took index 0 again ("term name 'ground_g10000_x' is already used")
+    ctx = candidate_context(frame_pm)
+    pts = np.repeat(np.array([[0.0, 0, 0], [1, 0, 0], [5, 0, 0]]), 3, axis=0)
+    got = ctx.spread(pts, 7)
+    assert len(set(got.tolist())) == 7
+    assert sorted({tuple(pts[i]) for i in got}) == [(0.0, 0, 0), (1, 0, 0), (5, 0, 0)]  # every place first
+    assert len(set(ctx.spread(pts, 5, away_from=[[5.0, 0, 0]]).tolist())) == 5
+    n = len(generate_candidates(frame_pm, families=["ground_spring"], options=CandidateOptions(spread_grids=1000)))
+    capped = generate_candidates(frame_pm, families=["ground_spring"],
+                                 options=CandidateOptions(spread_grids=1000, max_per_family=n - 1))
+    assert len({c.term.name for c in capped}) == n - 1
+
+
 def test_a_gap_facing_a_welded_corner_is_one_contact_candidate(tmp_path):
     # the subframe's doubler faces rail grids that are web/skin junctions: a junction grid may face a third part
     ex = example_subframe(tmp_path, target_dof=1500, gap_mm=2.0)

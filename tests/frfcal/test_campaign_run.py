@@ -512,3 +512,15 @@ def test_the_documented_campaign_files_are_valid():
 
 if __name__ == "__main__":  # the executor comparison in a fresh process (see _executor_comparison)
     print(json.dumps(_executor_comparison(Path(sys.argv[1]), json.loads(sys.argv[2]), sys.argv[3])))
+
+
+def test_report_of_a_uff_campaign_reads_the_runs_the_import_stage_wrote(small, capsys):
+    # `frfcal report` after `frfcal run` on UFF58 entries: it refused ("uff = ... is not imported yet")
+    tmp, camp, ref = small
+    assert main(["report", str(camp), "--out", str(tmp / "ref"), "--quiet"]) == 0
+    assert f"report: {tmp / 'ref' / 'report.html'}" in capsys.readouterr().out
+    html = (tmp / "ref" / "report.html").read_text()
+    assert "Hold-out" in html or "hold-out" in html
+    # without a stored import stage (another output directory) it says what to run
+    assert main(["report", str(camp), "--out", str(tmp / "nothing-here"), "--quiet"]) == 2
+    assert "no stored import stage matching the campaign" in capsys.readouterr().err
