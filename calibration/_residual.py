@@ -351,19 +351,36 @@ def scatter_sd(freqs, frfs, models, expected=None, masks=None) -> float:
     Returns
     -------
     float (decades^2), 0 with one article.
+
+    Only differences that look like repeatability count: when the pairwise
+    differences split the articles into groups (:func:`calibration.grouping`,
+    its gap criterion), the pairs across groups are a systematic difference (an
+    effect on some articles), not test-to-test scatter, and only the pairs
+    within groups are averaged (the ensemble of an outside campaign, 3 articles
+    plus 2 with an undeclared 80 g mass calibrated as one, counted the mass as
+    scatter and found "nothing to explain"). A group of one article has no
+    within pair; when every group is a single article, no pair is left and the
+    scatter is 0.
     """
+    from calibration._ensemble import grouping
+
     n = len(frfs)
     if n < 2:
         return 0.0
-    d = []
+    raw, q = np.zeros((n, n)), np.zeros(n)
     for a in range(n):
         m = np.ones(np.shape(frfs[a]), bool) if masks is None or masks[a] is None else np.asarray(masks[a], bool)
-        q = 0.0 if expected is None else float(np.mean(np.asarray(expected[a])[m]))
+        q[a] = 0.0 if expected is None else float(np.mean(np.asarray(expected[a])[m]))
         for b in range(n):
             if a != b:
                 e = log_deviation(models[b](freqs[a]), frfs[a])[m]
-                d.append(max(float(np.mean(np.abs(e) ** 2)) - q, 0.0))
-    return float(np.mean(d)) * (1 - 1 / n) / 2
+                raw[a, b] = float(np.mean(np.abs(e) ** 2))
+    D = np.maximum(raw - q[:, None], 0.0)
+    # the split is judged on the raw differences with the noise as the reference's lower bound (grouping's
+    # noise_sd), so that noise-only differences (near 0 after the subtraction) never pass for groups
+    labels = grouping(0.5 * (raw + raw.T), noise_sd=q).labels if n > 2 else np.zeros(n, int)
+    pairs = [D[a, b] for a in range(n) for b in range(n) if a != b and labels[a] == labels[b]]
+    return float(np.mean(pairs)) * (1 - 1 / n) / 2 if pairs else 0.0
 
 
 def mode_residuals(sur: Surrogate, p, modes: IdentifiedModes, article: str = "", *, mac_min: float = 0.6,
