@@ -674,7 +674,7 @@ def _compounds(ctx, scr, tried) -> list:
     shaker attachment's mass and stinger spring at the drive grid) with a member among the ``tried`` rows:
     one row each, recalibrated and judged together (``members``, ``member_c`` the start: each member's
     checked or linear magnitude)."""
-    from femodel import compound_candidates
+    from femodel import COMPOUND_EFFECTS, compound_candidates
 
     names = {r["name"] for r in tried}
     comps = [(n, ms) for n, ms in compound_candidates(ctx["cands"]) if any(x.name in names for x in ms)]
@@ -687,7 +687,8 @@ def _compounds(ctx, scr, tried) -> list:
         if len(mr) != len(members):
             continue
         first = mr[0]
-        out.append(dict(first, name=name, family=name.split("_g")[0], members=[x["name"] for x in mr],
+        family = next((k for k in COMPOUND_EFFECTS if name.startswith(k + "_g")), name)
+        out.append(dict(first, name=name, family=family, members=[x["name"] for x in mr],
                         member_c=[x["c"] for x in mr], member_rows=mr,
                         description=" + ".join(x["description"] for x in mr)))
     return out
