@@ -588,7 +588,7 @@ def _accept_member(camp, load, pm, model, articles, m, check, rows, ctx, quantit
     n_res = max(int(n_vals / np.mean([_lines_per_bandwidth(a) for a in arts])), 2)
     cv_b = _cv(camp, sur, data, m.p, pm.lower, pm.upper, quantity, executor)
     base = {"holdout": hb, "cv": cv_b, "x": m.p}
-    accepted, trials, fit_acc = [], [], None
+    accepted, trials, fit_acc, refined = [], [], None, None
     order = _tried(ctx["cands"], ctx["screening"])
     order += _compounds(ctx, ctx["screening"], order)
     starts: dict = {}  # candidate -> (p, c of the accepted effects and its own) from the re-screening's check
@@ -642,14 +642,30 @@ def _accept_member(camp, load, pm, model, articles, m, check, rows, ctx, quantit
         base, fit_acc, check_after = {"holdout": ha, "cv": cv_a, "x": fit.x}, fit, check_try
         if dec.stop or n_effects >= cfg.max_effects:
             break
+        # the floor on its own footing: the accepted set refined on the raw lines (estimated damping, as the
+        # "after"); a residual inside the floor there has nothing left to explain (the equalized hold-out of
+        # the comparison above carries the identification's error and never reaches the floor)
+        refined = (tuple(a["name"] for a in accepted),
+                   _refined(camp, pm, model, articles, m, fit, _terms_of(ctx, accepted), quantity, log))
+        ref = refined[1][0]
+        damping = None if ref is None else (ref.zeta, ref.p_zeta)
+        check_ref = member_residual(camp, load, articles, m, model=(refined[1][3], refined[1][2], damping))[0]
+        trial["residual_refined"] = {"significant": bool(check_ref.significant), "ratio": float(check_ref.ratio)}
+        if not check_ref.significant:
+            log(f"[{m.label}] refined with {' + '.join(refined[0])}: the residual is inside the floor "
+                f"(ratio {check_ref.ratio:.3g}): no further effect is looked for")
+            break
         # re-screen the other candidates on the model extended by the accepted effects: an effect that only
         # stands out once the first is in (a weaker second term the first absorbed) enters the combination
         order, starts = _rescreen(camp, model, m, ctx, fit, [a["name"] for a in accepted], quantity, executor, log)
         screened_after = [a["name"] for a in accepted]
     after = None
     if fit_acc is not None:
-        terms = [ctx["cands"][[cd.name for cd in ctx["cands"]].index(a["name"])].term for a in accepted]
-        ref, h_ref, x_ref, sur_ref = _refined(camp, pm, model, articles, m, fit_acc, terms, quantity, log)
+        if refined is not None and refined[0] == tuple(a["name"] for a in accepted):
+            ref, h_ref, x_ref, sur_ref = refined[1]  # the last accepted set was refined for the floor check
+        else:
+            ref, h_ref, x_ref, sur_ref = _refined(camp, pm, model, articles, m, fit_acc, _terms_of(ctx, accepted),
+                                                  quantity, log)
         damping = None if ref is None else (ref.zeta, ref.p_zeta)
         check_after, frfs_after = member_residual(camp, load, articles, m, model=(sur_ref, x_ref, damping))
         floor = min(floor, _holdout_floor(camp, check_after))
@@ -692,6 +708,12 @@ def _compounds(ctx, scr, tried) -> list:
                         member_c=[x["c"] for x in mr], member_rows=mr,
                         description=" + ".join(x["description"] for x in mr)))
     return out
+
+
+def _terms_of(ctx, rows) -> list:
+    """The femodel terms of candidate rows."""
+    by = {cd.name: cd.term for cd in ctx["cands"]}
+    return [by[r["name"]] for r in rows]
 
 
 def _tried(cands, scr) -> list:
