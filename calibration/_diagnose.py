@@ -66,7 +66,7 @@ cross-validation beyond their scatter, the noise floor).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import scipy.sparse as sp
@@ -432,8 +432,11 @@ class CandidateCheck:
     p : (n_p,) re-fitted existing parameters
     sd : float, square deviation after the fit (same data as the baseline)
     explained : float, 1 - sd / sd_baseline
-    converged : bool
+    converged : bool, the fit's last stage stopped on its tolerances (not on its evaluation budget),
+        after ``continued`` further rounds of the budget on the last stage
     time_s : float, extension and fit
+    explained_linear : float, the candidate's linear (first-order) explained fraction
+    continued : int, further rounds of the last stage run because the fit had not converged
     """
 
     name: str
@@ -444,10 +447,20 @@ class CandidateCheck:
     explained: float
     converged: bool
     time_s: float
+    explained_linear: float = 0.0
+    continued: int = 0
+
+    @property
+    def score(self) -> float:
+        """The ranking score: the nonlinear explained fraction of a converged fit; of a fit that stopped on
+        its budget, the larger of that fraction (a lower bound: the fit had not reached its minimum) and the
+        linear one (the first-order estimate at c = 0)."""
+        return self.explained if self.converged else max(self.explained, self.explained_linear)
 
     def to_dict(self) -> dict:
         return {"name": self.name, "index": self.index, "c": self.c, "p": self.p.tolist(), "sd": self.sd,
-                "explained": self.explained, "converged": self.converged, "time_s": self.time_s}
+                "explained": self.explained, "converged": self.converged, "time_s": self.time_s,
+                "explained_linear": self.explained_linear, "continued": self.continued, "score": self.score}
 
 
 @dataclass(frozen=True)
@@ -467,8 +480,10 @@ class Screening:
     threshold : (n_s,) significance thresholds on the stages' explained fractions
     checks : tuple of CandidateCheck, the nonlinear re-fits of the top candidates (best first)
     order : (n_c,) int
-        Ranking: the checked candidates by their nonlinear explained
-        fraction, then the others by the linear one.
+        Ranking: the checked candidates by their score
+        (:attr:`CandidateCheck.score`: the nonlinear explained fraction of
+        a converged check, the larger of it and the linear one for a check
+        that stopped on its budget), then the others by the linear one.
     p_start : (n_p,) the given p ; sd_start : float, SD there (final data)
     p_baseline : (n_p,) p re-fitted alone on the final data ; sd_baseline : float, SD there
     n_residuals : int, real residuals of the final stage (2 x compared complex values)
@@ -598,6 +613,8 @@ def screen(
     alpha: float = 0.01,
     chunk_bytes: float = 2.5e8,
     executor=None,
+    continue_checks: int = 1,
+    groups=None,
 ) -> Screening:
     """Rank candidate effects by the fraction of the residual they explain beyond the existing parameters.
 
@@ -651,6 +668,21 @@ def screen(
         (:func:`calibration.make_executor`); the extensions are built here,
         the fits are independent. None: one after the other in this process.
         The outcome does not depend on it.
+    continue_checks : int
+        A nonlinear check whose last stage stopped on its evaluation budget
+        (``max_nfev``) is continued on the last stage from where it stopped,
+        up to this many further rounds of the budget. A check still not
+        converged is ranked by :attr:`CandidateCheck.score` (its stalled
+        fraction is a lower bound of what the candidate explains; the
+        linear fraction is the first-order estimate).
+    groups : sequence, optional
+        A label per candidate (e.g. its family). Besides the ``n_check``
+        best overall, the best linear candidate of every group (explained
+        > 0) is re-fitted nonlinearly: the first-order score errs
+        differently per kind of effect (a common mass that the existing
+        parameters largely absorb scores half its re-fitted fraction),
+        and a family of hundreds of near-duplicates must not crowd the
+        others out of the checks. None: the ``n_check`` best only.
 
     Returns
     -------
@@ -703,7 +735,17 @@ def screen(
     significant = np.any(E > threshold[:, None], axis=0)
 
     checks = []
-    top = [int(i) for i in np.argsort(-explained, kind="stable")[:n_check] if explained[i] > 0]
+    by_score = np.argsort(-explained, kind="stable")
+    top = [int(i) for i in by_score[:n_check] if explained[i] > 0]
+    if n_check and groups is not None:
+        labels = list(groups)
+        if len(labels) != len(cands):
+            raise CalibrationError(f"screen: {len(labels)} group labels for {len(cands)} candidates")
+        seen = {labels[i] for i in top}
+        for i in by_score:
+            if labels[i] not in seen and explained[i] > 0:
+                seen.add(labels[i])
+                top.append(int(i))
     if top:
         if solve is None:
             solve = shifted_solver(model, sur.p_basis, shift_hz)
@@ -717,10 +759,29 @@ def screen(
             fits = executor.map(run_start, [job for job, _ in jobs])
             share = (time.perf_counter() - tf) / len(jobs)  # the pool's wall time, spread over the checks
             outs = [(o, t + share) for o, (_, t) in zip(fits, jobs)]
-        for i, (out, t_ext) in zip(top, outs):
-            checks.append(_checked_fit(cands[i], i, out, lin[-1].sd, t_ext))
+        outs = [list(o) + [0] for o in outs]
+        for _ in range(max(int(continue_checks), 0)):
+            todo = [k for k, (out, _, _) in enumerate(outs) if not out.converged and np.isfinite(out.sd)]
+            if not todo:
+                break
+            # the last stage again from where it stopped (its objective on the candidate's extended surrogate)
+            more = [((jobs[k][0][0][-1],), outs[k][0].p, *jobs[k][0][2:]) for k in todo]
+            tf = time.perf_counter()
+            fits = [run_start(a) for a in more] if executor is None else list(executor.map(run_start, more))
+            share = (time.perf_counter() - tf) / len(todo)
+            for k, o in zip(todo, fits):
+                old = outs[k][0]
+                if o.sd <= old.sd:  # the outcome's own time is added by _checked_fit
+                    outs[k][0], spent = o, old.time_s
+                else:  # keep the better point; the continuation counts as run
+                    outs[k][0], spent = replace(old, converged=o.converged), o.time_s
+                outs[k][1] += spent if executor is None else share
+                outs[k][2] += 1
+        for i, (out, t_ext, n_more) in zip(top, outs):
+            chk = _checked_fit(cands[i], i, out, lin[-1].sd, t_ext)
+            checks.append(replace(chk, explained_linear=float(explained[i]), continued=n_more))
     t3, c3 = time.perf_counter(), time.process_time()
-    checks.sort(key=lambda c: -c.explained)
+    checks.sort(key=lambda c: -c.score)
     checked = [c.index for c in checks]
     done = set(checked)
     rest = [int(i) for i in np.argsort(-explained, kind="stable") if int(i) not in done]

@@ -19,8 +19,9 @@ from femodel._elements_solid import solid_mass, solid_stiffness
 from femodel._params import Parameter, ParameterError, ParameterSet, read_parameters
 from femodel._parametric import ParametricModel, SeriesAffineMatrix, parametric_model
 from femodel._terms import AddedMass, AddedSpring, ElementFactor, ExtendedAffineMatrix
-from femodel._candidates import (CANDIDATE_FAMILIES, Candidate, CandidateContext, CandidateOptions,
-                                 candidate_context, generate_candidates, register_family)
+from femodel._candidates import (CANDIDATE_FAMILIES, COMPOUND_EFFECTS, Candidate, CandidateContext,
+                                 CandidateOptions, candidate_context, compound_candidates, generate_candidates,
+                                 register_family)
 from femodel._writeback import fixed_field_card, write_bdf
 from femodel._example import SubframeExample, example_subframe
 from femodel._example_frame import FrameExample, example_frame
@@ -35,5 +36,5 @@ __all__ = [
     "write_bdf", "fixed_field_card", "SubframeExample", "example_subframe", "FrameExample", "example_frame",
     "AddedMass", "AddedSpring", "ElementFactor", "ExtendedAffineMatrix", "BackendInfo", "Factorization",
     "FactorizationError", "NotPositiveDefiniteError", "available_backends", "default_backend", "factorize",
-    "CANDIDATE_FAMILIES", "Candidate", "CandidateContext", "CandidateOptions", "candidate_context",
-    "generate_candidates", "register_family"]
+    "CANDIDATE_FAMILIES", "COMPOUND_EFFECTS", "Candidate", "CandidateContext", "CandidateOptions",
+    "candidate_context", "compound_candidates", "generate_candidates", "register_family"]

@@ -1164,3 +1164,39 @@ def generate_candidates(model, *, sensors=(), drives=(), families=None,
         out.extend(got)
     return tuple(out)
 
+
+
+# ----------------------------------------------------------------------------
+# compound effects: several terms that are one physical effect
+# ----------------------------------------------------------------------------
+
+#: Compound effects: name -> member families. Candidates of the member families acting on the same grids are
+#: one physical effect with one parameter per member (a shaker attachment is its force-gauge/armature mass
+#: and its stinger's axial stiffness at the drive grid). The diagnosis recalibrates and judges them together
+#: (the per-parameter penalty counts every member) besides each member alone: a member whose own signature is
+#: too weak for the data to confirm (the stinger, a quarter of the mass's frequency shift) is not left to the
+#: other member to absorb.
+COMPOUND_EFFECTS: dict[str, tuple[str, ...]] = {
+    "shaker_attachment": ("shaker_attachment_mass", "stinger_spring"),
+}
+
+
+def compound_candidates(candidates) -> list[tuple[str, tuple[Candidate, ...]]]:
+    """The compound effects (:data:`COMPOUND_EFFECTS`) among ``candidates``.
+
+    Returns
+    -------
+    list of (name, members): ``name`` = "<compound>_g<grid>_..." , ``members`` one Candidate per member
+    family (in the compound's order) with the same grids; only complete sets are returned.
+    """
+    out = []
+    for compound, families in COMPOUND_EFFECTS.items():
+        by_grids: dict = {}
+        for c in candidates:
+            if c.family in families:
+                by_grids.setdefault(tuple(sorted(c.grids)), {}).setdefault(c.family, c)
+        for grids, members in by_grids.items():
+            if all(f in members for f in families):
+                out.append((f"{compound}_g" + "_".join(str(g) for g in grids),
+                            tuple(members[f] for f in families)))
+    return out

@@ -475,12 +475,12 @@ def _screen_member(camp: Campaign, pm, model, load, eq, m, quantity, log, execut
     data, cont = eq.member(m.articles)
     scr = screen(sur, T, m.p, data, c.zeta0, terms, pm.lower, pm.upper, quantity=quantity, model=model, n_check=cfg.top_n,
                  shift_hz=max(lo / 4.0, hi / 50.0), continuation=cont, max_nfev=cfg.max_evaluations,
-                 executor=executor)
+                 executor=executor, groups=[cd.family for cd in cands])
     counts: dict = {}
     for cd in cands:
         counts[cd.family] = counts.get(cd.family, 0) + 1
     rows = ranked_table(cands, scr)
-    ctx = dict(cands=cands, terms=terms, sur=sur, T=T, data=data, cont=cont)
+    ctx = dict(cands=cands, terms=terms, sur=sur, T=T, data=data, cont=cont, screening=scr)
     log(f"[{m.label}] screened {len(cands)} candidates in {time.perf_counter() - t0:.1f} s; first: "
         + "; ".join(f"{r['family']} {r['name']} ({r['size']}, explained {100 * r['explained']:.1f} %)"
                     for r in rows[:3]))
@@ -594,53 +594,84 @@ def _accept_member(camp, load, pm, model, articles, m, check, rows, ctx, quantit
     n_res = max(int(n_vals / np.mean([_lines_per_bandwidth(a) for a in arts])), 2)
     cv_b = _cv(camp, sur, data, m.p, pm.lower, pm.upper, quantity, executor)
     base = {"holdout": hb, "cv": cv_b, "x": m.p}
-    accepted, trials, fit_acc = [], [], None
-    order = [r for r in rows if r["checked"]][:cfg.top_n]
+    accepted, trials, fit_acc, refined = [], [], None, None
+    order = _tried(ctx["cands"], ctx["screening"])
+    order += _compounds(ctx, ctx["screening"], order)
+    starts: dict = {}  # candidate -> (p, c of the accepted effects and its own) from the re-screening's check
+    screened_after = None
+    n_effects = 0  # a compound effect (several terms) counts once against max_effects
     for _ in range(cfg.max_effects):
         best = None
         for r in order:
-            if any(r["name"] == a["name"] or _overlap(ctx, r["name"], a["name"]) for a in accepted):
+            new = list(r.get("members", [r["name"]]))
+            if any(n == a["name"] or _overlap(ctx, n, a["name"]) for n in new for a in accepted):
                 continue  # the same effect, or an element subset sharing elements with an accepted one
-            names = [a["name"] for a in accepted] + [r["name"]]
-            c0 = [a["c"] for a in accepted] + [r["c"]]
+            names = [a["name"] for a in accepted] + new
+            p0, c0 = starts.get(r["name"], (m.p, [a["c"] for a in accepted] + list(r.get("member_c", [r["c"]]))))
             fit = fit_with(sur, T, model, [by_name[n] for n in names], data, c.zeta0, pm.lower, pm.upper,
-                           p0=m.p, c0=c0, continuation=cont, quantity=quantity, shift_hz=shift,
+                           p0=p0, c0=c0, continuation=cont, quantity=quantity, shift_hz=shift,
                            max_nfev=cfg.max_evaluations)
             ha, _ = _holdout(camp, articles, m, fit.surrogate, fit.x, quantity)
             trial = {"names": names, "c": fit.c.tolist(), "sd_equalized": fit.sd, "holdout_before": base["holdout"],
                      "holdout_after": ha}
+            if "members" in r:
+                trial["effect"] = r["name"]
+            if screened_after is not None:
+                trial["screened_after"] = screened_after
             if best is None or ha < best[1]:
                 best = (r, ha, fit, trial)
             trials.append(trial)
         if best is None:
             break
         r, ha, fit, trial = best
+        new = list(r.get("members", [r["name"]]))
         check_try = member_residual(camp, load, articles, m, model=(fit.surrogate, fit.x, None))[0]
         floor = min(floor, _holdout_floor(camp, check_try))
         cv_a = _cv(camp, fit.surrogate, data, fit.x, fit.lower, fit.upper, quantity, executor)
-        dec = accept(base["holdout"], ha, base["cv"].sd_test, cv_a.sd_test, floor, 1, n_res)
+        dec = accept(base["holdout"], ha, base["cv"].sd_test, cv_a.sd_test, floor, len(new), n_res)
         trial.update(decision=dec.to_dict(), cv_before=float(base["cv"].rse), cv_after=float(cv_a.rse))
         log(f"[{m.label}] {' + '.join(trial['names'])}: hold-out SD {base['holdout']:.4g} -> {ha:.4g}, "
             f"cross-validation {base['cv'].rse:.4g} -> {cv_a.rse:.4g}: "
             f"{'ACCEPTED' if dec.accepted else 'not accepted'} ({dec.reason})")
         if not dec.accepted:
             break
-        value, unit, words = _physical(ctx["cands"][[cd.name for cd in ctx["cands"]].index(r["name"])].term,
-                                       float(fit.c[-1]))
-        accepted = [dict(a) for a in accepted]
-        for a, cj in zip(accepted, fit.c[:-1]):  # the earlier effects re-fitted together with the new one
+        accepted = [dict(a) for a in accepted] + [dict(x) for x in (r["member_rows"] if "members" in r else [r])]
+        for a, cj in zip(accepted, fit.c):  # the earlier effects re-fitted together with the new one(s)
             cd = ctx["cands"][[cd.name for cd in ctx["cands"]].index(a["name"])]
             a["c"] = float(cj)
             a["value"], a["unit"], a["size"] = _physical(cd.term, float(cj))
-        accepted.append(dict(r, c=float(fit.c[-1]), value=value, unit=unit, size=words,
-                             decision=dec.to_dict()))
+        for a in accepted[len(accepted) - len(new):]:
+            a["decision"] = dec.to_dict()
+            if "members" in r:
+                a["effect"] = r["name"]
+        n_effects += 1
         base, fit_acc, check_after = {"holdout": ha, "cv": cv_a, "x": fit.x}, fit, check_try
-        if dec.stop:
+        if dec.stop or n_effects >= cfg.max_effects:
             break
+        # the floor on its own footing: the accepted set refined on the raw lines (estimated damping, as the
+        # "after"); a residual inside the floor there has nothing left to explain (the equalized hold-out of
+        # the comparison above carries the identification's error and never reaches the floor)
+        refined = (tuple(a["name"] for a in accepted),
+                   _refined(camp, pm, model, articles, m, fit, _terms_of(ctx, accepted), quantity, log))
+        ref = refined[1][0]
+        damping = None if ref is None else (ref.zeta, ref.p_zeta)
+        check_ref = member_residual(camp, load, articles, m, model=(refined[1][3], refined[1][2], damping))[0]
+        trial["residual_refined"] = {"significant": bool(check_ref.significant), "ratio": float(check_ref.ratio)}
+        if not check_ref.significant:
+            log(f"[{m.label}] refined with {' + '.join(refined[0])}: the residual is inside the floor "
+                f"(ratio {check_ref.ratio:.3g}): no further effect is looked for")
+            break
+        # re-screen the other candidates on the model extended by the accepted effects: an effect that only
+        # stands out once the first is in (a weaker second term the first absorbed) enters the combination
+        order, starts = _rescreen(camp, model, m, ctx, fit, [a["name"] for a in accepted], quantity, executor, log)
+        screened_after = [a["name"] for a in accepted]
     after = None
     if fit_acc is not None:
-        terms = [ctx["cands"][[cd.name for cd in ctx["cands"]].index(a["name"])].term for a in accepted]
-        ref, h_ref, x_ref, sur_ref = _refined(camp, pm, model, articles, m, fit_acc, terms, quantity, log)
+        if refined is not None and refined[0] == tuple(a["name"] for a in accepted):
+            ref, h_ref, x_ref, sur_ref = refined[1]  # the last accepted set was refined for the floor check
+        else:
+            ref, h_ref, x_ref, sur_ref = _refined(camp, pm, model, articles, m, fit_acc, _terms_of(ctx, accepted),
+                                                  quantity, log)
         damping = None if ref is None else (ref.zeta, ref.p_zeta)
         check_after, frfs_after = member_residual(camp, load, articles, m, model=(sur_ref, x_ref, damping))
         floor = min(floor, _holdout_floor(camp, check_after))
@@ -658,6 +689,101 @@ def _accept_member(camp, load, pm, model, articles, m, check, rows, ctx, quantit
             a["c_equalized"], a["c"] = a["c"], float(x_ref[n_p + j])
             a["value"], a["unit"], a["size"] = _physical(cd.term, a["c"])
     return tuple(accepted), tuple(trials), after, fit_acc
+
+
+def _compounds(ctx, scr, tried) -> list:
+    """Compound effects (``femodel.COMPOUND_EFFECTS``: several terms that are one physical effect, e.g. a
+    shaker attachment's mass and stinger spring at the drive grid) with a member among the ``tried`` rows:
+    one row each, recalibrated and judged together (``members``, ``member_c`` the start: each member's
+    checked or linear magnitude)."""
+    from femodel import COMPOUND_EFFECTS, compound_candidates
+
+    names = {r["name"] for r in tried}
+    comps = [(n, ms) for n, ms in compound_candidates(ctx["cands"]) if any(x.name in names for x in ms)]
+    if not comps:
+        return []
+    rows = {r["name"]: r for r in ranked_table(ctx["cands"], scr, n=len(scr.names))}
+    out = []
+    for name, members in comps:
+        mr = [rows[x.name] for x in members if x.name in rows]
+        if len(mr) != len(members):
+            continue
+        first = mr[0]
+        family = next((k for k in COMPOUND_EFFECTS if name.startswith(k + "_g")), name)
+        out.append(dict(first, name=name, family=family, members=[x["name"] for x in mr],
+                        member_c=[x["c"] for x in mr], member_rows=mr,
+                        description=" + ".join(x["description"] for x in mr)))
+    return out
+
+
+def _terms_of(ctx, rows) -> list:
+    """The femodel terms of candidate rows."""
+    by = {cd.name: cd.term for cd in ctx["cands"]}
+    return [by[r["name"]] for r in rows]
+
+
+def _tried(cands, scr) -> list:
+    """The candidates the acceptance recalibrates: every nonlinearly checked one (``top_n`` and the best of
+    every family) that explains part of the residual, best score first (rows of :func:`ranked_table`)."""
+    return [r for r in ranked_table(cands, scr, n=max(len(scr.checks), 1)) if r["checked"] and r["explained"] > 0]
+
+
+def holdout_ranking(cands, scr, trials, n: int = 10) -> tuple:
+    """The ranked table after the acceptance: the candidates recalibrated singly in its first round ranked by
+    the fraction of the hold-out SD (raw lines, one footing) they remove, ``explained_holdout`` = 1 - after /
+    before, then the others in the screening's order. The equalized screening fraction is a proxy (on
+    identified, equalized data its residual holds the identification's own error, which no effect
+    explains); the hold-out fraction is measured on data the fit did not see, and is what the acceptance
+    judges. Every row keeps its screening numbers and ``screening_rank``."""
+    single = {t["names"][0]: t for t in trials if len(t["names"]) == 1}
+    full = ranked_table(cands, scr, n=max(n, len(scr.checks)))
+    tried = sorted((r for r in full if r["name"] in single), key=lambda r: single[r["name"]]["holdout_after"])
+    rest = [r for r in full if r["name"] not in single]
+    out = []
+    for k, r in enumerate((tried + rest)[:n]):
+        t = single.get(r["name"])
+        frac = None if t is None or not t["holdout_before"] > 0 else 1.0 - t["holdout_after"] / t["holdout_before"]
+        out.append(dict(r, rank=k + 1, screening_rank=r["rank"], explained_holdout=frac))
+    return tuple(out)
+
+
+def _rescreen(camp, model, m, ctx, fit, accepted, quantity, executor, log):
+    """The screening again on the model extended by the accepted effects (their fit ``fit``): every other
+    candidate (none sharing elements with an accepted one), linear stage through the continuation, the
+    ``top_n`` best re-fitted nonlinearly with the accepted magnitudes free.
+
+    Returns (checked rows of the new ranking (:func:`ranked_table`), {name: (p, c) start of its
+    recalibration together with the accepted effects: the check's point}).
+    """
+    from calibration import extended_model, screen
+
+    cfg, c = camp.diagnosis, camp.calibration
+    shift = max(camp.band.low_hz / 4.0, camp.band.high_hz / 50.0)
+    by_name = {t.name: t for t in ctx["terms"]}
+    family = {cd.name: cd.family for cd in ctx["cands"]}
+    done = set(accepted)
+    rest = [t for t in ctx["terms"]
+            if t.name not in done and not any(_overlap(ctx, t.name, a) for a in accepted)]
+    if not rest:
+        return [], {}
+    t0 = time.perf_counter()
+    scr = screen(fit.surrogate, fit.basis, fit.x, ctx["data"], c.zeta0, rest, fit.lower, fit.upper,
+                 quantity=quantity, model=extended_model(model, [by_name[a] for a in accepted]), n_check=cfg.top_n,
+                 shift_hz=shift, continuation=ctx["cont"], max_nfev=cfg.max_evaluations, executor=executor,
+                 groups=[family[t.name] for t in rest])
+    rows = ranked_table(ctx["cands"], scr)
+    n_p = fit.surrogate.n_params - len(accepted)
+    starts = {}
+    for r in rows:
+        chk = scr.check(r["name"])
+        if chk is not None:
+            starts[r["name"]] = (chk.p[:n_p], list(chk.p[n_p:]) + [chk.c])
+    log(f"[{m.label}] re-screened {len(rest)} candidates with {' + '.join(accepted)} in "
+        f"{time.perf_counter() - t0:.1f} s; first: "
+        + "; ".join(f"{r['family']} {r['name']} ({r['size']}, explained {100 * r['explained']:.1f} %)"
+                    for r in rows[:3]))
+    tried = _tried(ctx["cands"], scr)
+    return tried + _compounds(ctx, scr, tried), starts
 
 
 def _refined(camp, pm, model, articles, m, fit, extended_terms, quantity, log):
@@ -770,6 +896,7 @@ def diagnose_stage(camp: Campaign, load, pm, model, articles, eq, cal, val, xval
             counts, rows, scr, ctx = _screen_member(camp, pm, model, load, eq, m, quantity, log, executor)
             acc, trials, after, fit = _accept_member(camp, load, pm, model, articles, m, check, rows, ctx,
                                                      quantity, executor, log)
+            rows = holdout_ranking(ctx["cands"], scr, trials)
             if after is not None:
                 sd["after"] = after
             if acc:
@@ -936,6 +1063,7 @@ def ranked_table(cands, scr, n: int = 10) -> tuple:
             "c": cval, "value": value, "unit": unit, "size": words,
             "explained": float(chk.explained) if chk is not None else float(scr.explained[k]),
             "explained_linear": float(scr.explained[k]), "checked": chk is not None,
+            "converged": None if chk is None else bool(chk.converged),
             "significant": bool(scr.significant[k]),
         })
     return tuple(rows)

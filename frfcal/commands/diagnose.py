@@ -53,11 +53,13 @@ def print_diagnosis(d: dict, out) -> None:
             print(f"nonlinear ({x['article']}): {x['check']} at {what}{x['frequency_hz']:.5g} Hz{extra}", file=out)
         if m["ranked"]:
             print(f"candidates screened: " + ", ".join(f"{k} {v}" for k, v in m["candidates"].items()), file=out)
-            print(f"{'#':>3} {'family':<18}{'location':<44}{'size':>24}{'explained':>11}", file=out)
+            print(f"{'#':>3} {'family':<18}{'location':<44}{'size':>24}{'explained':>11}{'hold-out':>10}", file=out)
             for r in m["ranked"][:10]:
                 loc = ("grids " + " ".join(map(str, r["grids"][:4])) + ("..." if len(r["grids"]) > 4 else "")
                        + f" ({', '.join(r['parts'][:2])}) at ({', '.join(f'{x:.3g}' for x in r['center'])})")
+                h = r.get("explained_holdout")
                 print(f"{r['rank']:>3} {r['family']:<18}{loc:<44}{r['size']:>24}{100 * r['explained']:10.1f}%"
+                      + (f"{100 * h:9.1f}%" if h is not None else f"{'-':>10}")
                       + ("" if r["checked"] else " (linear)"), file=out)
         for a in m["accepted"]:
             print(f"ACCEPTED: {a['description']}: {a['size']} (grids {', '.join(map(str, a['grids']))}; "

@@ -267,6 +267,53 @@ def test_nonlinear_checks_in_a_process_pool_match_the_serial_ones(frame):
     assert serial.check("m30").c == pytest.approx(1.0, rel=0.05)
 
 
+def test_a_check_stopped_on_its_budget_is_continued_or_ranked_by_its_linear_score(frame):
+    """A nonlinear check that stops on max_nfev has not reached its minimum: its stalled fraction is a lower
+    bound. It is continued on the last stage (continue_checks); one still unconverged ranks by the larger of
+    the stalled and the linear fraction, a converged one by its nonlinear fraction."""
+    pm, model, sur, T, terms, cands = frame
+    data = _truth_data(pm, model, AddedMass("m_truth", (30,), 0.5), 1.0, sigma=0.005)
+    stalled = _screen(frame, data, n_check=4, max_nfev=3, continue_checks=0)
+    assert not all(c.converged for c in stalled.checks) and all(c.continued == 0 for c in stalled.checks)
+    for c in stalled.checks:
+        assert c.explained_linear == stalled.explained[c.index]
+        assert c.score == (c.explained if c.converged else max(c.explained, c.explained_linear))
+    scores = [c.score for c in stalled.checks]
+    assert scores == sorted(scores, reverse=True)
+    assert list(stalled.order[:4]) == [c.index for c in stalled.checks]
+    # continued from where they stopped (the same baseline and linear stage: same budget): each unconverged
+    # check is continued and gets no worse
+    cont = _screen(frame, data, n_check=4, max_nfev=3, continue_checks=60)
+    np.testing.assert_array_equal(cont.explained, stalled.explained)
+    for c in stalled.checks:
+        d = cont.check(c.name)
+        assert d.sd <= c.sd * (1 + 1e-12)
+        if not c.converged:
+            assert d.continued >= 1
+        assert d.score == (d.explained if d.converged else max(d.explained, d.explained_linear))
+    gain = [cont.check(c.name).explained - c.explained for c in stalled.checks if not c.converged]
+    assert max(gain) > 0.01  # the budget had stopped them short of their minimum
+
+
+def test_the_best_candidate_of_every_group_is_checked_too(frame):
+    """groups (e.g. the families): besides the n_check best overall, every group's best linear candidate gets
+    a nonlinear check, so a family of many near-duplicates does not crowd the others out."""
+    pm, model, sur, T, terms, cands = frame
+    data = _truth_data(pm, model, AddedMass("m_truth", (30,), 0.5), 1.0, sigma=0.005)
+    labels = [c.name.rstrip("0123456789_").rstrip("0123456789") for c in cands]  # m, kg, kc, f
+    s = _screen(frame, data, n_check=2, groups=labels)
+    top = [int(i) for i in np.argsort(-s.explained, kind="stable")[:2]]
+    best_of = {}
+    for i in np.argsort(-s.explained, kind="stable"):
+        if s.explained[i] > 0:
+            best_of.setdefault(labels[i], int(i))
+    want = set(top) | set(best_of.values())
+    assert {c.index for c in s.checks} == want and len(set(labels)) == 4 and len(want) > 2
+    assert s.best == "m30"
+    with pytest.raises(CalibrationError, match="group labels"):
+        _screen(frame, data, n_check=2, groups=labels[:-1])
+
+
 def test_without_an_effect_no_candidate_is_significant(frame):
     pm, model, sur, T, terms, cands = frame
     for seed in (0, 1):

@@ -281,6 +281,24 @@ def test_every_candidate_builds_and_its_derivative_is_the_with_terms_one(which, 
             assert d["K" if c.term.kind == "M" else "M"] is None
 
 
+def test_compound_effects_join_the_member_families_at_the_same_grids(frame_pm):
+    """A shaker attachment is one effect with two terms: its mass and its stinger spring at the drive grid;
+    one compound per drive grid, only complete sets."""
+    from femodel import COMPOUND_EFFECTS, compound_candidates
+
+    sensors, drives = _setup(frame_pm)
+    g2 = sensors[3]
+    cands = generate_candidates(frame_pm, sensors=sensors, drives=drives + [(g2, (0.0, 1.0, 0.0))])
+    comps = compound_candidates(cands)
+    assert COMPOUND_EFFECTS["shaker_attachment"] == ("shaker_attachment_mass", "stinger_spring")
+    assert sorted(n for n, _ in comps) == sorted(f"shaker_attachment_g{g}" for g in (drives[0][0], g2))
+    for name, (mass, spring) in comps:
+        assert mass.family == "shaker_attachment_mass" and spring.family == "stinger_spring"
+        assert mass.grids == spring.grids and name.endswith(f"_g{mass.grids[0]}")
+    # without the stinger family nothing is compound
+    assert compound_candidates([c for c in cands if c.family != "stinger_spring"]) == []
+
+
 def test_term_derivative_of_element_factor_scales_with_the_deck_parameters(frame_pm):
     c = generate_candidates(frame_pm, families=["element_cluster"])[0]
     p0 = np.zeros(frame_pm.n_params)

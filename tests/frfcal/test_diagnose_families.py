@@ -35,28 +35,7 @@ FAMILIES = {
 }
 
 #: (family, test) -> measured reason the criterion is not met (strict xfail: a fix turns it into a failure)
-XFAIL: dict = {
-    ("sensor_mass", "rank"): (
-        "the calibration's parameters absorb most of the common sensor mass (2 of 15 modes left > 1 half-power "
-        "bandwidth off; the residual, 25 x its floor, is dominated by channel s16 at the 144 Hz mode triple); no "
-        "candidate explains more than 12 %: a 3-bar PBAR 3 cluster ranks first, the true candidate 17th of 341 "
-        "(7th of 207 at 7.5 %, linear estimate 0.0428 kg vs 0.0364 kg, before the element-centred clusters), "
-        "below the top_n = 5 nonlinear checks (screening kernel, h-gap)"),
-    ("sensor_mass", "accept"): (
-        "the true candidate is not among the checked ones; a PBAR 3 cluster (factor 0.99) and a ground spring at "
-        "grid 5 are accepted (hold-out x0.82, x0.90) and the hold-out stays at 2900 x the truth's floor "
-        "(screening/acceptance kernels, h-gap)"),
-    ("ground_spring", "rank"): (
-        "the true spring (grid 19, z) has the largest linear explained fraction of the springs (16.1 %) but its "
-        "nonlinear check stops unconverged at 9.0 % and ranks it 5th, behind two 3-bar stiffness clusters of "
-        "PBAR 2 (factor 1.6, 21.8 %) and the stinger and grid-17 springs; the acceptance tries all five and "
-        "accepts the true one (screening kernel ranks unconverged checks by their stalled fraction, h-gap)"),
-    ("shaker_attachment", "accept"): (
-        "the attachment mass ranks first and is accepted, but alone it absorbs the stinger spring: 0.473 kg vs "
-        "0.655 kg (-28 %), hold-out 0.0116 = 260 x the truth's floor; the stinger spring ranks below 10th before "
-        "the mass is in and is never re-screened, so it never enters the greedy combination (acceptance kernel, "
-        "h-gap)"),
-}
+XFAIL: dict = {}
 
 #: the two fastest cases run by default, the others with -m slow
 _SLOW = ("shaker_attachment", "ground_spring")
