@@ -384,7 +384,7 @@ def shifted_solver(model: FRFModel, p, shift_hz: float):
 
 
 def extend_with_candidates(sur: Surrogate, basis, model, candidates, *, shift_hz: float | None = None,
-                           solve=None) -> tuple[Surrogate, np.ndarray]:
+                           solve=None, with_basis: bool = True) -> tuple[Surrogate, np.ndarray]:
     """Extend a surrogate by candidate terms (the static corrections of their loads), for a re-fit of [p, c].
 
     Parameters
@@ -401,6 +401,8 @@ def extend_with_candidates(sur: Surrogate, basis, model, candidates, *, shift_hz
     shift_hz, solve
         As :func:`calibration.extended_surrogate` (``solve`` at ``sur.p_basis``,
         e.g. from :func:`shifted_solver`, is shared between calls).
+    with_basis : bool
+        False: None in place of the basis (:func:`calibration.extended_surrogate`).
 
     Returns
     -------
@@ -414,7 +416,7 @@ def extend_with_candidates(sur: Surrogate, basis, model, candidates, *, shift_hz
     elif model.n_params != sur.n_params + len(cands):
         raise CalibrationError(f"model has {model.n_params} parameters: expected the surrogate's {sur.n_params} "
                                f"or {sur.n_params + len(cands)} with the {len(cands)} candidates")
-    return extended_surrogate(sur, basis, model, shift_hz=shift_hz, solve=solve)
+    return extended_surrogate(sur, basis, model, shift_hz=shift_hz, solve=solve, with_basis=with_basis)
 
 
 # ----------------------------------------------------------------------------- screening
@@ -753,7 +755,7 @@ def _check_job(sur, basis, model, cand, stages, quantity, p0, c0, lower, upper, 
     """Extend by one candidate; return (the :func:`run_start` arguments of the [p, c] re-fit from [p0, c0]
     through the stages, wall time of the extension)."""
     t0 = time.perf_counter()
-    sur_e, _ = extend_with_candidates(sur, basis, model, [cand], solve=solve)
+    sur_e, _ = extend_with_candidates(sur, basis, model, [cand], solve=solve, with_basis=False)
     objs = [Objective(sur_e, d, z, quantity) for z, d in stages]
     lo = np.r_[lower, cand.lower]
     hi = np.r_[upper, cand.upper]
