@@ -833,6 +833,7 @@ def fit_with(
     solve=None,
     max_nfev: int = 100,
     xtol: float = 1e-10,
+    warm: CandidateCheck | None = None,
 ) -> CandidateFit:
     """Recalibrate the existing parameters with chosen candidates (one or several together).
 
@@ -853,6 +854,13 @@ def fit_with(
     continuation : sequence of (zeta, data), damping stages run first.
     quantity, shift_hz, solve, max_nfev, xtol
         As :func:`screen` / :func:`calibration.calibrate`.
+    warm : CandidateCheck, optional
+        The screening's nonlinear check of the one candidate fitted here. If
+        it converged, the fit starts at its (p, c) and skips the continuation
+        stages: the check ran them from (p0, c*) on the same data and the same
+        extension, so its end point is already in the final stage's basin;
+        only the final stage runs on, to ``xtol``. Otherwise (not converged,
+        other candidates) it is ignored.
 
     Returns
     -------
@@ -872,6 +880,10 @@ def fit_with(
     if c0.shape != (len(cands),):
         raise CalibrationError(f"fit_with: c0 has shape {c0.shape}, expected ({len(cands)},)")
     x0 = np.clip(np.r_[np.asarray(p0, float), c0], lo, hi)
+    if (warm is not None and warm.converged and len(cands) == 1 and warm.name == cands[0].name
+            and warm.p.shape == (sur.n_params,)):
+        x0 = np.clip(np.r_[warm.p, warm.c], lo, hi)
+        continuation = ()
     if solve is None and not (shift_hz is not None and shift_hz > 0):
         raise CalibrationError("fit_with needs shift_hz > 0 (the basis build's) or solve")
     sur_e, basis_e = extend_with_candidates(sur, basis, model, cands, shift_hz=shift_hz, solve=solve)
