@@ -20,8 +20,9 @@ Timed, the diagnosis stages (wall and process CPU time each):
 2. term derivatives at the calibrated p (``ParametricModel.term_derivative``);
 3. screening (``calibration.screen``: linear scores on every continuation
    stage, nonlinear re-fits of the ``--n-check`` best);
-4. acceptance: ``calibration.fit_with`` of the ``--top`` best singly and the
-   top two combined, hold-out SD (equalized hold-out channels) and
+4. acceptance: ``calibration.fit_with`` of the ``--top`` best singly (from
+   their converged nonlinear checks, ``fit_with(warm=...)``; ``--no-warm``:
+   from the baseline through the continuation stages) and the top two combined, hold-out SD (equalized hold-out channels) and
    ``calibration.cross_validate`` (same splits) before and after, and
    ``calibration.accept``.
 
