@@ -20,8 +20,9 @@ Timed, the diagnosis stages (wall and process CPU time each):
 2. term derivatives at the calibrated p (``ParametricModel.term_derivative``);
 3. screening (``calibration.screen``: linear scores on every continuation
    stage, nonlinear re-fits of the ``--n-check`` best);
-4. acceptance: ``calibration.fit_with`` of the ``--top`` best singly and the
-   top two combined, hold-out SD (equalized hold-out channels) and
+4. acceptance: ``calibration.fit_with`` of the ``--top`` best singly (from
+   their converged nonlinear checks, ``fit_with(warm=...)``; ``--no-warm``:
+   from the baseline through the continuation stages) and the top two combined, hold-out SD (equalized hold-out channels) and
    ``calibration.cross_validate`` (same splits) before and after, and
    ``calibration.accept``.
 
@@ -171,6 +172,9 @@ def main(argv=None) -> int:
     ap.add_argument("--cv-realizations", type=int, default=5, help="cross-validation splits of the acceptance")
     ap.add_argument("--workers", type=int, default=None)
     ap.add_argument("--no-model-sd", action="store_true", help="skip the full-order hold-out SD with truth damping")
+    ap.add_argument("--no-warm", dest="warm", action="store_false",
+                    help="fit_with of a single candidate from (p_baseline, c) through the continuation stages, "
+                         "not from its converged nonlinear check (fit_with's warm)")
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "diagnosis.json"))
     args = ap.parse_args(argv)
     from frfcal._malloc import keep_large_allocations
@@ -300,7 +304,7 @@ def _diagnose(args, ex, sc, effects, camp, model, articles, eq, cal, pool, senso
     def trial(names_, before_h, before_cv, n_added):
         fit = fit_with(sur, basis, model, [terms[by_name[n]] for n in names_], data, zeta, pm.lower, pm.upper,
                        p0=p_b, c0=[start_c(n) for n in names_], continuation=cont, quantity=quantity,
-                       solve=solve)
+                       solve=solve, warm=s.check(names_[0]) if len(names_) == 1 and args.warm else None)
         fits[tuple(names_)] = fit
         h = float(np.mean([holdout_sd(fit.surrogate, fit.x, d, zeta, quantity) for d in hold]))
         cv = cross_validate(fit.surrogate, data, fit.x, fit.lower, fit.upper, zeta, **cvo).sd_test
@@ -409,7 +413,7 @@ def _diagnose(args, ex, sc, effects, camp, model, articles, eq, cal, pool, senso
         "timings": clock.rows, "diagnosis_total_wall_s": total, "target_s": 60.0, "peak_memory_gb": mem,
         "untimed_s": prep, "surrogate_size": int(sur.size), "basis_rows": int(basis.shape[0]),
         "data_shape": list(data[0].frf.shape), "continuation_zeta": [z for z, _ in cont], "zeta0": zeta,
-        "starts": args.starts + 1, "screening": {k: v for k, v in s.to_dict().items() if k != "candidates"},
+        "starts": args.starts + 1, "warm_start_from_checks": bool(args.warm), "screening": {k: v for k, v in s.to_dict().items() if k != "candidates"},
         "top_linear": [{"name": s.names[i], "family": cands[i].family, "explained": float(s.explained[i]),
                         "c_linear": float(s.c_linear[i])} for i in s.order[:20]],
         "true_rank": true_rank, "true_matching": true_names, "true_best": true_best, "magnitude": mag,

@@ -384,7 +384,7 @@ def shifted_solver(model: FRFModel, p, shift_hz: float):
 
 
 def extend_with_candidates(sur: Surrogate, basis, model, candidates, *, shift_hz: float | None = None,
-                           solve=None) -> tuple[Surrogate, np.ndarray]:
+                           solve=None, with_basis: bool = True) -> tuple[Surrogate, np.ndarray]:
     """Extend a surrogate by candidate terms (the static corrections of their loads), for a re-fit of [p, c].
 
     Parameters
@@ -401,6 +401,8 @@ def extend_with_candidates(sur: Surrogate, basis, model, candidates, *, shift_hz
     shift_hz, solve
         As :func:`calibration.extended_surrogate` (``solve`` at ``sur.p_basis``,
         e.g. from :func:`shifted_solver`, is shared between calls).
+    with_basis : bool
+        False: None in place of the basis (:func:`calibration.extended_surrogate`).
 
     Returns
     -------
@@ -414,7 +416,7 @@ def extend_with_candidates(sur: Surrogate, basis, model, candidates, *, shift_hz
     elif model.n_params != sur.n_params + len(cands):
         raise CalibrationError(f"model has {model.n_params} parameters: expected the surrogate's {sur.n_params} "
                                f"or {sur.n_params + len(cands)} with the {len(cands)} candidates")
-    return extended_surrogate(sur, basis, model, shift_hz=shift_hz, solve=solve)
+    return extended_surrogate(sur, basis, model, shift_hz=shift_hz, solve=solve, with_basis=with_basis)
 
 
 # ----------------------------------------------------------------------------- screening
@@ -814,7 +816,7 @@ def _check_job(sur, basis, model, cand, stages, quantity, p0, c0, lower, upper, 
     """Extend by one candidate; return (the :func:`run_start` arguments of the [p, c] re-fit from [p0, c0]
     through the stages, wall time of the extension)."""
     t0 = time.perf_counter()
-    sur_e, _ = extend_with_candidates(sur, basis, model, [cand], solve=solve)
+    sur_e, _ = extend_with_candidates(sur, basis, model, [cand], solve=solve, with_basis=False)
     objs = [Objective(sur_e, d, z, quantity) for z, d in stages]
     lo = np.r_[lower, cand.lower]
     hi = np.r_[upper, cand.upper]
@@ -892,6 +894,7 @@ def fit_with(
     solve=None,
     max_nfev: int = 100,
     xtol: float = 1e-10,
+    warm: CandidateCheck | None = None,
 ) -> CandidateFit:
     """Recalibrate the existing parameters with chosen candidates (one or several together).
 
@@ -912,6 +915,13 @@ def fit_with(
     continuation : sequence of (zeta, data), damping stages run first.
     quantity, shift_hz, solve, max_nfev, xtol
         As :func:`screen` / :func:`calibration.calibrate`.
+    warm : CandidateCheck, optional
+        The screening's nonlinear check of the one candidate fitted here. If
+        it converged, the fit starts at its (p, c) and skips the continuation
+        stages: the check ran them from (p0, c*) on the same data and the same
+        extension, so its end point is already in the final stage's basin;
+        only the final stage runs on, to ``xtol``. Otherwise (not converged,
+        other candidates) it is ignored.
 
     Returns
     -------
@@ -931,6 +941,10 @@ def fit_with(
     if c0.shape != (len(cands),):
         raise CalibrationError(f"fit_with: c0 has shape {c0.shape}, expected ({len(cands)},)")
     x0 = np.clip(np.r_[np.asarray(p0, float), c0], lo, hi)
+    if (warm is not None and warm.converged and len(cands) == 1 and warm.name == cands[0].name
+            and warm.p.shape == (sur.n_params,)):
+        x0 = np.clip(np.r_[warm.p, warm.c], lo, hi)
+        continuation = ()
     if solve is None and not (shift_hz is not None and shift_hz > 0):
         raise CalibrationError("fit_with needs shift_hz > 0 (the basis build's) or solve")
     sur_e, basis_e = extend_with_candidates(sur, basis, model, cands, shift_hz=shift_hz, solve=solve)

@@ -27,6 +27,7 @@ import time
 from dataclasses import replace
 
 import numpy as np
+import scipy.linalg as sla
 import scipy.sparse as sp
 
 from calibration._errors import CalibrationError
@@ -43,18 +44,15 @@ def _range_basis(A: np.ndarray, rtol: float) -> np.ndarray:
     return U[:, s > rtol * s[0]]
 
 
-def _term_loads(A, T: np.ndarray, rtol: float) -> np.ndarray:
-    """A low-rank basis of the loads ``A T`` of one (local, sparse) term: (n, k)."""
+def _term_loads(A, T: np.ndarray, rtol: float) -> tuple[np.ndarray, np.ndarray]:
+    """A low-rank basis of the loads ``A T`` of one (local, sparse) term: (rows, basis (rows, k)),
+    the loads being zero off ``rows``."""
     A = sp.csr_matrix(A)
     rows = np.flatnonzero(np.diff(A.indptr))
-    out = np.zeros((A.shape[0], 0))
     if rows.size == 0:
-        return out
+        return rows, np.zeros((0, 0))
     local = np.asarray(A[rows] @ T)  # (rows, r)
-    Q = _range_basis(local, rtol)
-    out = np.zeros((A.shape[0], Q.shape[1]))
-    out[rows] = Q
-    return out
+    return rows, _range_basis(local, rtol)
 
 
 def extended_surrogate(
@@ -66,7 +64,8 @@ def extended_surrogate(
     solve=None,
     load_rtol: float = 1e-8,
     vector_rtol: float = 1e-10,
-) -> tuple[Surrogate, np.ndarray]:
+    with_basis: bool = True,
+) -> tuple[Surrogate, np.ndarray | None]:
     """Extend a surrogate with the term families added to its model.
 
     Parameters
@@ -91,6 +90,9 @@ def extended_surrogate(
     vector_rtol : float
         Relative cut (on the M-norm squared) of the new vectors after
         M-orthonormalization against T.
+    with_basis : bool
+        Return the extended basis; False: None in its place (a caller that
+        needs only the surrogate saves an (n, r + k) copy).
 
     Returns
     -------
@@ -98,8 +100,8 @@ def extended_surrogate(
         Exact in all parameters for the extended basis; ``p_basis`` is the
         old basis point with the new parameters at 0 (the deck as it is);
         ``n_static`` counts the new vectors too.
-    basis : (n, r + k) ndarray
-        The M-orthonormal extended basis [T, W].
+    basis : (n, r + k) ndarray or None
+        The M-orthonormal extended basis [T, W] (None with ``with_basis=False``).
 
     Raises
     ------
@@ -138,8 +140,19 @@ def extended_surrogate(
         solve = _factor(_shifted(model.stiffness(p_b), M0, s))
     t1 = time.perf_counter()
     loads = [_term_loads(A, T, load_rtol) for kind in ("K", "M") for A in new_terms[kind]]
-    F = np.hstack(loads) if loads else np.zeros((n, 0))
-    F = _range_basis(F, load_rtol) if F.shape[1] else F
+    if loads and sum(q.shape[1] for _, q in loads):
+        # the loads live on the rows the new terms touch: compress them there, not on n-row blocks
+        at = np.unique(np.concatenate([rows for rows, _ in loads]))
+        local = np.zeros((at.size, sum(q.shape[1] for _, q in loads)))
+        col = 0
+        for rows, q in loads:
+            local[np.searchsorted(at, rows), col:col + q.shape[1]] = q
+            col += q.shape[1]
+        Q = _range_basis(local, load_rtol)
+        F = np.zeros((n, Q.shape[1]))
+        F[at] = Q
+    else:
+        F = np.zeros((n, 0))
     X = solve(F) if F.shape[1] else F
     t2 = time.perf_counter()
     # M-orthonormalize against T (twice: T is M-orthonormal at p_b), then among themselves
@@ -173,10 +186,17 @@ def extended_surrogate(
 
     Kr = extend(model.K, sur.K)
     Mr = extend(model.M, sur.M)
-    Kr, Mr, Te = m_orthonormalized(Kr, Mr, np.hstack([T, W]), p_b, "raise vector_rtol")
-    t4 = time.perf_counter()
     B = model.inputs.toarray() if sp.issparse(model.inputs) else np.asarray(model.inputs, float)
     C = model.outputs.toarray() if sp.issparse(model.outputs) else np.asarray(model.outputs, float)
+    Kr, Mr, Wn = _new_columns_orthonormalized(Kr, Mr, T, W, p_b)
+    if Wn is None:  # T itself was not M-orthonormal: the whole basis (n-sized, (r + k)^2 per row)
+        Kr, Mr, Te = m_orthonormalized(Kr, Mr, np.hstack([T, W]), p_b, "raise vector_rtol")
+        inputs, outputs = np.asarray(Te.T @ B), np.asarray(C @ Te)
+    else:  # T kept as it is: its rows of the reduced inputs and outputs are the surrogate's
+        inputs = np.vstack([sur.inputs, np.asarray(Wn.T @ B)])
+        outputs = np.hstack([sur.outputs, np.asarray(C @ Wn)])
+        Te = np.hstack([T, Wn]) if with_basis else None
+    t4 = time.perf_counter()
     timings = dict(sur.timings_s)
     timings.update({"extend: factor": t1 - t0, "extend: statics": t2 - t1, "extend: orthonormalize": t3 - t2,
                     "extend: project": t4 - t3})
@@ -184,11 +204,43 @@ def extended_surrogate(
         sur,
         K=Kr,
         M=Mr,
-        inputs=np.asarray(Te.T @ B),
-        outputs=np.asarray(C @ Te),
+        inputs=inputs,
+        outputs=outputs,
         p_basis=p_b,
         n_static=sur.n_static + k,
         parameter_names=tuple(model.parameter_names),
         timings_s=timings,
     )
     return out, Te
+
+
+def _new_columns_orthonormalized(Kr, Mr, T: np.ndarray, W: np.ndarray, p, tol: float = 1e-12):
+    """Reduced terms on [T, W'] made M-orthonormal at p by re-forming only the new columns W' (n, k).
+
+    T (r columns) is M-orthonormal already: when the T-T block of the
+    Cholesky factor L of M_r(p) is the identity within ``tol`` (the tolerance
+    within which :func:`m_orthonormalized` leaves a basis as it is), it is
+    taken as the identity, so the congruence L^-1 keeps T and forms
+    W' = [T, W] (L^-1)[r:]^T: (n, r + k) x (r + k, k) instead of the
+    (r + k, r + k) product of the whole basis. Returns (Kr, Mr, W'), W' = W
+    when all of L is the identity within ``tol``; (Kr, Mr, None) when the T-T
+    block is not (then the caller orthonormalizes the whole basis).
+    """
+    from calibration._surrogate import _congruent
+
+    r = T.shape[1]
+    try:
+        L = np.linalg.cholesky(_sym(Mr.at(p)))
+    except np.linalg.LinAlgError:
+        return Kr, Mr, None  # m_orthonormalized raises the error that names the remedy
+    eye = np.eye(L.shape[0])
+    if np.abs(L - eye).max() <= tol:
+        return Kr, Mr, W
+    if np.abs(L[:r, :r] - eye[:r, :r]).max() > tol:
+        return Kr, Mr, None
+    L = L.copy()
+    L[:r, :r] = eye[:r, :r]
+    Li = sla.solve_triangular(L, eye, lower=True)  # its first r rows are exactly [I, 0]
+    Wn = T @ Li[r:, :r].T
+    Wn += W @ Li[r:, r:].T
+    return _congruent(Kr, Li), _congruent(Mr, Li), Wn

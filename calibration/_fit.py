@@ -19,7 +19,7 @@ import numpy as np
 from calibration._errors import CalibrationError
 from calibration._executor import SerialExecutor
 from calibration._metric import LN10, log_deviation, square_deviation
-from calibration._surrogate import Surrogate, surrogate_frf, surrogate_frf_jacobian
+from calibration._surrogate import Surrogate, reduced_modes, surrogate_frf, surrogate_frf_jacobian
 from calibration._threads import blas_threads
 
 
@@ -198,12 +198,24 @@ class Objective:
         self._sqrt_w = value_weights(self.data)
         self._memo_p = None
         self._memo = None
+        self._modes_p = None
+        self._modes = None
+
+    def modes(self, p):
+        """:func:`reduced_modes` at p, kept for the last p: the minimizer asks for the residual and then
+        the Jacobian at the same point, and every data set shares them."""
+        p = np.asarray(p, dtype=float)
+        if self._modes_p is None or not np.array_equal(p, self._modes_p):
+            self._modes = reduced_modes(self.sur, p)
+            self._modes_p = p.copy()
+        return self._modes
 
     def deviation(self, p) -> list:
         """eps per data set (complex, masked elements only)."""
         out = []
+        modes = self.modes(p)
         for d, oi, ii in zip(self.data, self._out, self._in):
-            H = surrogate_frf(self.sur, p, d.freq_hz, self.zeta0, self.quantity, outputs=oi)[:, :, ii]
+            H = surrogate_frf(self.sur, p, d.freq_hz, self.zeta0, self.quantity, outputs=oi, modes=modes)[:, :, ii]
             e = log_deviation(H, d.frf)
             out.append(e if d.mask is None else e[d.mask])
         return out
@@ -222,8 +234,10 @@ class Objective:
         if self._memo_p is not None and np.array_equal(p, self._memo_p):
             return self._memo
         eps, deps = [], []
+        modes = self.modes(p)
         for d, oi, ii in zip(self.data, self._out, self._in):
-            H, dH = surrogate_frf_jacobian(self.sur, p, d.freq_hz, self.zeta0, self.quantity, outputs=oi)
+            H, dH = surrogate_frf_jacobian(self.sur, p, d.freq_hz, self.zeta0, self.quantity, outputs=oi,
+                                           modes=modes)
             H, dH = H[:, :, ii], dH[:, :, :, ii]
             e = log_deviation(H, d.frf)
             de = dH / (H[None] * LN10)

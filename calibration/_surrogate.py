@@ -805,6 +805,7 @@ def surrogate_frf(
     zeta=0.01,
     quantity: str = "accelerance",
     outputs=None,
+    modes=None,
 ) -> np.ndarray:
     """FRF of the surrogate at p: (n_f, n_out, n_in) complex.
 
@@ -814,8 +815,10 @@ def surrogate_frf(
         Damping ratio of every reduced mode (ascending frequency order).
     outputs : index array, optional
         Rows of ``sur.outputs`` to evaluate (default all).
+    modes : (lam, X), optional
+        :func:`reduced_modes` at p when the caller has them already.
     """
-    lam, X = reduced_modes(sur, p)
+    lam, X = reduced_modes(sur, p) if modes is None else modes
     Co = sur.outputs if outputs is None else sur.outputs[np.asarray(outputs)]
     return modal_frf(lam, Co @ X, X.T @ sur.inputs, freq_hz, zeta, quantity, sur.rigid_hz)
 
@@ -827,16 +830,30 @@ def surrogate_frf_jacobian(
     zeta0: float = 0.01,
     quantity: str = "accelerance",
     outputs=None,
+    modes=None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """FRF and its exact derivative with respect to p (uniform damping zeta0).
+
+    Parameters
+    ----------
+    modes : (lam, X), optional
+        :func:`reduced_modes` at p when the caller has them already (no second eigensolution).
 
     Returns
     -------
     H : (n_f, n_out, n_in) complex
     dH : (n_p, n_f, n_out, n_in) complex, dH/dp_j
+
+    Notes
+    -----
+    Only the non-zero blocks are formed: a parameter that moves no stiffness
+    term (a density, a lumped mass) has A_j = 0, one that moves no mass term
+    (a modulus, a spring) B_j = 0. The three kinds of blocks (A_j, B_j and
+    R_j = rho o A_j + sig o B_j) go through one real product with the
+    interleaved complex right factor, in one preallocated stack.
     """
     p = np.asarray(p, dtype=float)
-    lam, X = reduced_modes(sur, p)
+    lam, X = reduced_modes(sur, p) if modes is None else modes
     w = 2 * np.pi * np.asarray(freq_hz, dtype=float)
     om, rigid = modal_omegas(lam, sur.rigid_hz)
     c = 2 * zeta0 * om
@@ -851,27 +868,47 @@ def surrogate_frf_jacobian(
     # A_j, B_j in modal coordinates, from the projected terms and coefficient derivatives
     dcK = sur.K.coefficient_jacobian(p)  # (n_terms, n_p)
     dcM = sur.M.coefficient_jacobian(p)
-    A = X.T @ np.tensordot(dcK.T, reduced_term_stack(sur.K), axes=1) @ X  # (n_p, m, m)
-    Bm = X.T @ np.tensordot(dcM.T, reduced_term_stack(sur.M), axes=1) @ X
+    n_p, m = dcK.shape[1], X.shape[1]
+    jk = np.flatnonzero(np.any(dcK != 0, axis=0))  # parameters that move K
+    jm = np.flatnonzero(np.any(dcM != 0, axis=0))  # ... and M
+    jr = np.union1d(jk, jm)
+    nk, nm, nr = jk.size, jm.size, jr.size
+    mats = np.empty((nk + nm + nr, m, m))
+    A, Bm, R = mats[:nk], mats[nk:nk + nm], mats[nk + nm:]
+    for out, dc, stack, js in ((A, dcK, sur.K, jk), (Bm, dcM, sur.M, jm)):
+        if js.size:
+            np.matmul(X.T, np.tensordot(dc[:, js].T, reduced_term_stack(stack), axes=1) @ X, out=out)
     osum = om[:, None] + om[None, :]
     both_rigid = rigid[:, None] & rigid[None, :]
     with np.errstate(divide="ignore", invalid="ignore"):
         rho = np.where(both_rigid, 0.0, 2 * zeta0 / osum)
         sig = np.where(both_rigid, 0.0, 2 * zeta0 * om[:, None] * om[None, :] / osum)
-    R = rho[None] * A + sig[None] * Bm
-    n_p, m = A.shape[0], A.shape[1]
+    ik, im = np.searchsorted(jk, jr), np.searchsorted(jm, jr)
+    for i, j in enumerate(jr):
+        has_k = ik[i] < nk and jk[min(ik[i], nk - 1)] == j
+        has_m = im[i] < nm and jm[min(im[i], nm - 1)] == j
+        if has_k:
+            np.multiply(rho, A[ik[i]], out=R[i])
+            if has_m:
+                R[i] += sig * Bm[im[i]]
+        else:
+            np.multiply(sig, Bm[im[i]], out=R[i])
     n_f, n_in = w.size, v.shape[1]
     # right factor diag(r) X^T B for every frequency: (m, n_f * n_in), complex C-contiguous
     vr = np.ascontiguousarray((r.T[:, :, None] * v[:, None, :]).reshape(m, n_f * n_in))
-    mats = np.concatenate([A, Bm, R], axis=0).reshape(3 * n_p * m, m)
+    nb = mats.shape[0]
     # real operator times complex block as ONE real product on the interleaved (re, im) view
-    W = (mats @ vr.view(float)).view(complex).reshape(3 * n_p, m, n_f, n_in)
+    W = (mats.reshape(nb * m, m) @ vr.view(float)).view(complex).reshape(nb, m, n_f, n_in)
     # left factor C X diag(r): scale W by r over (k, f), then contract k with the real C X
     W *= r.T[None, :, :, None]
-    T3 = (u @ W.reshape(3 * n_p, m, -1).view(float)).view(complex)  # (3 n_p, n_out, n_f * n_in)
-    T3 = T3.reshape(3, n_p, -1, n_f, n_in)  # (c, j, o, f, i)
+    T3 = (u @ W.reshape(nb, m, -1).view(float)).view(complex)  # (nb, n_out, n_f * n_in)
+    T3 = T3.reshape(nb, -1, n_f, n_in)  # (block, o, f, i)
     wf = w[None, None, :, None]
-    dH = (-T3[0] + wf**2 * T3[1] - 1j * wf * T3[2]) * q[None, None, :, None]  # (j, o, f, i)
+    dH = np.zeros((n_p,) + T3.shape[1:], dtype=complex)  # (j, o, f, i)
+    dH[jk] = -T3[:nk]
+    dH[jm] += wf**2 * T3[nk:nk + nm]
+    dH[jr] -= 1j * wf * T3[nk + nm:]
+    dH *= q[None, None, :, None]
     dH = dH.transpose(0, 2, 1, 3)  # (j, f, o, i)
     return H, dH
 

@@ -34,21 +34,90 @@ def _element_terms(model) -> tuple:
     return col.terms()
 
 
-def _subset_terms(assembly, params: ParameterSet, factor):
+def _subset_terms(assembly, params: ParameterSet, factor, amap=None):
     """(a-set matrices, a rows, b rows, ratios) of the K or M terms of an element subset.
 
     The subset's elements are assembled alone on the full model's grids and
     reduced with the full model's constraint transformation; coefficients
     (including the shell shear series) are those of the same parameters.
+    With ``amap`` (:func:`_selection_map` of the assembly's T) the work runs
+    on the subset's own grids (:func:`_local_subset_terms`) wherever that
+    gives the same matrices.
     """
+    if amap is not None:
+        local = _local_subset_terms(assembly, params, factor, amap)
+        if local is not None:
+            (mats, a, b, r), lift = local
+            return [lift(m) for m in mats], a, b, r
     sub = factor.submodel(assembly.model)
     sub_asm = replace(assembly, model=sub, terms=_element_terms(sub))
+    return _subset_terms_on(sub_asm, params, factor)
+
+
+def _subset_terms_on(sub_asm, params: ParameterSet, factor, drop_zeros=None):
+    """:func:`_subset_terms` on an assembly of the subset's elements (its own T)."""
     source = params.source
     if factor.kind == "M":
-        return _grouped_terms(sub_asm, params, "M", source)
-    prepared = _shell_shear_elements(sub, params, _key_index(params))
+        return _grouped_terms(sub_asm, params, "M", source, drop_zeros=drop_zeros)
+    prepared = _shell_shear_elements(sub_asm.model, params, _key_index(params))
     series, _ = _shell_shear_series(sub_asm, params, prepared)
-    return _with_series(*_grouped_terms(sub_asm, params, "K", source, _shell_shear_corrections(prepared)), series)
+    return _with_series(*_grouped_terms(sub_asm, params, "K", source, _shell_shear_corrections(prepared),
+                                        drop_zeros=drop_zeros), series)
+
+
+def _local_subset_terms(assembly, params: ParameterSet, factor, amap):
+    """The terms of an element subset assembled on the grids its elements touch, and their lift to the a-set.
+
+    A cluster of a few elements touches a few dozen grids of a model of
+    hundreds of thousands: assembling it on the full g-set costs several
+    full-size passes (block maps, the a-set map, sparse sums) per subset.
+    Here the subset's model keeps only its own grids and its T is the
+    selection of their independent DOF. That is the full model's T restricted
+    to them, and gives the same matrices entry for entry (the same elements,
+    summed in the same order), when every DOF of these grids is independent
+    or removed (no rigid-element or MPC dependent DOF) and their independent
+    DOF keep the g-set order. Otherwise None (then the full-size path).
+
+    Returns
+    -------
+    ((mats, a, b, ratio), lift) or None
+        ``mats`` on the local independent DOF; ``lift(m)`` places a local
+        (n_l, n_l) CSR matrix on the full a-set, (n_a, n_a) canonical CSR.
+    """
+    fe = assembly.model
+    sub = factor.submodel(fe)
+    grids = [np.asarray(t["nodes"]).ravel() for t in sub.elements.values() if len(t) and "nodes" in t.fields]
+    grids = np.unique(np.concatenate(grids)) if grids else np.zeros(0, np.int64)
+    grids = grids[grids > 0]
+    if grids.size == 0:
+        return None
+    g = fe.grid_index(grids, what=f"ElementFactor {factor.name!r} grid")
+    gd = (6 * g[:, None] + np.arange(6)[None, :]).ravel()
+    am = amap[gd]
+    kept = am >= 0
+    gcols = am[kept]
+    if np.any(am < -1) or np.any(np.diff(gcols) <= 0):
+        return None
+    n_l, n_a = int(gcols.size), int(assembly.T.shape[1])
+    local_model = replace(sub, grid_ids=fe.grid_ids[g], xyz=fe.xyz[g], cp=fe.cp[g], cd=fe.cd[g], ps=fe.ps[g],
+                          rbe2=(), rbe3=(), mpc=(), spc_grid=np.zeros(0, np.int64),
+                          spc_component=np.zeros(0, np.int8))
+    sel = np.flatnonzero(kept)
+    T = sp.csr_matrix((np.ones(n_l), (sel, np.arange(n_l))), shape=(gd.size, n_l))
+    local = replace(assembly, model=local_model, terms=_element_terms(local_model), T=T, selection=sel,
+                    dependent=np.zeros(0, np.int64), dependent_rows=None)
+    # the full assembly's choice (see _grouped_terms): drop exact zeros unless T is a plain selection
+    drop = assembly.selection is None or (assembly.dependent is not None and assembly.dependent.size > 0)
+
+    def lift(m) -> sp.csr_matrix:
+        m = sp.csr_matrix(m)
+        counts = np.zeros(n_a, dtype=np.int64)
+        counts[gcols] = np.diff(m.indptr)
+        indptr = np.zeros(n_a + 1, dtype=m.indptr.dtype)
+        np.cumsum(counts, out=indptr[1:])
+        return sp.csr_matrix((m.data, gcols[m.indices].astype(m.indices.dtype), indptr), shape=(n_a, n_a))
+
+    return _subset_terms_on(local, params, factor, drop_zeros=drop), lift
 
 
 def _factor_key(key) -> tuple[str, int, str]:
@@ -124,11 +193,13 @@ def _key_index(params: ParameterSet) -> dict:
     return key_index
 
 
-def _grouped_terms(assembly, params: ParameterSet, kind: str, source, extra=(), series=()):
+def _grouped_terms(assembly, params: ParameterSet, kind: str, source, extra=(), series=(), drop_zeros=None):
     """Sum g-set terms of one kind by exponent row; reduce each sum by T once.
 
     ``extra`` holds (exponent row, g-set matrix) additions to the monomial
     groups; ``series`` holds (a row, b row, ratio, g-set matrix) series terms.
+    ``drop_zeros`` overrides the assembly's own choice of removing exact zeros
+    (a subset assembled on its own grids takes the full model's).
     """
     key_index = _key_index(params)
     groups: dict[tuple, object] = {}
@@ -150,7 +221,8 @@ def _grouped_terms(assembly, params: ParameterSet, kind: str, source, extra=(), 
     rows = sorted(groups)
     amap = _selection_map(assembly.T)
     # assembly.reduce sums with the dependent-DOF products, which drops exact zeros; keep that pattern
-    drop_zeros = assembly.selection is None or (assembly.dependent is not None and assembly.dependent.size > 0)
+    if drop_zeros is None:
+        drop_zeros = assembly.selection is None or (assembly.dependent is not None and assembly.dependent.size > 0)
     mats = [_to_aset(assembly, amap, _canonical(groups[r]), drop_zeros) for r in rows]
     a = np.array(rows, dtype=float).reshape(len(rows), len(params))
     b = a.copy()

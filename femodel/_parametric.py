@@ -30,6 +30,7 @@ from femodel._grouping import (
     _factor_key,
     _grouped_terms,
     _key_index,
+    _local_subset_terms,
     _nominal_from_model,
     _subset_terms,
     _with_series,
@@ -348,7 +349,7 @@ class ParametricModel:
         asm = self.assembly
         out: dict = {}
         if isinstance(term, ElementFactor):
-            mats, a, b, r = _subset_terms(asm, self.parameters, term)
+            mats, a, b, r = _subset_terms(asm, self.parameters, term, self._amap())
             pieces = [(m, ar, br, float(rr)) for m, ar, br, rr in zip(mats, a, b, r) if m.nnz]
             if not pieces:
                 raise ParameterError(f"{where}{what}: element subset {term.name!r} has no {term.kind} terms")
@@ -406,7 +407,19 @@ class ParametricModel:
                                          f"{term.name!r} (element subsets must be disjoint)")
         out = {"K": None, "M": None}
         n0 = len(self.parameters)
-        for kind, pieces in self._term_parts(term, "term_derivative").items():
+        lift = None
+        if isinstance(term, ElementFactor):
+            # summed on the subset's own grids, then placed on the a-set once (same entries as the full-size sum)
+            local = _local_subset_terms(self.assembly, self.parameters, term, self._amap())
+            if local is not None:
+                (mats, a, b, r), lift = local
+                parts = {term.kind: [(m, ar, br, float(rr)) for m, ar, br, rr in zip(mats, a, b, r) if m.nnz]}
+                if not parts[term.kind]:
+                    raise ParameterError(f"{where}term_derivative: element subset {term.name!r} has no "
+                                         f"{term.kind} terms")
+        if lift is None:
+            parts = self._term_parts(term, "term_derivative")
+        for kind, pieces in parts.items():
             mats = [m for m, _, _, _ in pieces]
             if isinstance(term, ElementFactor):
                 a = np.zeros((len(pieces), self.n_params))
@@ -420,7 +433,7 @@ class ParametricModel:
             total = mats[0] * coef[0]
             for m, c in zip(mats[1:], coef[1:]):
                 total = total + m * c
-            out[kind] = sp.csr_matrix(total)
+            out[kind] = sp.csr_matrix(total) if lift is None else lift(total)
         return out
 
 

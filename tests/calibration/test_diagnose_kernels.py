@@ -540,3 +540,28 @@ def test_a_mass_at_the_tank_grid_is_found_beyond_the_tank_mass_parameter(frame):
     chk = s.check(f"m{g_tank}")
     assert chk.explained > 0.7 and chk.c == pytest.approx(1.0, rel=0.2)
     np.testing.assert_allclose(chk.p, P_OLD, atol=0.01)
+
+
+def test_fit_with_warm_from_its_converged_check_ends_where_the_cold_fit_ends(frame):
+    """fit_with(warm=check): from the check's (p, c), final stage only; the same optimum as the fit that runs
+    the continuation stages from the baseline (an effect that moves modes by more than a bandwidth)."""
+    pm, model, sur, T, terms, cands = frame
+    true = ElementFactor("f_truth", next(t for t in terms if t.name == "f13").elements)
+    data = _truth_data(pm, model, true, -0.4, sigma=0.005)
+    cont = [(0.05, _truth_data(pm, model, true, -0.4, sigma=0.005, seed=1, zeta=0.05))]
+    s = _screen(frame, data, n_check=3, continuation=cont)
+    chk = s.check("f13")
+    assert chk.converged
+    cand = _by_name(cands, "f13")
+    kw = dict(p0=s.p_baseline, c0=[chk.c], continuation=cont, shift_hz=SHIFT_HZ)
+    cold = fit_with(sur, T, model, [cand], data, ZETA, pm.lower, pm.upper, **kw)
+    warm = fit_with(sur, T, model, [cand], data, ZETA, pm.lower, pm.upper, warm=chk, **kw)
+    assert cold.converged and warm.converged
+    np.testing.assert_allclose(warm.c, cold.c, rtol=1e-6)
+    np.testing.assert_allclose(warm.p, cold.p, atol=1e-6)
+    assert warm.sd == pytest.approx(cold.sd, rel=1e-9)
+    assert warm.c[0] == pytest.approx(-0.4, rel=0.2)
+    # the check of another candidate is not a start for this one
+    other = next(c for c in s.checks if c.name != "f13")
+    again = fit_with(sur, T, model, [cand], data, ZETA, pm.lower, pm.upper, warm=other, **kw)
+    np.testing.assert_array_equal(again.x, cold.x)

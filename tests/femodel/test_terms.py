@@ -341,3 +341,54 @@ def test_added_cards_of_a_fitted_magnitude_are_small_field(frame, tmp_path):
     for A, B in ((asm.stiffness(), ext.stiffness(p)), (asm.mass(), ext.mass(p))):
         diff = abs(sp.csr_matrix(A) - sp.csr_matrix(B))
         assert diff.max() <= 1e-4 * abs(sp.csr_matrix(B)).max()
+
+
+
+def _same_csr(A, B):
+    A, B = sp.csr_matrix(A), sp.csr_matrix(B)
+    return (A.shape == B.shape and np.array_equal(A.indptr, B.indptr) and np.array_equal(A.indices, B.indices)
+            and np.array_equal(A.data, B.data))
+
+
+def _both_paths(pm, factor):
+    """(terms on the subset's own grids or None, terms on the full g-set) of an ElementFactor."""
+    from femodel._grouping import _local_subset_terms, _subset_terms
+
+    local = _local_subset_terms(pm.assembly, pm.parameters, factor, pm._amap())
+    full = _subset_terms(pm.assembly, pm.parameters, factor)  # no a-set map: the full-size path
+    if local is not None:
+        (mats, a, b, r), lift = local
+        local = ([lift(m) for m in mats], a, b, r)
+    return local, full
+
+
+@pytest.mark.parametrize("kind", ["K", "M"])
+def test_subset_assembled_on_its_own_grids_is_the_full_size_assembly(subframe, tmp_path, kind):
+    """ElementFactor terms assembled on the subset's grids alone (the fast path of term_derivative and
+    with_terms) equal, entry for entry, the subset assembled on the full g-set and reduced by the full T:
+    shells with shear series terms, and bars next to SPC'd grids (removed DOF). A subset touching a
+    rigid-element dependent DOF takes the full-size path, with the same derivative."""
+    from ._decks import frame_deck as full_frame_deck
+
+    _, pm_shell, _ = subframe
+    quads = pm_shell.assembly.model.elements["CQUAD4"]
+    pm_bars = parametric_model(ParameterSet((Parameter("E", "MAT1", (1,), "E", -0.3, 0.3),
+                                             Parameter("rho", "MAT1", (1,), "RHO", -0.3, 0.3))),
+                               full_frame_deck(tmp_path / "all.bdf", cd_cyl=True, spc=True))
+    cases = [(pm_shell, tuple(int(e) for e in quads.ids[quads["pid"] == 3][:12]), True),
+             (pm_bars, (1, 2, 3, 4), True),  # grids 1, 2 SPC'd
+             (pm_bars, (4, 5), False)]  # grid 5 follows RBE2 30
+    for pm, elements, fast in cases:
+        factor = ElementFactor("f", elements, kind=kind)
+        local, full = _both_paths(pm, factor)
+        assert (local is not None) == fast, elements
+        if fast:
+            assert len(local[0]) == len(full[0]) > 0
+            assert all(_same_csr(a, b) for a, b in zip(local[0], full[0]))
+            for x, y in zip(local[1:], full[1:]):
+                assert np.array_equal(x, y)
+        p = np.linspace(-0.1, 0.1, pm.n_params)
+        d = pm.term_derivative(factor, p)[kind]
+        ext = pm.with_terms([factor])
+        ref = ext.dK(np.r_[p, 0.0], pm.n_params) if kind == "K" else ext.dM(np.r_[p, 0.0], pm.n_params)
+        _assert_same(d, ref, f"{elements} d{kind}")
