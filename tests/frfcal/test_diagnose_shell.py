@@ -44,9 +44,10 @@ FAMILIES = dict(_FRAME_FAMILIES, lumped_mass=("lumped_mass",))
 #: shell the identification misses modes: at the automatic order (32) its modal model has 13 of the truth's 15
 #: modes in the 90-660 Hz data (control: 352.0 Hz, a stable pole labelled non-physical at every order 32-54, and
 #: 565.9 Hz, a pole labelled negligible, are left out), its own fit SD is 0.17-0.20 and the equalized SD of the
-#: calibrated model 0.29 on the control itself, against raw residuals of 0.002 (control) to 0.02 (an effect). The equalized residual is then the identification's error,
-#: the same in every case: the same ground springs in y (grids 110, 108, 124, 98, 250) and a mass at grid 251 rank
-#: first with 2-9 % explained whatever the truth is, and their trials raise the raw hold-out 1.5-25 x.
+#: calibrated model 0.29 on the control itself, against raw residuals of 0.002 (control) to 0.02 (an effect). The
+#: equalized residual is then the identification's error, the same in every case: the same ground springs in y
+#: (grids 110, 108, 124, 98, 250) and a mass at grid 251 rank first with 2-9 % explained whatever the truth is,
+#: and their trials raise the raw hold-out 1.5-25 x.
 _EQUALIZED = ("the equalized target misses identified modes (13 of the truth's 15 modes, "
               "identification fit SD 0.17-0.20, equalized SD 0.29 even on the control) and its error, the same in "
               "every case, swamps the effect's raw residual (0.02)")
