@@ -1,0 +1,213 @@
+"""Per-family evidence of the diagnosis on a shell model (issue 14, docs/diagnosis.md "Per-family evidence").
+
+The shell counterpart of tests/frfcal/test_diagnose_families.py (the beam/frame model): the example subframe
+(welded CQUAD4 sheet-metal shells, 17 parameters) at a coarse size (``example_subframe(target_dof=1500)``,
+1584 DOF, SI deck), 16 single-axis sensors of the pretest EfI layout for the elastic modes in the band and its
+two drive points (``pretest.plan_pretest``), 1 article, UFF58 import, ``frfcal diagnose``. One undeclared
+effect of :func:`frfcal.effects.standard_effects` at a time; the truth is synthesized with
+``synthesize(effects=...)`` (``ParametricModel.with_terms``, exact), independently of the candidate generator
+and of the calibration surrogate. The issue's criteria are asserted:
+
+* the residual after the plain calibration is flagged as significant;
+* the true effect ranks first: family right, location within two element sizes, magnitude (the accepted,
+  refined value) within 20 %;
+* after adding it the held-out SD falls to within 2x the floor (the truth against its own noise on the
+  hold-out channels);
+* the control (the deck as it is): nothing accepted.
+
+A criterion a family does not meet for a reason measured and not fixed here is an ``xfail(strict=True)``
+naming the reason (``XFAIL``).
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+import femodel
+from frfcal.cli import main
+from tests.frfcal.test_diagnose_families import FAMILIES as _FRAME_FAMILIES
+from tests.frfcal.test_diagnose_families import _magnitude, _truth_center
+
+#: the calibration band: the subframe's first 15 elastic modes (137-576 Hz at 1584 DOF)
+BAND = (100.0, 600.0)
+#: grid DOF of the coarse subframe
+SHELL_DOF = 1500
+
+#: candidate families (femodel.generate_candidates) that are the right family for each undeclared effect
+FAMILIES = dict(_FRAME_FAMILIES, lumped_mass=("lumped_mass",))
+
+#: the measured cause common to every family (docs/diagnosis.md "Per-family evidence", shell): the screening and
+#: the acceptance's trials work on the equalized target, resynthesized from the identified model, and on this
+#: shell the identified model (automatic order 32) does not fit its own data: fit SD 0.17-0.20, mostly below 300 Hz
+#: (mean squared log error 1.0-1.25 at 90-120 Hz, below the first elastic mode at 147 Hz where the rigid-body mass
+#: line dominates, 0.18-0.56 at 120-300 Hz, <= 0.15 above; the 352.0 and 565.9 Hz modes are stable poles labelled
+#: negligible, importance 0.22 and 0.15 < 1), and the equalized SD of the calibrated model is 0.29 on the control
+#: itself, against raw residuals of 0.002 (control) to 0.02 (an effect). The
+#: equalized residual is then the identification's error, the same in every case: the same ground springs in y
+#: (grids 110, 108, 124, 98, 250) and a mass at grid 251 rank first with 2-9 % explained whatever the truth is,
+#: and their trials raise the raw hold-out 1.5-25 x.
+_EQUALIZED = ("the identified model does not fit its data (fit SD 0.17-0.20, mostly at 90-300 Hz below and "
+              "between the first modes; equalized SD 0.29 even on the control) and the equalized target's error, "
+              "the same in every case, swamps the effect's raw residual (0.02)")
+
+#: (family, test) -> measured reason the criterion is not met (strict xfail: a fix turns it into a failure)
+XFAIL: dict = {
+    ("element_cluster", "rank"): (
+        "the standard cluster (K x 0.7 on 9 CQUAD4 of PSHELL 1) moves the shell's modes by up to 16 half-power "
+        "bandwidths (MAC down to 0.36; residual 12.7 x its floor); " + _EQUALIZED + ": no candidate's linear score "
+        "exceeds 7.4 % at any stage (zeta 0.08, 0.03, 0.01), the exact truth (cluster_PSHELL1_e17_r2_K, Jaccard 1) "
+        "has 1.8 % (c* -0.17 vs -0.30) and ranks 37th of 496, below the top_n = 5 nonlinear checks; a 2-element "
+        "PSHELL 20 cluster 0.5 m away ranks first at 9.4 % (identification/equalize, screening)"),
+    ("element_cluster", "accept"): (
+        "the truth is never checked; a 2-element PSHELL 20 cluster at its factor bound (x4.0) is accepted, "
+        "hold-out 0.231 -> 0.109, 190 x the truth's floor 5.8e-4 (identification/equalize, screening)"),
+    ("lumped_mass", "rank"): (
+        "residual significant (4.6 x floor) but " + _EQUALIZED + ": the true mass (grid 44, 0.223 kg) has linear c* "
+        "< 0 (clipped, 0 % explained) and ranks 492nd of 496; ground spring g110 y ranks first at 2.9 %"),
+    ("lumped_mass", "accept"): (
+        "nothing accepted: the five checked candidates (ground springs in y, mass at grid 251) raise the raw "
+        "hold-out 0.0229 -> 0.13-0.25 (identification/equalize)"),
+    ("ground_spring", "rank"): (
+        "residual significant (4.5 x floor; the calibration absorbs the shifts: no mode off by more than 0.3 "
+        "half-power bandwidths) but " + _EQUALIZED + ": the true spring (grid 15, z, 7.24e4 N/m) explains 0.36 % "
+        "and ranks 169th of 496; ground spring g110 y ranks first at 2.7 %"),
+    ("ground_spring", "accept"): (
+        "nothing accepted: the five checked candidates raise the raw hold-out 0.0283 -> 0.15-0.23 "
+        "(identification/equalize)"),
+    ("sensor_mass", "rank"): (
+        "residual significant (3.6 x floor; the calibration absorbs the shifts of 1.67 g on each of 16 sensors: no "
+        "mode off by more than 0.5 half-power bandwidths) but " + _EQUALIZED + ": the true common sensor mass has "
+        "linear c* < 0 (clipped, 0 %) and ranks 433rd of 496; ground spring g197 x ranks first at 6.3 %"),
+    ("sensor_mass", "accept"): (
+        "nothing accepted: the five checked candidates raise the raw hold-out 0.0069 -> 0.10-0.17 "
+        "(identification/equalize)"),
+    ("shaker_attachment", "rank"): (
+        "residual significant (12.2 x floor) but " + _EQUALIZED + ": the true attachment mass (11.5 g at drive grid "
+        "150) explains 1.6 % and ranks 20th of 496, its stinger spring (1.56e5 N/m, z) 0 % (430th); a 2-element "
+        "PSHELL 20 cluster ranks first at 4.2 %"),
+    ("shaker_attachment", "accept"): (
+        "nothing accepted: the five checked candidates raise the raw hold-out 0.150 -> 0.23-0.32 "
+        "(identification/equalize)"),
+}
+
+#: every family case is slow (a 1584-DOF case is 220-280 s CPU: 105-175 s in the main process, 105-120 s in the
+#: pool); the control (74 s CPU) runs by default
+_FAST: tuple = ()
+
+
+def _shell_campaign(tmp, effects_family, *, gap_mm=None, target_dof=SHELL_DOF):
+    """Synthesize the coarse subframe (1 article; one standard effect or none), import the UFF, write the campaign.
+
+    Returns (campaign path, parametric model, effects, SynthCampaign, hold-out channel names).
+    """
+    from pretest import PretestConfig, plan_pretest
+
+    from frfcal.effects import standard_effects
+    from frfcal.synth import SynthChannel, synthesize
+
+    ex = femodel.example_subframe(tmp / "model", target_dof, units="si", gap_mm=gap_mm)
+    pm = femodel.parametric_model(ex.params)
+    plan = plan_pretest(pm.assembly.model, PretestConfig(n_sensors=16, band_hz=BAND, n_drives=2),
+                        assembly=pm.assembly)
+    sensors = [SynthChannel(f"s{i + 1}", int(g), tuple(float(x) for x in d))
+               for i, (g, d) in enumerate(zip(plan.sensors.grids, plan.sensors.directions))]
+    # the subframe is mirror-symmetric: its two best drive points tie exactly and their order follows round-off
+    # (it differs between processes); sorted by grid id, F1 is always the same one
+    order = np.argsort(plan.drives.grids, kind="stable")
+    drives = [SynthChannel(f"F{i + 1}", int(plan.drives.grids[k]), tuple(float(x) for x in plan.drives.directions[k]))
+              for i, k in enumerate(order)]
+    effects = ()
+    if effects_family:
+        effects = standard_effects(pm, sensors, drives, gap=ex.gap_pairs or None, band_hz=BAND)[effects_family]
+    sc = synthesize(ex.bdf, ex.params, tmp / "data", sensors=sensors, drives=drives, band_hz=BAND, n_articles=1,
+                    seed=3, scatter=0.003, effects=effects, parametric=pm)
+    runs = []
+    for a, uff in zip(sc.articles, sc.uff_paths):
+        out = tmp / "runs" / f"{a}.h5"
+        assert main(["import-uff", str(uff), "--out", str(out), "--article", a]) == 0
+        runs.append(out)
+    names = [s.name for s in sensors]
+    cal = names[0::2] + names[1::4]
+    hold = [n for n in names if n not in cal]
+    camp = tmp / "campaign.toml"
+    camp.write_text(
+        f'[model]\nparameters = "{ex.params}"\n'
+        + "".join(f'[[run]]\npath = "{r}"\n' for r in runs)
+        + f"[channels]\ncalibrate = {json.dumps(cal)}\nholdout = {json.dumps(hold)}\n"
+        + f"[band]\nlow_hz = {BAND[0]}\nhigh_hz = {BAND[1]}\n"
+        + '[calibration]\nstarts = 4\n[crossvalidation]\nrealizations = 3\n[execution]\nworkers = 2\n'
+        + f'[output]\ndir = "{tmp / "out"}"\nfigures = false\n'
+    )
+    return camp, pm, effects, sc, hold
+
+
+def _xfail(request, family, test):
+    reason = XFAIL.get((family, test))
+    if reason:
+        request.applymarker(pytest.mark.xfail(strict=True, reason=reason))
+
+
+@pytest.fixture(scope="module", params=[f if f in _FAST else pytest.param(f, marks=pytest.mark.slow)
+                                        for f in FAMILIES])
+def case(request, tmp_path_factory):
+    family = request.param
+    tmp = tmp_path_factory.mktemp(f"shell_{family}")
+    camp, pm, effects, sc, hold = _shell_campaign(tmp, family)
+    assert main(["diagnose", str(camp), "--quiet"]) == 0
+    d = json.loads((tmp / "out" / "diagnosis.json").read_text())
+    return family, pm, effects, d["members"][0], sc.floor_sd(channels=hold)
+
+
+def test_shell_residual_after_the_plain_calibration_is_significant(case):
+    # not under the rank/accept xfails: measured on every family (3.6-12.7 x the floor)
+    m = case[3]
+    r = m["residual"]
+    assert r["significant"] and r["ratio"] > 2 and m["verdict"] != "nothing to explain"
+    assert m["screening"] is not None and m["candidates"]  # the candidates were screened
+
+
+def test_shell_residual_is_significant_and_the_true_effect_ranks_first(case, request):
+    family, pm, effects, m, _ = case
+    _xfail(request, family, "rank")
+    r = m["residual"]
+    assert r["significant"] and r["ratio"] > 2 and m["verdict"] != "nothing to explain"
+    top = m["ranked"][0]
+    assert top["family"] in FAMILIES[family], f"ranked first: {top['description']}"
+    eff = effects[0]  # the shaker attachment's mass: it dominates (its spring is sized for a quarter shift)
+    dist = float(np.linalg.norm(_truth_center(pm, eff) - np.asarray(top["center"])))
+    assert dist <= 2 * top["element_size"], f"{top['name']} {dist:.3f} m from the truth"
+
+
+def test_shell_true_effect_is_accepted_with_its_magnitude_and_the_holdout_falls_to_the_floor(case, request):
+    family, pm, effects, m, floor = case
+    _xfail(request, family, "accept")
+    assert m["accepted"], f"nothing accepted: {[t.get('decision', {}).get('reason') for t in m['trials']]}"
+    a = m["accepted"][0]
+    assert a["family"] in FAMILIES[family], f"accepted first: {a['description']}"
+    eff = effects[0]
+    dist = float(np.linalg.norm(_truth_center(pm, eff) - np.asarray(a["center"])))
+    assert dist <= 2 * a["element_size"], f"{a['name']} {dist:.3f} m from the truth"
+    got = 1.0 - a["value"] if family == "element_cluster" else a["value"]
+    assert got == pytest.approx(_magnitude(eff), rel=0.2)
+    after = m["sd"]["after"]
+    assert after["holdout_refined"] < 2 * floor, (
+        f"hold-out {m['sd']['holdout']:.3g} -> {after['holdout_refined']:.3g} = "
+        f"{after['holdout_refined'] / floor:.2f} x floor {floor:.3g}")
+
+
+@pytest.fixture(scope="module")
+def shell_control(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("shell_control")
+    camp, _, _, sc, hold = _shell_campaign(tmp, None)
+    assert main(["diagnose", str(camp), "--quiet"]) == 0
+    return json.loads((tmp / "out" / "diagnosis.json").read_text()), sc.floor_sd(channels=hold)
+
+
+def test_shell_control_without_an_effect_accepts_nothing(shell_control):
+    d, _ = shell_control
+    m = d["members"][0]
+    assert not m["accepted"] and m["verdict"] in ("nothing to explain", "no effect accepted")
+    assert d["gates"][0]["nonlinearity"] is None
