@@ -185,6 +185,7 @@ def main(argv=None) -> int:
     checks = [c["basis_check"] for c in cyc if "basis_check" in c] + list(ref.get("basis_checks", []))
     print("basis checks (largest Ritz residual / tolerance, time): " + ", ".join(
         f"{b['eta_max']:.2e}/{b['tol']:.2e} {'kept' if b['adequate'] else 're-basis'} {b['time_s']:.1f} s"
+        f" (CPU {b.get('cpu_s', float('nan')):.1f} s)"
         for b in checks))
     print(f"peak memory {mem:.2f} GB; campaign wall {wall:.1f} s, CPU main process {cpu_main:.1f} s + workers "
           f"{cpu_workers:.1f} s; "
