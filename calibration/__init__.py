@@ -89,8 +89,10 @@ from calibration._validation import (
     validate,
 )
 from calibration._surrogate import (
+    BasisCheck,
     FRFModel,
     Surrogate,
+    basis_residuals,
     build_surrogate,
     full_modes,
     full_order_frf,
@@ -184,6 +186,8 @@ __all__ = [
     "sweep_direction",
     "FRFModel",
     "Surrogate",
+    "BasisCheck",
+    "basis_residuals",
     "build_surrogate",
     "extended_surrogate",
     "crossvalidation_figure",

@@ -483,6 +483,15 @@ class CycleOptions(FitOptions):
     refresh : bool
         A new basis starts from the previous one by one block inverse
         iteration instead of a fresh Lanczos solution.
+    basis_tol : float or None
+        Re-basis only when the basis is inadequate at the new point: before
+        each further cycle the energy-norm Ritz residuals eta of the in-band
+        modes (:func:`calibration._surrogate.basis_residuals`; eta / 2 is about
+        the relative frequency error of each Ritz mode) are computed at p, and
+        the cycles end when every Ritz frequency error is at most ``basis_tol``
+        times the half-power bandwidth 2 zeta0 f (eta <= 4 basis_tol zeta0):
+        a new basis would give the same surrogate there up to that. None:
+        re-basis whenever p moved by more than ``tol``.
     """
 
     max_cycles: int = 4
@@ -490,6 +499,7 @@ class CycleOptions(FitOptions):
     basis_factor: float = 2.0
     enrich: bool = True
     refresh: bool = True
+    basis_tol: float | None = None
 
     def fit(self) -> FitOptions:
         """The multi-start part."""
@@ -668,7 +678,7 @@ def calibrate_cycles(
     CycleResult
         Keeps the final surrogate and its basis.
     """
-    from calibration._surrogate import build_surrogate
+    from calibration._surrogate import basis_residuals, build_surrogate
 
     if len(positional) > len(_CYCLE_POSITIONAL):
         raise TypeError(f"calibrate_cycles() takes at most {6 + len(_CYCLE_POSITIONAL)} positional arguments")
@@ -696,6 +706,12 @@ def calibrate_cycles(
                "basis_s": t1 - t0, "fit_s": t2 - t1, "max_dp": float(np.max(np.abs(cal.p)))}]
     p, sd = cal.p, cal.sd
     for k in range(2, o.max_cycles + 1):
+        if o.basis_tol is not None and basis is not None:
+            chk = basis_residuals(model, surrogate, basis, p, band_hz, 4 * o.basis_tol * zeta0)
+            cycles[-1]["basis_check"] = chk.to_dict()
+            say(f"cycle {k}: basis at p: {chk.describe()}" + (": kept, cycles end" if chk.adequate else ""))
+            if chk.adequate:
+                break
         ta = time.perf_counter()
         surrogate, basis = build_surrogate(model, p, band_hz, o.basis_factor, enrich=o.enrich,
                                            previous_basis=basis if o.refresh else None)

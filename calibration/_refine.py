@@ -335,6 +335,12 @@ class Refinement:
     articles : tuple of dict
         With several articles in a member: each article's own raw-line
         estimate started from ``p`` (article, p, sd_raw_calibration, sd_holdout).
+    fit_modes : tuple of int arrays
+        Per data set, the reduced modes (indices at ``p_zeta``) whose damping
+        the last stage estimated.
+    basis_checks : tuple of dict
+        The basis adequacy checks of the re-basis cycles that followed
+        (:meth:`calibration.BasisCheck.to_dict`), when the campaign ran them.
     """
 
     p: np.ndarray
@@ -345,11 +351,13 @@ class Refinement:
     zeta: tuple = field(repr=False, default=())
     p_zeta: np.ndarray | None = field(repr=False, default=None)
     articles: tuple = ()
+    basis_checks: tuple = ()
+    fit_modes: tuple = field(repr=False, default=())
 
     def to_dict(self) -> dict:
         return {"p": self.p.tolist(), "sd_raw": self.sd_raw, "sd_raw_start": self.sd_raw_start,
                 "stages": [s.to_dict() for s in self.stages], "damping_pairs": list(self.damping),
-                "articles": list(self.articles)}
+                "articles": list(self.articles), "basis_checks": list(self.basis_checks)}
 
 
 def article_damping(sur: Surrogate, p, modes: IdentifiedModes, mac_min: float = 0.6, band_hz=None):
@@ -373,6 +381,84 @@ def article_damping(sur: Surrogate, p, modes: IdentifiedModes, mac_min: float = 
     return zeta, pairs, np.array(paired, int)
 
 
+def _held(obj, anchor, x0, hold: float):
+    """Residual and Jacobian of ``obj`` with a ridge holding p at ``anchor`` in the directions the data do not see."""
+    n_p, n_x = obj.n_p, obj.n_unknowns
+    J0 = obj.jacobian(x0)[:, :n_p]
+    d = np.linalg.norm(J0, axis=0)
+    d = np.where(d > 0, d, 1.0)
+    s_max = np.linalg.svd(J0 / d, compute_uv=False)[0]
+    w = hold * s_max * d
+    anchor = np.asarray(anchor, float)
+    ridge_J = np.hstack([np.diag(w), np.zeros((n_p, n_x - n_p))])
+
+    def fun(x):
+        return np.concatenate([obj.residual(x), w * (x[:n_p] - anchor)])
+
+    def jac(x):
+        return np.vstack([obj.jacobian(x), ridge_J])
+
+    return fun, jac
+
+
+def carried_damping(old: Surrogate, basis_old, zeta, fit, p_zeta, new: Surrogate, basis_new, p, mass,
+                    min_overlap: float = 0.5):
+    """Per-mode damping of a refinement carried to a new basis at ``p`` (after a re-basis).
+
+    The damping a refinement estimated belongs to the modes of its surrogate
+    at ``p_zeta``; those are tracked to ``p`` on the old surrogate (reduced-mass
+    overlap, as :class:`ModalDampingObjective` does) and then paired with the
+    modes of the new surrogate at ``p`` by the full-order mass overlap
+    ``(T_new x_new)^T M(p) (T_old x_old)`` (one assignment, over the modes up
+    to twice the frequency of the highest estimated one). Modes of the new
+    basis without a partner above ``min_overlap`` take the median damping.
+    Starting the re-based raw stage from the estimated damping (instead of
+    mapping the identified damping again) starts it where the last one ended
+    up to the basis change, so it does not wander along directions the data
+    cannot resolve.
+
+    Parameters
+    ----------
+    old, new : Surrogate
+    basis_old, basis_new : (n, r_old), (n, r_new) their bases
+    zeta : sequence of (r_old,) arrays, the damping per data set at ``p_zeta``
+    fit : sequence of int arrays, per data set the estimated modes (indices at ``p_zeta``)
+    p_zeta, p : (n_p,)
+    mass : (n, n) sparse, M(p)
+
+    Returns
+    -------
+    zeta_new : list of (r_new,) arrays, damping of the new surrogate's modes at ``p``
+    fit_new : list of int arrays, the new indices of the estimated modes
+    """
+    from scipy.optimize import linear_sum_assignment
+
+    p = np.asarray(p, float)
+    _, X_ref = reduced_modes(old, np.asarray(p_zeta, float))
+    lam_old, X_old = reduced_modes(old, p)
+    track = np.abs(X_ref.T @ (old.M.at(p) @ X_old))  # (ref, now)
+    _, ref_of = linear_sum_assignment(-track.T)  # old mode now k <- ref mode ref_of[k]
+    lam_new, X_new = reduced_modes(new, p)
+    # only modes up to twice the highest estimated one are paired (the rest keep the median, as unpaired
+    # modes do): two (n, m) shapes instead of the (r_new, r_old) cross product of the bases
+    fitted_lam = [lam_old[np.isin(ref_of, np.asarray(f, int))] for f in fit]
+    top = 4 * max([float(v.max()) for v in fitted_lam if v.size] + [float(np.min(lam_old))])
+    so, sn = np.flatnonzero(lam_old <= top), np.flatnonzero(lam_new <= top)
+    O = np.abs((basis_new @ X_new[:, sn]).T @ (mass @ (basis_old @ X_old[:, so])))  # (new, old now)
+    r_, c_ = linear_sum_assignment(-O)
+    good = O[r_, c_] >= min_overlap
+    rows, cols = sn[r_[good]], so[c_[good]]
+    zeta_new, fit_new = [], []
+    for z, f in zip(zeta, fit):
+        z = np.asarray(z, float)
+        zn = np.full(X_new.shape[1], float(np.median(z)))
+        zn[rows] = z[ref_of[cols]]
+        fitted = set(np.asarray(f, int).tolist())
+        fit_new.append(np.array(sorted(int(r) for r, c in zip(rows, cols) if ref_of[c] in fitted), int))
+        zeta_new.append(zn)
+    return zeta_new, fit_new
+
+
 def refine(
     surrogate: Surrogate,
     p_start,
@@ -391,6 +477,8 @@ def refine(
     line_weights=None,
     zeta=None,
     fit_damping: bool = True,
+    fit_modes=None,
+    hold: float | None = None,
 ) -> Refinement:
     """Refine an equalized calibration on the raw lines (damping continuation down to the raw data).
 
@@ -420,6 +508,22 @@ def refine(
         within a factor 4 of the identified, or median identified, value). The identified damping is a noisy estimate; held fixed, its
         error leaves a systematic misfit at every resonance that p would
         partly absorb.
+    fit_modes : sequence of int arrays, optional
+        With ``zeta`` given: per data set, the reduced modes (indices at
+        ``p_start``) whose damping the last stage estimates (e.g. carried
+        with ``zeta`` from an earlier refinement by :func:`carried_damping`).
+        Without it a given ``zeta`` is held fixed.
+    hold : float, optional
+        Hold the directions the data cannot resolve at ``p_start``: a ridge
+        ``hold * s_max * ||J_j|| (p_j - p_start_j)`` is added to the residual
+        (``J`` the Jacobian in p at the start, ``s_max`` the largest singular
+        value of its unit-column form). A parameter combination whose relative
+        singular value ``s / s_max`` is well above ``hold`` keeps its fit
+        (it moves by ``1 / (1 + (hold s_max / s)^2)`` of its free step), one
+        far below stays at the start. For the re-basis stages, whose start is
+        already an optimum: without it the raw stage moves the unresolved
+        parameters by up to half their range on each new basis (the metric is
+        flat there), so the new basis is never adequate at the result.
 
     Returns
     -------
@@ -443,6 +547,9 @@ def refine(
             zeta.append(z)
             pairs_all.append(pairs)
             paired.append(idx)
+    elif fit_modes is not None:
+        paired = [np.asarray(i, int) for i in fit_modes]
+        pairs_all = [article_damping(surrogate, p, m, mac_min, band_hz)[1] for m in modes]  # for the report
     else:
         paired = [np.zeros(0, int) for _ in raw]
     zeta = [np.asarray(z, float) for z in zeta]
@@ -469,13 +576,16 @@ def refine(
             if obj.n_unknowns > obj.n_p:
                 z0, zlo, zhi = obj.damping_start()
                 x0, lo, hi = np.concatenate([p, z0]), np.concatenate([lower, zlo]), np.concatenate([upper, zhi])
-            res = least_squares(obj.residual, x0, jac=obj.jacobian, bounds=(lo, hi), method="trf",
+            fun, jac = obj.residual, obj.jacobian
+            if hold:
+                fun, jac = _held(obj, p0, x0, hold)
+            res = least_squares(fun, x0, jac=jac, bounds=(lo, hi), method="trf",
                                 x_scale="jac", xtol=xtol if last else 1e-6, ftol=1e-12 if last else 1e-6,
                                 gtol=1e-12 if last else 1e-6, max_nfev=max_nfev)
             x = np.asarray(res.x)
             if obj.n_unknowns > obj.n_p:
                 zeta = obj.damping_at(x)
-            stages.append(RefineStage(zf, p.copy(), x[:obj.n_p].copy(), sd0, float(2 * res.cost),
+            stages.append(RefineStage(zf, p.copy(), x[:obj.n_p].copy(), sd0, obj.sd(x) if hold else float(2 * res.cost),
                                       int(res.nfev), time.perf_counter() - t0, str(res.message)))
             p = x[:obj.n_p].copy()
     plain = ModalDampingObjective(surrogate, [replace(d, weights=None) for d in raw], zeta, p0, 0.0, quantity)
@@ -485,4 +595,5 @@ def refine(
         for q in pairs:
             q["zeta_fitted"] = float(z[int(np.argmin(np.abs(fe0 - q["fe_hz"])))])
     return Refinement(p=p, sd_raw=plain.sd_unweighted(p), sd_raw_start=sd_raw_start, stages=tuple(stages),
-                      damping=tuple(pairs_all), zeta=tuple(zeta), p_zeta=p0)
+                      damping=tuple(pairs_all), zeta=tuple(zeta), p_zeta=p0,
+                      fit_modes=tuple(paired) if fit_damping else tuple(np.zeros(0, int) for _ in raw))

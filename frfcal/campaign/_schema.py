@@ -172,6 +172,11 @@ class CalibrationSection(_Strict):
     enrich: bool = Field(True, description="parameter-derivative enrichment of the basis")
     max_cycles: int = Field(3, ge=1, description="re-basis cycles (1 = keep the nominal basis)")
     cycle_tol: float = Field(1e-3, gt=0, description="stop cycling when max |dp| is below this")
+    basis_tol: float = Field(
+        0.0, ge=0, lt=1, description="re-basis only when the basis is inadequate at the new point: a Ritz "
+        "frequency error of an in-band mode (from its energy-norm residual) above this fraction of the half-power "
+        "bandwidth 2 zeta f of the stage's least damped mode, e.g. 0.05 (0, the default: whenever p moved by "
+        "more than cycle_tol; docs/calibration.md)")
     max_evaluations: int = Field(100, ge=5, description="residual evaluations per start and stage")
     refine: bool = Field(True, description="refine the equalized optimum on the raw calibration lines "
                          "(damping continuation down to the identified damping; see docs/calibration.md)")
@@ -179,6 +184,9 @@ class CalibrationSection(_Strict):
         default_factory=lambda: [1.0, 0.3, 0.1, 0.0],
         description="damping floors of the refinement stages as multiples of zeta0, decreasing, ending in 0")
     refine_cycles: int = Field(2, ge=0, description="re-basis cycles of the raw-line stage after the refinement")
+    rebasis_hold: float = Field(
+        0.0, ge=0, description="in the raw stage after a re-basis, hold parameter combinations whose relative "
+        "singular value is far below this at their value before the re-basis (0 = off; docs/calibration.md)")
     ensemble: Literal["all", "article", "group"] = Field("all", description="calibrate on all articles, each, or each group")
     n_groups: int | None = Field(None, ge=1, description="number of article groups (default: largest gap)")
 

@@ -29,6 +29,7 @@ from calibration import (
     Surrogate,
     Validation,
     CrossValidation,
+    basis_residuals,
     build_surrogate,
     calibrate_cycles,
     cross_validate,
@@ -39,7 +40,8 @@ from calibration import (
     pairwise_sd,
     validate,
 )
-from calibration._refine import ModalDampingObjective, Refinement, refine
+from calibration._refine import ModalDampingObjective, Refinement, carried_damping, refine
+from calibration._surrogate import assembled
 from calibration._signal import signal_pairs
 from frfcal.campaign._identify import identify_lines
 from frfcal.campaign._schema import Campaign
@@ -473,10 +475,28 @@ def _refined(camp: Campaign, model, arts, cyc, band, lower, upper, log, label):
         f"after {len(ref.stages)} refinement stage(s), max |dp| {np.max(np.abs(ref.p - cyc.p)):.3g} "
         f"({time.perf_counter() - t0:.1f} s)")
     sur, basis = cyc.surrogate, cyc.basis
+    checks = []
     for k in range(c.refine_cycles):
+        if c.basis_tol and basis is not None:
+            # Ritz frequency errors up to basis_tol x the half-power bandwidth 2 zeta f of the least damped mode
+            zeta_min = max(min(float(np.min(z)) for z in ref.zeta), 1e-5)
+            chk = basis_residuals(model, sur, basis, ref.p, band, 4 * c.basis_tol * zeta_min)
+            checks.append(chk.to_dict())
+            log(f"[{label}] raw-line re-basis {k + 1}: basis at the refined point (damping down to "
+                f"{100 * zeta_min:.3g} %): {chk.describe()}" + (": kept" if chk.adequate else ""))
+            if chk.adequate:
+                break
         t0 = time.perf_counter()
+        old_sur, old_basis = sur, basis
         sur, basis = build_surrogate(model, ref.p, band, c.basis_factor, enrich=c.enrich, previous_basis=basis)
-        nxt = refine(sur, ref.p, raw, idents, modes, lower, upper, c.zeta0, floors=(0.0,), **opts)
+        carry = {}
+        if c.basis_tol and old_basis is not None:  # start where the last raw stage ended
+            zeta, fit = carried_damping(old_sur, old_basis, ref.zeta, ref.fit_modes, ref.p_zeta, sur, basis,
+                                        ref.p, assembled(model, ref.p)[1])
+            carry = dict(zeta=zeta, fit_modes=fit)
+        if c.rebasis_hold:
+            carry["hold"] = c.rebasis_hold
+        nxt = refine(sur, ref.p, raw, idents, modes, lower, upper, c.zeta0, floors=(0.0,), **carry, **opts)
         dp = float(np.max(np.abs(nxt.p - ref.p)))
         stages.extend(nxt.stages)
         ref = nxt
@@ -484,7 +504,7 @@ def _refined(camp: Campaign, model, arts, cyc, band, lower, upper, log, label):
             f"({time.perf_counter() - t0:.1f} s)")
         if dp < c.cycle_tol:
             break
-    return replace(ref, stages=tuple(stages)), ref.p, sur, basis
+    return replace(ref, stages=tuple(stages), basis_checks=tuple(checks)), ref.p, sur, basis
 
 
 def _identifiability(camp: Campaign, cyc, data, ref, p, sur, arts, lower, upper, names):
@@ -523,7 +543,8 @@ def calibrate_stage(camp: Campaign, model, articles, equalize: EqualizeResult, g
     log(f"surrogate: {sur0.size} ({len(sur0.basis_frequencies_hz)} modes, {sur0.n_static} static, "
         f"{sur0.n_enrich} enrichment) in {basis_s:.1f} s")
     opts = CycleOptions(n_starts=c.starts, seed=c.seed, quantity=articles[0].quantity, max_cycles=c.max_cycles,
-                        tol=c.cycle_tol, basis_factor=c.basis_factor, enrich=c.enrich, max_nfev=c.max_evaluations)
+                        tol=c.cycle_tol, basis_factor=c.basis_factor, enrich=c.enrich, max_nfev=c.max_evaluations,
+                        basis_tol=c.basis_tol or None)
     members = []
     for label, idx in groups.members:
         arts = [articles[i] for i in idx]

@@ -80,6 +80,20 @@ def test_cycles_rebasis_converge_to_truth():
     assert len(res.cycles) >= 2 and res.cycles[-1]["max_dp"] < 1e-5
 
 
+def test_cycles_end_when_the_basis_is_adequate():
+    """basis_tol: the cycles end at the first point where the basis holds the modes; the result is as accurate."""
+    model, _ = beam_model()
+    data = _data(model, P_TRUE, 0.01)
+    cont = [(z, _data(model, P_TRUE, z)) for z in SCHEDULE]
+    res = calibrate_cycles(model, data, BAND, LO, HI, n_starts=0, max_cycles=4, tol=1e-5, continuation=cont,
+                           basis_tol=0.05)
+    checks = [c["basis_check"] for c in res.cycles if "basis_check" in c]
+    assert checks and checks[-1]["adequate"] and checks[-1]["eta_max"] <= 4 * 0.05 * 0.01
+    assert all(not c["adequate"] for c in checks[:-1])  # a re-basis only after a failed check
+    assert len(res.cycles) < 4  # fewer builds than the p-move rule (which runs until max |dp| < 1e-5)
+    assert np.abs((1 + res.p) / (1 + P_TRUE) - 1).max() < 1e-3
+
+
 def test_noisy_truth_inside_cross_validation_scatter(beam):
     model, sur = beam
     rng = np.random.default_rng(7)

@@ -5,7 +5,9 @@ import pytest
 
 from calibration import (
     CalibrationError,
+    basis_residuals,
     build_surrogate,
+    full_modes,
     full_order_frf,
     half_bandwidth_frequencies,
     log_deviation,
@@ -128,3 +130,25 @@ def test_shifted_keeps_one_pattern_for_the_symbolic_factorization():
         assert S0.nnz == nnz  # scipy's K + 3 M would drop the cancelled entries
         assert abs(S0 - (K + 3.0 * M_cancel)).max() < 1e-12
         assert cache["union"][4].nnz == nnz
+
+
+@pytest.mark.parametrize("enrich", [True, False], ids=["enriched", "modes+statics"])
+def test_basis_residual_predicts_the_ritz_frequency_error(enrich):
+    """eta (energy-norm Ritz residual) is about twice the relative error of each Ritz frequency, at any point."""
+    model, _ = beam_model()
+    p0 = np.zeros(7)
+    sur, T = build_surrogate(model, p0, BAND, enrich=enrich)
+    at_basis = basis_residuals(model, sur, T, p0, BAND, tol=1e-8)
+    assert at_basis.adequate and at_basis.eta_max < 1e-10  # the basis holds its own modes
+    rng = np.random.default_rng(3)
+    for scale in (0.1, 0.3):
+        p = scale * rng.choice([-1.0, 1.0], 7)
+        chk = basis_residuals(model, sur, T, p, BAND)
+        assert not chk.exact_norm  # the factorization of the basis point served as the norm
+        exact, _, _ = full_modes(model.K.at(p), model.M.at(p), 1.25 * BAND[1] * 1.01, 5.0)
+        exact = exact[exact > sur.rigid_hz]
+        err = np.abs(chk.freqs_hz / exact[:chk.freqs_hz.size] - 1)
+        big = err > 1e-7  # below that the comparison is round-off
+        assert big.any()
+        ratio = err[big] / (chk.eta[big] / 2)
+        assert np.all((ratio > 0.2) & (ratio < 3.0)), ratio
