@@ -505,6 +505,13 @@ def _refined(camp: Campaign, model, arts, cyc, band, lower, upper, log, label):
             f"({time.perf_counter() - t0:.1f} s)")
         if dp < c.cycle_tol:
             break
+    else:
+        if c.basis_tol and c.refine_cycles and basis is not None:
+            # the cycles ran out: say how well the final basis holds the reported point (a diagnostic only)
+            zeta_min = max(min(float(np.min(z)) for z in ref.zeta), 1e-5)
+            chk = basis_residuals(model, sur, basis, ref.p, band, 4 * c.basis_tol * zeta_min)
+            checks.append({**chk.to_dict(), "final": True})
+            log(f"[{label}] raw-line re-basis cycles used up; final basis at the final point: {chk.describe()}")
     return replace(ref, stages=tuple(stages), basis_checks=tuple(checks)), ref.p, sur, basis
 
 
