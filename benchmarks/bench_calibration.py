@@ -184,7 +184,8 @@ def main(argv=None) -> int:
     print("equalized re-basis builds: " + ", ".join(f"{c['basis_s']:.1f} s (r={c['basis_size']})" for c in cyc[1:]))
     checks = [c["basis_check"] for c in cyc if "basis_check" in c] + list(ref.get("basis_checks", []))
     print("basis checks (largest Ritz residual / tolerance, time): " + ", ".join(
-        f"{b['eta_max']:.2e}/{b['tol']:.2e} {'kept' if b['adequate'] else 're-basis'} {b['time_s']:.1f} s"
+        f"{b['eta_max']:.2e}/{b['tol']:.2e} "
+        f"{'final point' if b.get('final') else 'kept' if b['adequate'] else 're-basis'} {b['time_s']:.1f} s"
         f" (CPU {b.get('cpu_s', float('nan')):.1f} s)"
         for b in checks))
     print(f"peak memory {mem:.2f} GB; campaign wall {wall:.1f} s, CPU main process {cpu_main:.1f} s + workers "

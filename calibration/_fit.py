@@ -492,6 +492,10 @@ class CycleOptions(FitOptions):
         times the half-power bandwidth 2 zeta0 f (eta <= 4 basis_tol zeta0):
         a new basis would give the same surrogate there up to that. None:
         re-basis whenever p moved by more than ``tol``.
+    rebasis : {"iterated", "kept", "solved"}
+        The enrichment of a refreshed basis (:func:`calibration.build_surrogate`):
+        the inverse-iterated old basis, the old enrichment columns, or new
+        derivative solves at p.
     """
 
     max_cycles: int = 4
@@ -500,6 +504,7 @@ class CycleOptions(FitOptions):
     enrich: bool = True
     refresh: bool = True
     basis_tol: float | None = None
+    rebasis: str = "iterated"
 
     def fit(self) -> FitOptions:
         """The multi-start part."""
@@ -678,7 +683,7 @@ def calibrate_cycles(
     CycleResult
         Keeps the final surrogate and its basis.
     """
-    from calibration._surrogate import basis_residuals, build_surrogate
+    from calibration._surrogate import basis_layout, basis_residuals, build_surrogate
 
     if len(positional) > len(_CYCLE_POSITIONAL):
         raise TypeError(f"calibrate_cycles() takes at most {6 + len(_CYCLE_POSITIONAL)} positional arguments")
@@ -714,7 +719,8 @@ def calibrate_cycles(
                 break
         ta = time.perf_counter()
         surrogate, basis = build_surrogate(model, p, band_hz, o.basis_factor, enrich=o.enrich,
-                                           previous_basis=basis if o.refresh else None)
+                                           previous_basis=basis if o.refresh else None, rebasis=o.rebasis,
+                                           previous_layout=basis_layout(surrogate))
         tb = time.perf_counter()
         sub = calibrate(surrogate, data, lower, upper, zeta0, replace(fit, n_starts=0), p_start=p)
         tc = time.perf_counter()

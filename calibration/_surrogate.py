@@ -450,6 +450,8 @@ def build_surrogate(
     enrich_tol: float = 1e-4,
     enrich_factor: float = 1.25,
     previous_basis: np.ndarray | None = None,
+    rebasis: str = "iterated",
+    previous_layout: tuple[int, int] | None = None,
 ) -> tuple[Surrogate, np.ndarray]:
     """Reduction basis at ``p`` and the exact-in-p reduced model.
 
@@ -482,6 +484,24 @@ def build_surrogate(
         the result (one factorization, no Lanczos run). The old basis holds
         the modes plus their first-order parameter corrections, so one step
         converges the in-band modes; everything else is rebuilt as usual.
+    rebasis : {"iterated", "kept", "solved"}
+        What serves as the enrichment of a basis rebuilt from ``previous_basis``
+        (the modes and statics are always the new point's):
+
+        * ``"iterated"``: the inverse-iterated rest of the old basis (no
+          derivative solves). It holds the new point's modes but smooths the
+          old derivative vectors by one more solve, so it degrades fast away
+          from its point (docs/calibration.md, basis adequacy);
+        * ``"kept"``: the old basis's enrichment columns themselves, unchanged
+          (first-order mode corrections at the old point; no new solves; needs
+          ``previous_layout``);
+        * ``"solved"``: the enrichment solves of a cold build, at ``p`` with
+          the factorization the inverse iteration made (modes up to
+          ``enrich_factor`` x band top, every parameter).
+    previous_layout : (n_modes, n_static), optional
+        Leading column groups of ``previous_basis`` (its modes, then its
+        statics; the rest is its enrichment), as in its surrogate's
+        ``basis_frequencies_hz`` and ``n_static``. Needed for ``rebasis="kept"``.
 
     Returns
     -------
@@ -493,6 +513,10 @@ def build_surrogate(
     p = np.asarray(p, dtype=float)
     if p.shape != (model.n_params,):
         raise CalibrationError(f"expected {model.n_params} parameters, got shape {p.shape}")
+    if rebasis not in ("iterated", "kept", "solved"):
+        raise CalibrationError(f"rebasis must be 'iterated', 'kept' or 'solved', got {rebasis!r}")
+    if rebasis == "kept" and previous_basis is not None and previous_layout is None:
+        raise CalibrationError("rebasis='kept' needs previous_layout (n_modes, n_static) of the previous basis")
     low, high = float(band_hz[0]), float(band_hz[1])
     if not 0 <= low < high:
         raise CalibrationError(f"band_hz: need 0 <= low < high, got {band_hz}")
@@ -529,9 +553,13 @@ def build_surrogate(
         static = solve(loads)
     t3 = time.perf_counter()
     E = None
-    if enrich and carried is not None:
+    if enrich and carried is not None and rebasis == "iterated":
         # the inverse-iterated old basis already spans the mode corrections: keep it
         E = carried
+    elif enrich and previous_basis is not None and rebasis == "kept":
+        # the old enrichment columns as they are: the first-order mode corrections at the old point
+        skip = int(previous_layout[0]) + int(previous_layout[1])
+        E = np.ascontiguousarray(previous_basis[:, skip:]) if previous_basis.shape[1] > skip else None
     elif enrich:
         sel = np.flatnonzero((freqs <= enrich_factor * high) & (freqs > max(1e-3 * max(low, 1.0), 1e-6 * high)))
         if sel.size:
@@ -576,6 +604,16 @@ def build_surrogate(
                    "orthonormalize": t5 - t4, "project": t6 - t5},
     )
     return sur, T
+
+
+def basis_layout(sur: Surrogate) -> tuple[int, int]:
+    """(n_modes, n_static): the leading column groups of the basis of ``sur`` (the rest is enrichment).
+
+    The basis is [modes, statics, enrichment] made M-orthonormal group by
+    group; the final congruence by a lower-triangular factor keeps every
+    leading group's span.
+    """
+    return len(sur.basis_frequencies_hz), int(sur.n_static)
 
 
 @dataclass(frozen=True)

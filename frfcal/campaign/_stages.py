@@ -41,7 +41,7 @@ from calibration import (
     validate,
 )
 from calibration._refine import ModalDampingObjective, Refinement, carried_damping, refine
-from calibration._surrogate import assembled
+from calibration._surrogate import assembled, basis_layout
 from calibration._signal import signal_pairs
 from frfcal.campaign._identify import identify_lines
 from frfcal.campaign._schema import Campaign
@@ -488,7 +488,8 @@ def _refined(camp: Campaign, model, arts, cyc, band, lower, upper, log, label):
                 break
         t0 = time.perf_counter()
         old_sur, old_basis = sur, basis
-        sur, basis = build_surrogate(model, ref.p, band, c.basis_factor, enrich=c.enrich, previous_basis=basis)
+        sur, basis = build_surrogate(model, ref.p, band, c.basis_factor, enrich=c.enrich, previous_basis=basis,
+                                     rebasis=c.rebasis, previous_layout=basis_layout(sur))
         carry = {}
         if c.basis_tol and old_basis is not None:  # start where the last raw stage ended
             zeta, fit = carried_damping(old_sur, old_basis, ref.zeta, ref.fit_modes, ref.p_zeta, sur, basis,
@@ -504,6 +505,13 @@ def _refined(camp: Campaign, model, arts, cyc, band, lower, upper, log, label):
             f"({time.perf_counter() - t0:.1f} s)")
         if dp < c.cycle_tol:
             break
+    else:
+        if c.basis_tol and c.refine_cycles and basis is not None:
+            # the cycles ran out: say how well the final basis holds the reported point (a diagnostic only)
+            zeta_min = max(min(float(np.min(z)) for z in ref.zeta), 1e-5)
+            chk = basis_residuals(model, sur, basis, ref.p, band, 4 * c.basis_tol * zeta_min)
+            checks.append({**chk.to_dict(), "final": True})
+            log(f"[{label}] raw-line re-basis cycles used up; final basis at the final point: {chk.describe()}")
     return replace(ref, stages=tuple(stages), basis_checks=tuple(checks)), ref.p, sur, basis
 
 
@@ -544,7 +552,7 @@ def calibrate_stage(camp: Campaign, model, articles, equalize: EqualizeResult, g
         f"{sur0.n_enrich} enrichment) in {basis_s:.1f} s")
     opts = CycleOptions(n_starts=c.starts, seed=c.seed, quantity=articles[0].quantity, max_cycles=c.max_cycles,
                         tol=c.cycle_tol, basis_factor=c.basis_factor, enrich=c.enrich, max_nfev=c.max_evaluations,
-                        basis_tol=c.basis_tol or None)
+                        basis_tol=c.basis_tol or None, rebasis=c.rebasis)
     members = []
     for label, idx in groups.members:
         arts = [articles[i] for i in idx]

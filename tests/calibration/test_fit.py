@@ -71,11 +71,12 @@ def test_without_continuation_some_start_stalls(beam):
     assert np.abs((1 + cal.p) / (1 + P_TRUE) - 1).max() < 0.005
 
 
-def test_cycles_rebasis_converge_to_truth():
+@pytest.mark.parametrize("rebasis", ["iterated", "kept", "solved"])
+def test_cycles_rebasis_converge_to_truth(rebasis):
     model, _ = beam_model()
     data = _data(model, P_TRUE, 0.01)
     res = calibrate_cycles(model, data, BAND, LO, HI, n_starts=0, max_cycles=4, tol=1e-5,
-                           continuation=[(z, _data(model, P_TRUE, z)) for z in SCHEDULE])
+                           continuation=[(z, _data(model, P_TRUE, z)) for z in SCHEDULE], rebasis=rebasis)
     assert np.abs((1 + res.p) / (1 + P_TRUE) - 1).max() < 1e-4
     assert len(res.cycles) >= 2 and res.cycles[-1]["max_dp"] < 1e-5
 
