@@ -358,9 +358,11 @@ def scatter_sd(freqs, frfs, models, expected=None, masks=None) -> float:
     effect on some articles), not test-to-test scatter, and only the pairs
     within groups are averaged (the ensemble of an outside campaign, 3 articles
     plus 2 with an undeclared 80 g mass calibrated as one, counted the mass as
-    scatter and found "nothing to explain"). A group of one article has no
-    within pair; when every group is a single article, no pair is left and the
-    scatter is 0.
+    scatter and found "nothing to explain"). Split from four articles on: of
+    three, one pair close by chance passes the gap test (measured: three
+    repeat articles' scatter 0.0030 instead of 0.018, a false "significant").
+    A group of one article has no within pair; when every group is a single
+    article, no pair is left and the scatter is 0.
     """
     from calibration._ensemble import grouping
 
@@ -378,7 +380,9 @@ def scatter_sd(freqs, frfs, models, expected=None, masks=None) -> float:
     D = np.maximum(raw - q[:, None], 0.0)
     # the split is judged on the raw differences with the noise as the reference's lower bound (grouping's
     # noise_sd), so that noise-only differences (near 0 after the subtraction) never pass for groups
-    labels = grouping(0.5 * (raw + raw.T), noise_sd=q).labels if n > 2 else np.zeros(n, int)
+    # with three articles one close pair by chance passes the gap test (grouping's own rule needs two within
+    # pairs only from four articles on), and the scatter would shrink to that pair's: split from four on
+    labels = grouping(0.5 * (raw + raw.T), noise_sd=q).labels if n >= 4 else np.zeros(n, int)
     pairs = [D[a, b] for a in range(n) for b in range(n) if a != b and labels[a] == labels[b]]
     return float(np.mean(pairs)) * (1 - 1 / n) / 2 if pairs else 0.0
 
