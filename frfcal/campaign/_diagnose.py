@@ -605,6 +605,7 @@ def _accept_member(camp, load, pm, model, articles, m, check, rows, ctx, quantit
     screened_after = None
     n_effects = 0  # a compound effect (several terms) counts once against max_effects
     for _ in range(cfg.max_effects):
+        by_name = {t.name: t for t in ctx["terms"]}  # the re-screening's zoom may have added candidates
         best = None
         for r in order:
             new = list(r.get("members", [r["name"]]))
@@ -901,6 +902,9 @@ def diagnose_stage(camp: Campaign, load, pm, model, articles, eq, cal, val, xval
             acc, trials, after, fit = _accept_member(camp, load, pm, model, articles, m, check, rows, ctx,
                                                      quantity, executor, log)
             rows = holdout_ranking(ctx["cands"], scr, trials)
+            counts = {}  # screened per family, the zoomed candidates (first screening and re-screenings) included
+            for cd in ctx["cands"]:
+                counts[cd.family] = counts.get(cd.family, 0) + 1
             if after is not None:
                 sd["after"] = after
             if acc:
