@@ -707,7 +707,7 @@ def screen(
         and a family of hundreds of near-duplicates must not crowd the
         others out of the checks. None: the ``n_check`` best only.
     zoom : callable, optional
-        ``zoom(names, explained) -> sequence of (CandidateTerm, group label)``:
+        ``zoom(names, explained) -> sequence of (CandidateTerm, group label, parent name)``:
         after the linear stages, called with the names of the candidates
         screened so far and their linear explained fractions; the new
         candidates it returns (e.g. a point family's candidates at the grids
@@ -716,7 +716,9 @@ def screen(
         significance test and the nonlinear checks as any other candidate.
         Called again with the grown list until it returns nothing or
         ``zoom_rounds`` times. The label is the new candidate's group (ignored
-        without ``groups``).
+        without ``groups``), the parent the screened candidate it refines: a
+        zoom chain (a candidate and all zoomed from it, transitively) is one
+        place, and only its best takes one of the nonlinear checks.
     zoom_rounds : int
         At most this many calls of ``zoom``.
 
@@ -768,14 +770,17 @@ def screen(
     E = np.array([x.explained for x in lin])  # (n_s, n_c)
     C = np.array([x.c for x in lin])
     tz, cz = time.perf_counter(), time.process_time()
-    zoomed = []
+    zoomed, parent = [], {}  # parent: zoomed candidate's index -> the name it was zoomed from
     if zoom is not None:
         names = {c.name for c in cands}
         for _ in range(max(int(zoom_rounds), 0)):
             got = list(zoom(tuple(c.name for c in cands), E.max(axis=0)) or ())
             if not got:
                 break
-            new = [t for t, _ in got]
+            got = [tuple(g) for g in got]
+            if any(len(g) != 3 for g in got):
+                raise CalibrationError("screen: zoom must return (CandidateTerm, group label, parent name) tuples")
+            new = [t for t, _, _ in got]
             for t in new:
                 if not isinstance(t, CandidateTerm):
                     raise CalibrationError(f"screen: zoom returned {type(t).__name__}, not CandidateTerm")
@@ -783,6 +788,11 @@ def screen(
             again = sorted({t.name for t in new} & names)
             if again:
                 raise CalibrationError(f"screen: zoom returned candidates screened already: {again[:5]}")
+            bad = sorted({par for _, _, par in got if par not in names})
+            if bad:
+                raise CalibrationError(f"screen: zoom names parents that were not screened: {bad[:5]}")
+            for k, (_, _, par) in enumerate(got):
+                parent[len(cands) + k] = par
             names |= {t.name for t in new}
             scores = [st.score(new) for st in prepared]
             E = np.hstack([E, np.array([e for e, _ in scores])])
@@ -790,7 +800,7 @@ def screen(
             cands += new
             zoomed += [t.name for t in new]
             if labels is not None:
-                labels += [lab for _, lab in got]
+                labels += [lab for _, lab, _ in got]
     t2, c2 = time.perf_counter(), time.process_time()
     best_stage = np.argmax(E, axis=0)
     explained = E[best_stage, np.arange(len(cands))]
@@ -802,12 +812,25 @@ def screen(
 
     checks = []
     by_score = np.argsort(-explained, kind="stable")
-    top = [int(i) for i in by_score[:n_check] if explained[i] > 0]
+    # a zoom chain (a sampled candidate and every candidate zoomed from it or its descendants) is one place
+    # refined: only its best takes a check, so near-duplicates of one region do not crowd the others out
+    root = {k: k for k in range(len(cands))}
+    pos = {c.name: k for k, c in enumerate(cands)}
+    for k, par in parent.items():
+        root[k] = root[pos[par]]
+    top, chains = [], set()
+    for i in by_score:
+        if len(top) == n_check or not explained[i] > 0:
+            break
+        if root[int(i)] not in chains:
+            chains.add(root[int(i)])
+            top.append(int(i))
     if n_check and labels is not None:
         seen = {labels[i] for i in top}
         for i in by_score:
-            if labels[i] not in seen and explained[i] > 0:
+            if labels[i] not in seen and explained[i] > 0 and root[int(i)] not in chains:
                 seen.add(labels[i])
+                chains.add(root[int(i)])
                 top.append(int(i))
     if top:
         if solve is None:

@@ -1083,14 +1083,17 @@ def point_zoom(cctx, pm, p, cands: list, terms: list):
     def zoom(names, explained):
         score = dict(zip(names, np.asarray(explained, float).tolist()))
         new: list = []
+        parents: list = []
         for fam in fams:
             best = sorted((c for c in cands if c.family == fam and score.get(c.name, 0.0) > 0.0),
                           key=lambda c: -score[c.name])[:o.zoom_top]
             for b in best:
-                new.extend(zoom_candidates(cctx, cands + new, b))
-        out = [(candidate_term(pm, c, p), c.family) for c in new]
+                got = zoom_candidates(cctx, cands + new, b)
+                new.extend(got)
+                parents += [b.name] * len(got)
+        out = [(candidate_term(pm, c, p), c.family, par) for c, par in zip(new, parents)]
         cands.extend(new)
-        terms.extend(t for t, _ in out)
+        terms.extend(t for t, _, _ in out)
         return out
 
     return zoom

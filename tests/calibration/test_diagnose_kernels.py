@@ -357,10 +357,11 @@ def test_zoomed_candidates_score_as_if_screened_from_the_start_and_are_checked(f
 
     def zoom(names, explained):
         calls.append((len(names), len(explained)))
-        if len(calls) == 1:
-            return [(c, "mass" if c.name.startswith("m") else "spring") for c in later[:2]]
-        if len(calls) == 2:
-            return [(c, "mass" if c.name.startswith("m") else "spring") for c in later[2:]]
+        if len(calls) == 1:  # m29, m30 (in grid order) refine m28
+            return [(c, "mass" if c.name.startswith("m") else "spring", "m28") for c in later[:2]]
+        if len(calls) == 2:  # and m31 refines m30, the spring m28 too
+            return [(c, "mass" if c.name.startswith("m") else "spring", "m30" if c.name == "m31" else "m28")
+                    for c in later[2:]]
         return []
 
     groups = ["mass" if c.name.startswith("m") else "other" for c in first]
@@ -374,6 +375,10 @@ def test_zoomed_candidates_score_as_if_screened_from_the_start_and_are_checked(f
     np.testing.assert_allclose(s.c_linear, full.c_linear[idx], rtol=1e-9, atol=1e-14)
     np.testing.assert_allclose(s.threshold, full.threshold, rtol=1e-12)  # the same total count
     assert s.best == "m30" and s.check("m30").c == pytest.approx(1.0, rel=0.2)
+    # one check per zoom chain: m28 and everything zoomed from it (m29, m30, m31, the spring) are one place
+    chain = {"m28"} | held
+    assert [c.name for c in s.checks if c.name in chain] == ["m30"]
+    assert len(s.checks) >= 3
     assert s.timings_s["zoom"] >= 0 and "zoomed" in s.to_dict()
     # bounded rounds; a candidate offered twice or of the wrong type is refused
     n = []
@@ -381,10 +386,16 @@ def test_zoomed_candidates_score_as_if_screened_from_the_start_and_are_checked(f
     assert not n
     with pytest.raises(CalibrationError, match="screened already"):
         screen(sur, T, np.zeros(pm.n_params), data, ZETA, first, pm.lower, pm.upper, n_check=0,
-               zoom=lambda names, e: [(first[0], "x")])
+               zoom=lambda names, e: [(first[0], "x", first[1].name)])
+    with pytest.raises(CalibrationError, match="not screened"):
+        screen(sur, T, np.zeros(pm.n_params), data, ZETA, first, pm.lower, pm.upper, n_check=0,
+               zoom=lambda names, e: [(later[0], "x", "nope")])
+    with pytest.raises(CalibrationError, match="parent name"):
+        screen(sur, T, np.zeros(pm.n_params), data, ZETA, first, pm.lower, pm.upper, n_check=0,
+               zoom=lambda names, e: [(later[0], "x")])
     with pytest.raises(CalibrationError, match="not CandidateTerm"):
         screen(sur, T, np.zeros(pm.n_params), data, ZETA, first, pm.lower, pm.upper, n_check=0,
-               zoom=lambda names, e: [("m30", "x")])
+               zoom=lambda names, e: [("m30", "x", "m28")])
 
 
 def _contact(terms):
