@@ -89,3 +89,25 @@ def test_a_mass_between_the_spread_grids_is_found_by_the_zoom(frame, grid):
     assert chk.explained > 0.9
     assert 0 < len(s.zoomed) < 80 and len(s.names) == len(cands)
     assert f"mass_g{grid}" in s.zoomed
+
+
+def test_the_zoom_again_in_a_re_screening_adds_only_new_candidates(frame):
+    """As the diagnosis re-screens after an accepted effect: the other candidates again, with the same zoom,
+    which offers only grids never screened (the accepted one and the first zoom's included) and appends their
+    terms to the campaign's lists."""
+    pm, model, sur, T, ctx = frame
+    kg = ctx.options.lumped_mass_fraction * ctx.total_mass
+    data = _data(pm, model, 45, kg)
+    p0 = np.zeros(pm.n_params)
+    cands = list(generate_candidates(pm, families=["lumped_mass", "ground_spring"], context=ctx))
+    terms = [candidate_term(pm, c, p0) for c in cands]
+    z = point_zoom(ctx, pm, p0, cands, terms)
+    s1 = screen(sur, T, p0, data, ZETA, terms, pm.lower, pm.upper, n_check=0, zoom=z)
+    n1 = len(terms)
+    assert len(cands) == n1 == len(s1.names) and s1.best == "mass_g45"
+    rest = [t for t in terms if t.name != s1.best]
+    s2 = screen(sur, T, p0, data, ZETA, rest, pm.lower, pm.upper, n_check=0, zoom=z)
+    assert len(terms) == len(cands) == n1 + len(s2.zoomed)
+    assert s2.zoomed and not set(s2.zoomed) & set(s1.names)
+    assert [t.name for t in terms[n1:]] == list(s2.zoomed) == [c.name for c in cands[n1:]]
+    assert "mass_g45" not in s2.names
