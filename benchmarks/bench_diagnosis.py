@@ -19,7 +19,9 @@ Timed, the diagnosis stages (wall and process CPU time each):
    ``--candidates-per-family``);
 2. term derivatives at the calibrated p (``ParametricModel.term_derivative``);
 3. screening (``calibration.screen``: linear scores on every continuation
-   stage, nonlinear re-fits of the ``--n-check`` best);
+   stage, the zoom of the point families around their best candidates
+   (``frfcal.campaign._diagnose.point_zoom``, its own time and CPU in the
+   table; ``--no-zoom`` without), nonlinear re-fits of the ``--n-check`` best);
 4. acceptance: ``calibration.fit_with`` of the ``--top`` best singly (from
    their converged nonlinear checks, ``fit_with(warm=...)``; ``--no-warm``:
    from the baseline through the continuation stages) and the top two combined, hold-out SD (equalized hold-out channels) and
@@ -171,6 +173,8 @@ def main(argv=None) -> int:
     ap.add_argument("--top", type=int, default=3, help="candidates fitted singly in the acceptance")
     ap.add_argument("--cv-realizations", type=int, default=5, help="cross-validation splits of the acceptance")
     ap.add_argument("--workers", type=int, default=None)
+    ap.add_argument("--no-zoom", dest="zoom", action="store_false",
+                    help="no zoom of the point families (CandidateOptions.zoom_rounds = 0)")
     ap.add_argument("--no-model-sd", action="store_true", help="skip the full-order hold-out SD with truth damping")
     ap.add_argument("--no-warm", dest="warm", action="store_false",
                     help="fit_with of a single candidate from (p_baseline, c) through the continuation stages, "
@@ -245,7 +249,8 @@ def _diagnose(args, ex, sc, effects, camp, model, articles, eq, cal, pool, senso
               malloc_tuned) -> int:
     import femodel
     from calibration import CandidateTerm, accept, cross_validate, fit_with, holdout_sd, screen, shifted_solver
-    from femodel import CandidateOptions, generate_candidates
+    from femodel import CandidateOptions, candidate_context, generate_candidates
+    from frfcal.campaign._diagnose import point_zoom
     from frfcal.campaign._stages import equalized_data
 
     pm = model.parametric
@@ -263,9 +268,11 @@ def _diagnose(args, ex, sc, effects, camp, model, articles, eq, cal, pool, senso
     clock = Clock()
     c_all = clock.start()
     t0 = clock.start()
-    cands = generate_candidates(pm, sensors=[int(s.grid) for s in sensors],
-                                drives=[(int(d.grid), d.direction) for d in drives],
-                                options=CandidateOptions(max_per_family=args.candidates_per_family))
+    cctx = candidate_context(pm, sensors=[int(s.grid) for s in sensors],
+                             drives=[(int(d.grid), d.direction) for d in drives],
+                             options=CandidateOptions(max_per_family=args.candidates_per_family,
+                                                      zoom_rounds=3 if args.zoom else 0))
+    cands = list(generate_candidates(pm, context=cctx))
     clock.stop("candidate generation", t0)
     families = list(dict.fromkeys(c.family for c in cands))
     per_family = {f: sum(c.family == f for c in cands) for f in families}
@@ -285,8 +292,12 @@ def _diagnose(args, ex, sc, effects, camp, model, articles, eq, cal, pool, senso
 
     t0 = clock.start()
     s = screen(sur, basis, p_cal, data, zeta, terms, pm.lower, pm.upper, quantity=quantity, model=model,
-               n_check=args.n_check, solve=solve, continuation=cont, executor=pool)
-    clock.stop("screening (linear + nonlinear checks)", t0)
+               n_check=args.n_check, solve=solve, continuation=cont, executor=pool,
+               zoom=point_zoom(cctx, pm, p_cal, cands, terms), zoom_rounds=cctx.options.zoom_rounds)
+    clock.stop("screening (linear + zoom + nonlinear checks)", t0)
+    clock.rows["  of which the zoom (derivatives + linear scores)"] = {"wall_s": s.timings_s["zoom"],
+                                                                       "cpu_s": s.timings_s["cpu: zoom"]}
+    per_family = {f: sum(c.family == f for c in cands) for f in families}  # the zoomed candidates included
 
     t0 = clock.start()
     cvo = dict(n_realizations=args.cv_realizations, seed=args.seed, quantity=quantity, max_nfev=20, executor=pool)
@@ -366,7 +377,7 @@ def _diagnose(args, ex, sc, effects, camp, model, articles, eq, cal, pool, senso
 
     # ------------------------------------------------------------------ report
     print()
-    print(f"{ex.n_dof} DOF, {len(cands)} candidates, surrogate {sur.size}, "
+    print(f"{ex.n_dof} DOF, {len(cands)} candidates ({len(s.zoomed)} of them zoomed), surrogate {sur.size}, "
           f"{data[0].frf.shape[0]} lines x {data[0].frf.shape[1]} outputs x {data[0].frf.shape[2]} drives; "
           f"{os.cpu_count()} cores, load average {load0[0]:.1f} at start, {os.getloadavg()[0]:.1f} now")
     print(f"{'family':<26}{'candidates':>12}{'derivative CPU':>16}")
@@ -407,7 +418,8 @@ def _diagnose(args, ex, sc, effects, camp, model, articles, eq, cal, pool, senso
 
     out = {
         "dof": int(ex.n_dof), "effect": args.effect, "truth_effects": [e.record(sc.articles) for e in effects],
-        "n_candidates": len(cands), "candidates_per_family": per_family, "cap_per_family": args.candidates_per_family,
+        "n_candidates": len(cands), "n_zoomed": len(s.zoomed), "zoom": bool(args.zoom),
+        "candidates_per_family": per_family, "cap_per_family": args.candidates_per_family,
         "derivative_cpu_s_per_family": deriv_s, "cores": os.cpu_count(), "load_avg_start": load0,
         "load_avg_end": os.getloadavg(), "malloc_kept_large_blocks": malloc_tuned,
         "timings": clock.rows, "diagnosis_total_wall_s": total, "target_s": 60.0, "peak_memory_gb": mem,

@@ -491,6 +491,7 @@ class Screening:
     n_residuals : int, real residuals of the final stage (2 x compared complex values)
     rank_p : int, numerical rank of the existing parameters' Jacobian
     timings_s : dict, wall time of the steps (and process CPU time, "cpu: ..."; both include BLAS threads)
+    zoomed : tuple of str, the candidates added by the zoom (at the end of ``names``; included above)
     """
 
     names: tuple
@@ -511,6 +512,7 @@ class Screening:
     n_residuals: int
     rank_p: int
     timings_s: dict
+    zoomed: tuple = ()
 
     @property
     def best(self) -> str:
@@ -542,6 +544,7 @@ class Screening:
             "n_residuals": self.n_residuals,
             "rank_p": self.rank_p,
             "timings_s": dict(self.timings_s),
+            "zoomed": list(self.zoomed),
         }
 
 
@@ -562,36 +565,52 @@ class _Linear:
     rank: int
 
 
-def _linear_stage(sur, basis, p0, sd0, data, zeta, quantity, cands, chunk_bytes) -> _Linear:
+class _LinearStage:
+    """One screening stage at its baseline (p0, zeta): the residual, the existing parameters' range and the
+    reduced modes, kept so that candidates added later (the zoom) are scored on the same footing."""
+
+    def __init__(self, sur, basis, p0, sd0, data, zeta, quantity, chunk_bytes):
+        obj = Objective(sur, data, zeta, quantity)
+        r, Jp = obj.evaluate(p0)
+        self.rr = float(r @ r)
+        U, s, _ = np.linalg.svd(Jp / np.maximum(np.linalg.norm(Jp, axis=0), np.finfo(float).tiny)[None, :],
+                                full_matrices=False)
+        self.rank = int(np.sum(s > 1e-10 * s[0])) if s.size and s[0] > 0 else 0
+        self.Q = U[:, :self.rank]
+        self.r_perp = r - self.Q @ (self.Q.T @ r)
+        self.modal = _Modal(sur, basis, p0, data, zeta, quantity)
+        self.basis, self.chunk_bytes = basis, chunk_bytes
+        self.p, self.sd, self.n_res = p0, sd0, int(r.size)
+        dof = max(r.size - self.rank, 1)
+        self.noise = float(self.r_perp @ self.r_perp) / dof / self.rr if self.rr > 0 else 0.0
+
+    def score(self, cands) -> tuple[np.ndarray, np.ndarray]:
+        """(explained fractions, linearized magnitudes clipped to the bounds) of ``cands``."""
+        step = _chunks(self.modal, len(cands), self.chunk_bytes)
+        dot = np.zeros(len(cands))
+        nn = np.zeros(len(cands))
+        Q = self.Q
+        for i in range(0, len(cands), step):
+            J = _candidate_block(self.modal, self.basis, cands[i:i + step])
+            J -= Q @ (Q.T @ J)
+            dot[i:i + step] = J.T @ self.r_perp
+            nn[i:i + step] = np.einsum("ij,ij->j", J, J)
+        lo = np.array([c.lower for c in cands])
+        hi = np.array([c.upper for c in cands])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            c_star = np.where(nn > 0, -dot / np.where(nn > 0, nn, 1.0), 0.0)
+        c_lin = np.clip(c_star, lo, hi)
+        gain = -2 * c_lin * dot - c_lin**2 * nn
+        tiny = np.finfo(float).tiny
+        explained = np.clip(gain, 0.0, None) / max(self.rr, tiny) if self.rr > 0 else np.zeros(len(cands))
+        return explained, c_lin
+
+
+def _linear_stage(sur, basis, p0, sd0, data, zeta, quantity, cands, chunk_bytes) -> tuple[_Linear, _LinearStage]:
     """Explained fractions and linearized magnitudes of every candidate at (p0, zeta) on ``data``."""
-    obj = Objective(sur, data, zeta, quantity)
-    r, Jp = obj.evaluate(p0)
-    rr = float(r @ r)
-    U, s, _ = np.linalg.svd(Jp / np.maximum(np.linalg.norm(Jp, axis=0), np.finfo(float).tiny)[None, :],
-                            full_matrices=False)
-    rank = int(np.sum(s > 1e-10 * s[0])) if s.size and s[0] > 0 else 0
-    Q = U[:, :rank]
-    r_perp = r - Q @ (Q.T @ r)
-    modal = _Modal(sur, basis, p0, data, zeta, quantity)
-    step = _chunks(modal, len(cands), chunk_bytes)
-    dot = np.zeros(len(cands))
-    nn = np.zeros(len(cands))
-    for i in range(0, len(cands), step):
-        J = _candidate_block(modal, basis, cands[i:i + step])
-        J -= Q @ (Q.T @ J)
-        dot[i:i + step] = J.T @ r_perp
-        nn[i:i + step] = np.einsum("ij,ij->j", J, J)
-    lo = np.array([c.lower for c in cands])
-    hi = np.array([c.upper for c in cands])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        c_star = np.where(nn > 0, -dot / np.where(nn > 0, nn, 1.0), 0.0)
-    c_lin = np.clip(c_star, lo, hi)
-    gain = -2 * c_lin * dot - c_lin**2 * nn
-    tiny = np.finfo(float).tiny
-    explained = np.clip(gain, 0.0, None) / max(rr, tiny) if rr > 0 else np.zeros(len(cands))
-    dof = max(r.size - rank, 1)
-    noise = float(r_perp @ r_perp) / dof / rr if rr > 0 else 0.0
-    return _Linear(p0, sd0, explained, c_lin, noise, int(r.size), rank)
+    st = _LinearStage(sur, basis, p0, sd0, data, zeta, quantity, chunk_bytes)
+    explained, c_lin = st.score(cands)
+    return _Linear(p0, sd0, explained, c_lin, st.noise, st.n_res, st.rank), st
 
 
 def screen(
@@ -617,6 +636,8 @@ def screen(
     executor=None,
     continue_checks: int = 1,
     groups=None,
+    zoom=None,
+    zoom_rounds: int = 3,
 ) -> Screening:
     """Rank candidate effects by the fraction of the residual they explain beyond the existing parameters.
 
@@ -685,6 +706,21 @@ def screen(
         parameters largely absorb scores half its re-fitted fraction),
         and a family of hundreds of near-duplicates must not crowd the
         others out of the checks. None: the ``n_check`` best only.
+    zoom : callable, optional
+        ``zoom(names, explained) -> sequence of (CandidateTerm, group label, parent name)``:
+        after the linear stages, called with the names of the candidates
+        screened so far and their linear explained fractions; the new
+        candidates it returns (e.g. a point family's candidates at the grids
+        near its best ones, :func:`femodel.zoom_candidates`) are scored on
+        every stage at the same baselines and join the ranking, the
+        significance test and the nonlinear checks as any other candidate.
+        Called again with the grown list until it returns nothing or
+        ``zoom_rounds`` times. The label is the new candidate's group (ignored
+        without ``groups``), the parent the screened candidate it refines: a
+        zoom chain (a candidate and all zoomed from it, transitively) is one
+        place, and only its best takes one of the nonlinear checks.
+    zoom_rounds : int
+        At most this many calls of ``zoom``.
 
     Returns
     -------
@@ -711,7 +747,10 @@ def screen(
         raise CalibrationError("screen: the nonlinear check needs shift_hz > 0 (the basis build's) or solve")
     stages = [(float(z), list(d)) for z, d in continuation] + [(float(zeta), list(data))]
     sd_start = Objective(sur, stages[-1][1], zeta, quantity).sd(p_in)
-    lin = []
+    labels = None if groups is None else list(groups)
+    if labels is not None and len(labels) != len(cands):
+        raise CalibrationError(f"screen: {len(labels)} group labels for {len(cands)} candidates")
+    lin, prepared = [], []
     t_fit = t_lin = 0.0
     p_s = p_in
     for z, d in stages:
@@ -723,14 +762,49 @@ def screen(
         else:
             sd_s = obj.sd(p_s)
         tb = time.perf_counter()
-        lin.append(_linear_stage(sur, basis, p_s, sd_s, d, z, quantity, cands, chunk_bytes))
+        lx, st = _linear_stage(sur, basis, p_s, sd_s, d, z, quantity, cands, chunk_bytes)
+        lin.append(lx)
+        prepared.append(st)
         t_fit += tb - ta
         t_lin += time.perf_counter() - tb
-    t2, c2 = time.perf_counter(), time.process_time()
     E = np.array([x.explained for x in lin])  # (n_s, n_c)
+    C = np.array([x.c for x in lin])
+    tz, cz = time.perf_counter(), time.process_time()
+    zoomed, parent = [], {}  # parent: zoomed candidate's index -> the name it was zoomed from
+    if zoom is not None:
+        names = {c.name for c in cands}
+        for _ in range(max(int(zoom_rounds), 0)):
+            got = list(zoom(tuple(c.name for c in cands), E.max(axis=0)) or ())
+            if not got:
+                break
+            got = [tuple(g) for g in got]
+            if any(len(g) != 3 for g in got):
+                raise CalibrationError("screen: zoom must return (CandidateTerm, group label, parent name) tuples")
+            new = [t for t, _, _ in got]
+            for t in new:
+                if not isinstance(t, CandidateTerm):
+                    raise CalibrationError(f"screen: zoom returned {type(t).__name__}, not CandidateTerm")
+            new = _checked(new, basis, sur)
+            again = sorted({t.name for t in new} & names)
+            if again:
+                raise CalibrationError(f"screen: zoom returned candidates screened already: {again[:5]}")
+            bad = sorted({par for _, _, par in got if par not in names})
+            if bad:
+                raise CalibrationError(f"screen: zoom names parents that were not screened: {bad[:5]}")
+            for k, (_, _, par) in enumerate(got):
+                parent[len(cands) + k] = par
+            names |= {t.name for t in new}
+            scores = [st.score(new) for st in prepared]
+            E = np.hstack([E, np.array([e for e, _ in scores])])
+            C = np.hstack([C, np.array([c for _, c in scores])])
+            cands += new
+            zoomed += [t.name for t in new]
+            if labels is not None:
+                labels += [lab for _, lab, _ in got]
+    t2, c2 = time.perf_counter(), time.process_time()
     best_stage = np.argmax(E, axis=0)
     explained = E[best_stage, np.arange(len(cands))]
-    c_lin = np.array([lin[s].c[i] for i, s in enumerate(best_stage)])
+    c_lin = C[best_stage, np.arange(len(cands))]
     q = float(chi2.isf(alpha / (len(cands) * len(stages)), 1))
     noise = np.array([x.noise for x in lin])
     threshold = noise * q
@@ -738,15 +812,25 @@ def screen(
 
     checks = []
     by_score = np.argsort(-explained, kind="stable")
-    top = [int(i) for i in by_score[:n_check] if explained[i] > 0]
-    if n_check and groups is not None:
-        labels = list(groups)
-        if len(labels) != len(cands):
-            raise CalibrationError(f"screen: {len(labels)} group labels for {len(cands)} candidates")
+    # a zoom chain (a sampled candidate and every candidate zoomed from it or its descendants) is one place
+    # refined: only its best takes a check, so near-duplicates of one region do not crowd the others out
+    root = {k: k for k in range(len(cands))}
+    pos = {c.name: k for k, c in enumerate(cands)}
+    for k, par in parent.items():
+        root[k] = root[pos[par]]
+    top, chains = [], set()
+    for i in by_score:
+        if len(top) == n_check or not explained[i] > 0:
+            break
+        if root[int(i)] not in chains:
+            chains.add(root[int(i)])
+            top.append(int(i))
+    if n_check and labels is not None:
         seen = {labels[i] for i in top}
         for i in by_score:
-            if labels[i] not in seen and explained[i] > 0:
+            if labels[i] not in seen and explained[i] > 0 and root[int(i)] not in chains:
                 seen.add(labels[i])
+                chains.add(root[int(i)])
                 top.append(int(i))
     if top:
         if solve is None:
@@ -806,9 +890,10 @@ def screen(
         n_residuals=lin[-1].n_res,
         rank_p=lin[-1].rank,
         timings_s={"baseline refits": t_fit, "linear screening": t_lin,
-                   "linear per candidate and stage": t_lin / (len(cands) * len(stages)),
-                   "nonlinear checks": t3 - t2, "total": t3 - t0,
-                   "cpu: baseline and linear": c2 - c0, "cpu: nonlinear checks": c3 - c2},
+                   "linear per candidate and stage": t_lin / ((len(cands) - len(zoomed)) * len(stages)),
+                   "zoom": t2 - tz, "nonlinear checks": t3 - t2, "total": t3 - t0,
+                   "cpu: baseline and linear": cz - c0, "cpu: zoom": c2 - cz, "cpu: nonlinear checks": c3 - c2},
+        zoomed=tuple(zoomed),
     )
 
 

@@ -142,6 +142,18 @@ class CandidateOptions:
         At most this many candidates per family; more are subsampled
         evenly in space (farthest-point sampling of their centres,
         deterministic). Default 500.
+    zoom_rounds : int
+        Rounds of the zoom of the point families (:data:`POINT_FAMILIES`:
+        ``lumped_mass``, ``ground_spring``) after the linear screening of the
+        spread sample: the same family's candidates at the untested grids
+        nearer the best candidate than any tested grid
+        (:func:`zoom_candidates`), screened linearly, repeated around the new
+        best. 0: no zoom. Default 3.
+    zoom_top : int
+        Best candidates of each point family zoomed per round. Default 3.
+    zoom_grids : int
+        At most this many new grids per zoomed candidate and round (spread
+        over its neighbourhood). Default 12.
     """
 
     contact_factor: float = 1.5
@@ -163,6 +175,9 @@ class CandidateOptions:
     attachment_mass_fraction: float = 0.002
     upper: float = 100.0
     max_per_family: int = 500
+    zoom_rounds: int = 3
+    zoom_top: int = 3
+    zoom_grids: int = 12
 
     def __post_init__(self) -> None:
         def bad(name, why):
@@ -176,7 +191,8 @@ class CandidateOptions:
                 bad(name, "must be a positive finite number")
         if not 0.0 < float(self.contact_axis_deg) < 90.0:
             bad("contact_axis_deg", "must be in (0, 90) degrees")
-        for name, lo in (("contact_hops", 1), ("spread_grids", 1), ("max_per_family", 1), ("cluster_seeds", 1)):
+        for name, lo in (("contact_hops", 1), ("spread_grids", 1), ("max_per_family", 1), ("cluster_seeds", 1),
+                         ("zoom_rounds", 0), ("zoom_top", 1), ("zoom_grids", 1)):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
                 bad(name, f"must be an integer >= {lo}")
@@ -738,22 +754,44 @@ def _structural_rows(ctx: CandidateContext) -> np.ndarray:
     return np.flatnonzero(np.array([bool(p) for p in ctx.grid_parts]))
 
 
+def _ground_rows(ctx: CandidateContext, components) -> np.ndarray:
+    """Structural grid rows with at least one of ``components`` (1..3) free."""
+    rows = _structural_rows(ctx)
+    return rows[np.any(ctx.free[rows][:, [c - 1 for c in components]], axis=1)]
+
+
+def _ground_springs_at(ctx: CandidateContext, row: int, components):
+    g = int(ctx.grid_ids[row])
+    scale = _ground_scale(ctx)
+    for c in components:
+        if not ctx.free[row, c - 1]:
+            continue
+        term = AddedSpring(f"ground_g{g}_{_AXES[c - 1]}", ((g, c, 0, 0),), scale, 0.0, ctx.options.upper,
+                           f"spring to ground at grid {g}, component {c}")
+        yield ctx.candidate("ground_spring", term, (g,),
+                            f"spring to ground {scale:.3g} N/m x p at {ctx.grid_label(g)} along {_AXES[c - 1]}")
+
+
 def ground_spring_family(ctx: CandidateContext):
     """Springs to ground (suspension, fixture) at ``spread_grids`` grids spread over the
     structure, one candidate per grid and component: p = 1 is total mass * (2 pi f_ref)^2."""
-    rows = _structural_rows(ctx)
-    rows = rows[np.any(ctx.free[rows][:, [c - 1 for c in ctx.options.ground_components]], axis=1)]
+    rows = _ground_rows(ctx, ctx.options.ground_components)
     rows = rows[ctx.spread(ctx.xyz[rows], ctx.options.spread_grids)]
-    scale = _ground_scale(ctx)
     for r in rows.tolist():
-        g = int(ctx.grid_ids[r])
-        for c in ctx.options.ground_components:
-            if not ctx.free[r, c - 1]:
-                continue
-            term = AddedSpring(f"ground_g{g}_{_AXES[c - 1]}", ((g, c, 0, 0),), scale, 0.0, ctx.options.upper,
-                               f"spring to ground at grid {g}, component {c}")
-            yield ctx.candidate("ground_spring", term, (g,),
-                                f"spring to ground {scale:.3g} N/m x p at {ctx.grid_label(g)} along {_AXES[c - 1]}")
+        yield from _ground_springs_at(ctx, r, ctx.options.ground_components)
+
+
+def _mass_rows(ctx: CandidateContext) -> np.ndarray:
+    """Structural grid rows with a free translation that are not sensor grids (``lumped_mass``)."""
+    rows = _structural_rows(ctx)
+    return rows[np.any(ctx.free[rows, :3], axis=1) & ~np.isin(ctx.grid_ids[rows], list(ctx.sensors))]
+
+
+def _mass_at(ctx: CandidateContext, row: int) -> Candidate:
+    g = int(ctx.grid_ids[row])
+    scale = ctx.options.lumped_mass_fraction * ctx.total_mass
+    term = AddedMass(f"mass_g{g}", (g,), scale, 0.0, ctx.options.upper, f"lumped mass at grid {g}")
+    return ctx.candidate("lumped_mass", term, (g,), f"lumped mass {scale:.3g} kg x p at {ctx.grid_label(g)}")
 
 
 def lumped_mass_family(ctx: CandidateContext):
@@ -761,8 +799,7 @@ def lumped_mass_family(ctx: CandidateContext):
     ``spread_grids // 4`` grids spread away from the sensors and drives (the grid farthest from
     every one of them first; sensor grids excluded): p = 1 is ``lumped_mass_fraction`` of the
     total mass."""
-    rows = _structural_rows(ctx)
-    rows = rows[np.any(ctx.free[rows, :3], axis=1) & ~np.isin(ctx.grid_ids[rows], list(ctx.sensors))]
+    rows = _mass_rows(ctx)
     pick = set(ctx.spread(ctx.xyz[rows], ctx.options.spread_grids).tolist())
     measured = list(dict.fromkeys(list(ctx.sensors) + [g for g, _ in ctx.drives]))
     if measured and rows.size:
@@ -771,11 +808,8 @@ def lumped_mass_family(ctx: CandidateContext):
                          away_from=ctx.xyz[ctx.grid_index(measured)])
         pick |= set(far.tolist())
     rows = rows[np.array(sorted(pick), dtype=int)]
-    scale = ctx.options.lumped_mass_fraction * ctx.total_mass
     for r in rows.tolist():
-        g = int(ctx.grid_ids[r])
-        term = AddedMass(f"mass_g{g}", (g,), scale, 0.0, ctx.options.upper, f"lumped mass at grid {g}")
-        yield ctx.candidate("lumped_mass", term, (g,), f"lumped mass {scale:.3g} kg x p at {ctx.grid_label(g)}")
+        yield _mass_at(ctx, r)
 
 
 def element_cluster_family(ctx: CandidateContext):
@@ -1081,7 +1115,112 @@ CANDIDATE_FAMILIES: dict[str, Callable[[CandidateContext], Iterable[Candidate]]]
 _FAMILY_NAME = re.compile(r"^[a-z][a-z0-9_]*$")
 
 
-def register_family(name: str, generator, *, replace: bool = False) -> None:
+@dataclass(frozen=True)
+class PointFamily:
+    """How to re-create a point family's candidate at another grid (the zoom, :func:`zoom_candidates`).
+
+    Attributes
+    ----------
+    rows : callable
+        ``rows(ctx, like) -> int array``: the grid rows (of ``ctx.grid_ids``) where the family places a
+        candidate of ``like``'s kind (e.g. the grids whose component is free for a ground spring).
+    at : callable
+        ``at(ctx, like, row) -> Candidate or None``: that candidate at grid row ``row``.
+    key : callable
+        ``key(like) -> hashable``: candidates of the family with equal keys are one kind at different
+        grids (a ground spring's component); default: one kind.
+    """
+
+    rows: Callable
+    at: Callable
+    key: Callable = lambda like: None
+
+
+def _spring_component(like: Candidate) -> int:
+    return int(like.term.dofs[0][1])
+
+
+#: Point families: their candidates act at one grid, and the screening's zoom re-creates them at the grids near
+#: the best ones (:func:`zoom_candidates`). Extended with ``register_family(..., point=PointFamily(...))``.
+POINT_FAMILIES: dict[str, PointFamily] = {
+    "lumped_mass": PointFamily(rows=lambda ctx, like: _mass_rows(ctx), at=lambda ctx, like, row: _mass_at(ctx, row)),
+    "ground_spring": PointFamily(
+        rows=lambda ctx, like: _ground_rows(ctx, (_spring_component(like),)),
+        at=lambda ctx, like, row: next(iter(_ground_springs_at(ctx, row, (_spring_component(like),))), None),
+        key=_spring_component),
+}
+
+
+def zoom_candidates(ctx: CandidateContext, screened, best: Candidate, n: int | None = None) -> tuple:
+    """The candidates of ``best``'s point family at the grids nearer ``best`` than any grid already screened.
+
+    The spread sample of a point family (``spread_grids`` grids) misses an effect at a grid between the
+    sampled ones: its nearest sampled candidate ranks high but explains it only in part. The zoom offers the
+    same family's candidate (same kind: a ground spring's component) at the untested grids of ``best``'s
+    neighbourhood: the grids whose nearest screened grid of that family and kind is ``best``'s (its Voronoi
+    cell among the screened grids; Euclidean distance in basic coordinates, so any deck unit and mesh). A
+    repeated zoom around the new best halves the spacing each round until the neighbourhood holds no
+    untested grid.
+
+    Parameters
+    ----------
+    ctx : CandidateContext
+    screened : iterable of Candidate
+        The candidates screened so far (every family may be given; only ``best``'s family and kind count).
+    best : Candidate
+        A candidate of a point family (:data:`POINT_FAMILIES`) acting at one grid.
+    n : int, optional
+        At most this many new candidates, spread evenly over the neighbourhood (farthest-point sampling away
+        from ``best``'s grid); default ``ctx.options.zoom_grids``.
+
+    Returns
+    -------
+    tuple of Candidate
+        New candidates (none of ``screened``), in grid-row order; empty when ``best`` acts at several grids
+        or its neighbourhood is screened already.
+
+    Raises
+    ------
+    ParameterError
+        ``best`` is not of a point family.
+    """
+    from scipy.spatial import cKDTree
+
+    pf = POINT_FAMILIES.get(best.family)
+    if pf is None:
+        raise ParameterError(f"zoom_candidates: family {best.family!r} of {best.name!r} is not a point family "
+                             f"(known: {', '.join(POINT_FAMILIES)})")
+    n = ctx.options.zoom_grids if n is None else int(n)
+    if len(best.grids) != 1 or n < 1:
+        return ()
+    kind = pf.key(best)
+    tested = {best.grids[0]}
+    tested |= {c.grids[0] for c in screened
+               if c.family == best.family and len(c.grids) == 1 and pf.key(c) == kind}
+    trows = ctx.grid_index(sorted(tested))
+    rows = np.asarray(pf.rows(ctx, best), dtype=int)
+    rows = rows[~np.isin(rows, trows)]
+    if not rows.size:
+        return ()
+    b = ctx.xyz[int(ctx.grid_index([best.grids[0]])[0])]
+    d_near, _ = cKDTree(ctx.xyz[trows]).query(ctx.xyz[rows])
+    d_best = np.linalg.norm(ctx.xyz[rows] - b, axis=1)
+    cell = rows[d_best <= d_near * (1.0 + 1e-9)]  # ties (equidistant grids) belong to every tied cell
+    if not cell.size:
+        return ()
+    cell = cell[ctx.spread(ctx.xyz[cell], n, away_from=b[None, :])]
+    out = []
+    for r in cell.tolist():
+        c = pf.at(ctx, best, int(r))
+        if c is not None and c.name not in ctx.used_names:
+            if not isinstance(c, Candidate) or c.family != best.family:
+                raise ParameterError(f"point family {best.family!r} made {c!r:.120}, not a Candidate of its family")
+            out.append(c)
+    return tuple(out)
+
+
+
+def register_family(name: str, generator, *, replace: bool = False, point: PointFamily | None = None) -> None:
     """Add a candidate family to :data:`CANDIDATE_FAMILIES`.
 
     Parameters
@@ -1095,6 +1234,10 @@ def register_family(name: str, generator, *, replace: bool = False) -> None:
         name no other candidate uses.
     replace : bool
         Allow replacing a registered family of that name.
+    point : PointFamily, optional
+        The family acts at single grids and can be re-created at any grid:
+        registered in :data:`POINT_FAMILIES`, the screening zooms it
+        (:func:`zoom_candidates`).
 
     Raises
     ------
@@ -1108,11 +1251,18 @@ def register_family(name: str, generator, *, replace: bool = False) -> None:
         raise ParameterError(f"register_family {name!r}: generator must be callable, got {type(generator).__name__}")
     if name in CANDIDATE_FAMILIES and not replace:
         raise ParameterError(f"register_family: family {name!r} is already registered (pass replace=True)")
+    if point is not None and not isinstance(point, PointFamily):
+        raise ParameterError(f"register_family {name!r}: point must be a PointFamily, got {type(point).__name__}")
     CANDIDATE_FAMILIES[name] = generator
+    if point is not None:
+        POINT_FAMILIES[name] = point
+    elif replace:
+        POINT_FAMILIES.pop(name, None)
 
 
 def generate_candidates(model, *, sensors=(), drives=(), families=None,
-                        options: CandidateOptions | None = None) -> tuple[Candidate, ...]:
+                        options: CandidateOptions | None = None,
+                        context: CandidateContext | None = None) -> tuple[Candidate, ...]:
     """Candidate effects of a model and a test set-up, family by family.
 
     Parameters
@@ -1128,6 +1278,10 @@ def generate_candidates(model, *, sensors=(), drives=(), families=None,
         Registered family names (default: all of :data:`CANDIDATE_FAMILIES`,
         in registry order).
     options : CandidateOptions, optional
+    context : CandidateContext, optional
+        A context of ``model`` built by :func:`candidate_context` (reused,
+        e.g. for :func:`zoom_candidates` afterwards; ``sensors``, ``drives``
+        and ``options`` are then its own and must not be given).
 
     Returns
     -------
@@ -1146,7 +1300,13 @@ def generate_candidates(model, *, sensors=(), drives=(), families=None,
     unknown = [f for f in names if f not in CANDIDATE_FAMILIES]
     if unknown:
         raise ParameterError(f"unknown candidate families {unknown}; known: {', '.join(CANDIDATE_FAMILIES)}")
-    ctx = candidate_context(model, sensors=sensors, drives=drives, options=options)
+    if context is None:
+        ctx = candidate_context(model, sensors=sensors, drives=drives, options=options)
+    elif tuple(sensors) or tuple(drives) or options is not None:
+        raise ParameterError("generate_candidates: give sensors, drives and options to candidate_context, "
+                             "not beside context")
+    else:
+        ctx = context
     out: list[Candidate] = []
     seen = set(ctx.used_names)
     for fam in dict.fromkeys(names):

@@ -468,20 +468,24 @@ def _screen_member(camp: Campaign, pm, model, load, eq, m, quantity, log, execut
     c, cfg = camp.calibration, camp.diagnosis
     lo, hi = camp.band.low_hz, camp.band.high_hz
     t0 = time.perf_counter()
-    cands, terms = member_candidates(camp, pm, load, m.p, log)
+    cands, terms, cctx = member_candidates(camp, pm, load, m.p, log)
+    zoom = point_zoom(cctx, pm, m.p, cands, terms)
     sur, T = m.surrogate, m.basis
     if T is None:  # not stored: rebuilt at the calibrated point
         sur, T = build_surrogate(model, m.p, (lo, hi), c.basis_factor, enrich=c.enrich)
     data, cont = eq.member(m.articles)
     scr = screen(sur, T, m.p, data, c.zeta0, terms, pm.lower, pm.upper, quantity=quantity, model=model, n_check=cfg.top_n,
                  shift_hz=max(lo / 4.0, hi / 50.0), continuation=cont, max_nfev=cfg.max_evaluations,
-                 executor=executor, groups=[cd.family for cd in cands])
+                 executor=executor, groups=[cd.family for cd in cands], zoom=zoom,
+                 zoom_rounds=cctx.options.zoom_rounds)
     counts: dict = {}
     for cd in cands:
         counts[cd.family] = counts.get(cd.family, 0) + 1
     rows = ranked_table(cands, scr)
-    ctx = dict(cands=cands, terms=terms, sur=sur, T=T, data=data, cont=cont, screening=scr)
-    log(f"[{m.label}] screened {len(cands)} candidates in {time.perf_counter() - t0:.1f} s; first: "
+    ctx = dict(cands=cands, terms=terms, sur=sur, T=T, data=data, cont=cont, screening=scr, zoom=zoom,
+               zoom_rounds=cctx.options.zoom_rounds)
+    log(f"[{m.label}] screened {len(cands)} candidates ({len(scr.zoomed)} of them zoomed) in "
+        f"{time.perf_counter() - t0:.1f} s; first: "
         + "; ".join(f"{r['family']} {r['name']} ({r['size']}, explained {100 * r['explained']:.1f} %)"
                     for r in rows[:3]))
     return counts, rows, scr, ctx
@@ -601,6 +605,7 @@ def _accept_member(camp, load, pm, model, articles, m, check, rows, ctx, quantit
     screened_after = None
     n_effects = 0  # a compound effect (several terms) counts once against max_effects
     for _ in range(cfg.max_effects):
+        by_name = {t.name: t for t in ctx["terms"]}  # the re-screening's zoom may have added candidates
         best = None
         for r in order:
             new = list(r.get("members", [r["name"]]))
@@ -770,7 +775,7 @@ def _rescreen(camp, model, m, ctx, fit, accepted, quantity, executor, log):
     scr = screen(fit.surrogate, fit.basis, fit.x, ctx["data"], c.zeta0, rest, fit.lower, fit.upper,
                  quantity=quantity, model=extended_model(model, [by_name[a] for a in accepted]), n_check=cfg.top_n,
                  shift_hz=shift, continuation=ctx["cont"], max_nfev=cfg.max_evaluations, executor=executor,
-                 groups=[family[t.name] for t in rest])
+                 groups=[family[t.name] for t in rest], zoom=ctx["zoom"], zoom_rounds=ctx["zoom_rounds"])
     rows = ranked_table(ctx["cands"], scr)
     n_p = fit.surrogate.n_params - len(accepted)
     starts = {}
@@ -778,7 +783,7 @@ def _rescreen(camp, model, m, ctx, fit, accepted, quantity, executor, log):
         chk = scr.check(r["name"])
         if chk is not None:
             starts[r["name"]] = (chk.p[:n_p], list(chk.p[n_p:]) + [chk.c])
-    log(f"[{m.label}] re-screened {len(rest)} candidates with {' + '.join(accepted)} in "
+    log(f"[{m.label}] re-screened {len(rest) + len(scr.zoomed)} candidates ({len(scr.zoomed)} zoomed) with {' + '.join(accepted)} in "
         f"{time.perf_counter() - t0:.1f} s; first: "
         + "; ".join(f"{r['family']} {r['name']} ({r['size']}, explained {100 * r['explained']:.1f} %)"
                     for r in rows[:3]))
@@ -897,6 +902,9 @@ def diagnose_stage(camp: Campaign, load, pm, model, articles, eq, cal, val, xval
             acc, trials, after, fit = _accept_member(camp, load, pm, model, articles, m, check, rows, ctx,
                                                      quantity, executor, log)
             rows = holdout_ranking(ctx["cands"], scr, trials)
+            counts = {}  # screened per family, the zoomed candidates (first screening and re-screenings) included
+            for cd in ctx["cands"]:
+                counts[cd.family] = counts.get(cd.family, 0) + 1
             if after is not None:
                 sd["after"] = after
             if acc:
@@ -1022,9 +1030,11 @@ def member_candidates(camp: Campaign, pm, load, p, log=print) -> tuple:
 
     Sensors are the grids of the calibration and hold-out channels, drives the
     drive channels' grids and directions.
+
+    Returns (list of Candidate, list of CandidateTerm, femodel.CandidateContext: for the zoom,
+    :func:`point_zoom`).
     """
-    from calibration import CandidateTerm
-    from femodel import CandidateOptions, ParameterError, generate_candidates
+    from femodel import CandidateOptions, ParameterError, candidate_context, generate_candidates
 
     cfg = camp.diagnosis
     try:
@@ -1035,16 +1045,58 @@ def member_candidates(camp: Campaign, pm, load, p, log=print) -> tuple:
         raise CalibrationError(f"[diagnosis] candidates: {exc}") from None
     sensors = tuple(dict.fromkeys(t.grid for t in load.channels))
     drives = tuple((t.grid, tuple(t.direction)) for t in load.drives)
-    cands = generate_candidates(pm, sensors=sensors, drives=drives, families=cfg.families, options=opts)
-    terms = []
-    for c in cands:
-        d = pm.term_derivative(c.term, p)
-        terms.append(CandidateTerm(c.name, d["K"], d["M"], c.term.lower, c.term.upper))
+    cctx = candidate_context(pm, sensors=sensors, drives=drives, options=opts)
+    cands = list(generate_candidates(pm, families=cfg.families, context=cctx))
+    terms = [candidate_term(pm, c, p) for c in cands]
     counts = {}
     for c in cands:
         counts[c.family] = counts.get(c.family, 0) + 1
     log("candidates: " + ", ".join(f"{k} {v}" for k, v in counts.items()))
-    return cands, terms
+    return cands, terms, cctx
+
+
+def candidate_term(pm, cand, p):
+    """The screening's CandidateTerm of a femodel Candidate: its dK, dM at ``p``."""
+    from calibration import CandidateTerm
+
+    d = pm.term_derivative(cand.term, p)
+    return CandidateTerm(cand.name, d["K"], d["M"], cand.term.lower, cand.term.upper)
+
+
+def point_zoom(cctx, pm, p, cands: list, terms: list):
+    """The screening's zoom of the point families (``calibration.screen(zoom=...)``), or None.
+
+    Each call (a round) takes the ``zoom_top`` best candidates (linear explained > 0) of every point family
+    (``femodel.POINT_FAMILIES``: lumped masses, ground springs) and offers the same family's candidates at
+    the untested grids of their neighbourhoods (``femodel.zoom_candidates``, at most ``zoom_grids`` each);
+    the new candidates and their terms (dK, dM at ``p``) are appended to ``cands`` and ``terms`` (the
+    campaign's lists: ranking, acceptance and re-screening see them as any other candidate). None when
+    ``zoom_rounds`` is 0 or no candidate is of a point family.
+    """
+    from femodel import POINT_FAMILIES, zoom_candidates
+
+    o = cctx.options
+    fams = [f for f in POINT_FAMILIES if any(c.family == f for c in cands)]
+    if not o.zoom_rounds or not fams:
+        return None
+
+    def zoom(names, explained):
+        score = dict(zip(names, np.asarray(explained, float).tolist()))
+        new: list = []
+        parents: list = []
+        for fam in fams:
+            best = sorted((c for c in cands if c.family == fam and score.get(c.name, 0.0) > 0.0),
+                          key=lambda c: -score[c.name])[:o.zoom_top]
+            for b in best:
+                got = zoom_candidates(cctx, cands + new, b)
+                new.extend(got)
+                parents += [b.name] * len(got)
+        out = [(candidate_term(pm, c, p), c.family, par) for c, par in zip(new, parents)]
+        cands.extend(new)
+        terms.extend(t for t, _, _ in out)
+        return out
+
+    return zoom
 
 
 def ranked_table(cands, scr, n: int = 10) -> tuple:

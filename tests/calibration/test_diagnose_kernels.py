@@ -344,6 +344,60 @@ def test_screen_rejects_bad_input(frame):
         CandidateTerm("b", np.eye(4), None, 1, 0)
 
 
+def test_zoomed_candidates_score_as_if_screened_from_the_start_and_are_checked(frame):
+    """The zoom's candidates are scored at the stages' baselines as they stand: the same linear fractions and
+    magnitudes as in one screening of them all; they take part in the significance test (Bonferroni over
+    the total) and in the nonlinear checks, and the callback sees the grown list each round."""
+    pm, model, sur, T, terms, cands = frame
+    data = _truth_data(pm, model, AddedMass("m_truth", (30,), 0.5), 1.0, sigma=0.005)
+    held = {"m30", "m31", "m29", next(c.name for c in cands if c.name.startswith("kg"))}
+    first = [c for c in cands if c.name not in held]
+    later = [c for c in cands if c.name in held]
+    calls = []
+
+    def zoom(names, explained):
+        calls.append((len(names), len(explained)))
+        if len(calls) == 1:  # m29, m30 (in grid order) refine m28
+            return [(c, "mass" if c.name.startswith("m") else "spring", "m28") for c in later[:2]]
+        if len(calls) == 2:  # and m31 refines m30, the spring m28 too
+            return [(c, "mass" if c.name.startswith("m") else "spring", "m30" if c.name == "m31" else "m28")
+                    for c in later[2:]]
+        return []
+
+    groups = ["mass" if c.name.startswith("m") else "other" for c in first]
+    s = screen(sur, T, np.zeros(pm.n_params), data, ZETA, first, pm.lower, pm.upper, model=model, shift_hz=SHIFT_HZ,
+               n_check=3, groups=groups, zoom=zoom, zoom_rounds=5)
+    full = _screen(frame, data, n_check=0)
+    assert calls == [(len(first), len(first)), (len(first) + 2, len(first) + 2), (len(cands), len(cands))]
+    assert s.names == tuple(c.name for c in first + later) and set(s.zoomed) == held
+    idx = [full.names.index(n) for n in s.names]
+    np.testing.assert_allclose(s.explained, full.explained[idx], rtol=1e-9, atol=1e-14)
+    np.testing.assert_allclose(s.c_linear, full.c_linear[idx], rtol=1e-9, atol=1e-14)
+    np.testing.assert_allclose(s.threshold, full.threshold, rtol=1e-12)  # the same total count
+    assert s.best == "m30" and s.check("m30").c == pytest.approx(1.0, rel=0.2)
+    # one check per zoom chain: m28 and everything zoomed from it (m29, m30, m31, the spring) are one place
+    chain = {"m28"} | held
+    assert [c.name for c in s.checks if c.name in chain] == ["m30"]
+    assert len(s.checks) >= 3
+    assert s.timings_s["zoom"] >= 0 and "zoomed" in s.to_dict()
+    # bounded rounds; a candidate offered twice or of the wrong type is refused
+    n = []
+    _screen(frame, data, n_check=0, zoom=lambda names, e: n.append(1) or [], zoom_rounds=0)
+    assert not n
+    with pytest.raises(CalibrationError, match="screened already"):
+        screen(sur, T, np.zeros(pm.n_params), data, ZETA, first, pm.lower, pm.upper, n_check=0,
+               zoom=lambda names, e: [(first[0], "x", first[1].name)])
+    with pytest.raises(CalibrationError, match="not screened"):
+        screen(sur, T, np.zeros(pm.n_params), data, ZETA, first, pm.lower, pm.upper, n_check=0,
+               zoom=lambda names, e: [(later[0], "x", "nope")])
+    with pytest.raises(CalibrationError, match="parent name"):
+        screen(sur, T, np.zeros(pm.n_params), data, ZETA, first, pm.lower, pm.upper, n_check=0,
+               zoom=lambda names, e: [(later[0], "x")])
+    with pytest.raises(CalibrationError, match="not CandidateTerm"):
+        screen(sur, T, np.zeros(pm.n_params), data, ZETA, first, pm.lower, pm.upper, n_check=0,
+               zoom=lambda names, e: [("m30", "x", "m28")])
+
+
 def _contact(terms):
     contact = [t for t in terms if t.name.startswith("kc")]
     return contact[len(contact) // 2]

@@ -10,6 +10,7 @@ import pytest
 
 from femodel import (
     CANDIDATE_FAMILIES,
+    POINT_FAMILIES,
     AddedMass,
     CandidateOptions,
     ParameterError,
@@ -22,6 +23,7 @@ from femodel import (
     parametric_model,
     read_bdf,
     register_family,
+    zoom_candidates,
 )
 
 from ._decks import frame_deck
@@ -412,6 +414,9 @@ def test_registry_user_family_and_errors(frame_pm, monkeypatch):
     (dict(ground_components=(4,)), "ground_components"),
     (dict(spread_grids=2.5), "spread_grids"),
     (dict(max_per_family=0), "max_per_family"),
+    (dict(zoom_rounds=-1), "zoom_rounds"),
+    (dict(zoom_top=0), "zoom_top"),
+    (dict(zoom_grids=1.5), "zoom_grids"),
     (dict(f_ref_hz=True), "f_ref_hz"),
 ])
 def test_options_validated_with_the_field_named(kwargs, field):
@@ -491,3 +496,87 @@ def test_a_gap_facing_a_welded_corner_is_one_contact_candidate(tmp_path):
     assert all(_contact_pairs(c) <= gap for c in cands)  # nothing else faces anything in this deck
     plain = example_subframe(tmp_path / "plain", target_dof=1500)
     assert generate_candidates(parametric_model(plain.params), families=["contact_spring"]) == ()
+
+
+def _grid_xyz(ctx, grids):
+    return ctx.xyz[ctx.grid_index(list(grids))]
+
+
+@pytest.mark.parametrize("family", ["lumped_mass", "ground_spring"])
+def test_zoom_offers_the_family_at_the_untested_grids_nearest_the_best(frame_pm, family):
+    """The zoom's neighbourhood of a point candidate: the grids, eligible for its family and kind, whose nearest
+    screened grid is the candidate's (its Voronoi cell among the screened grids), none screened; spread over
+    the cell when it holds more than ``n``; repeated around a new best it reaches every grid of the family."""
+    sensors, drives = _setup(frame_pm)
+    ctx = candidate_context(frame_pm, sensors=sensors, drives=drives, options=CandidateOptions(spread_grids=6))
+    screened = [c for c in generate_candidates(frame_pm, families=[family], context=ctx)]
+    if family == "ground_spring":
+        screened_kind = [c for c in screened if c.term.dofs[0][1] == 3]
+    else:
+        screened_kind = screened
+    best = screened_kind[len(screened_kind) // 2]
+    new = zoom_candidates(ctx, screened, best, n=1000)
+    assert new and all(c.family == family and len(c.grids) == 1 for c in new)
+    if family == "ground_spring":  # the same component as the best: z
+        assert all(c.term.dofs == ((c.grids[0], 3, 0, 0),) for c in new)
+    tested = {c.grids[0] for c in screened_kind}
+    got = {c.grids[0] for c in new}
+    assert not got & tested
+    # exactly the cell: every eligible untested grid nearer best than any other screened grid
+    every = {c.grids[0] for c in generate_candidates(
+        frame_pm, families=[family], context=candidate_context(
+            frame_pm, sensors=sensors, drives=drives, options=CandidateOptions(spread_grids=10_000)))
+        if family == "lumped_mass" or c.term.dofs[0][1] == 3}
+    untested = sorted(every - tested)
+    d_best = np.linalg.norm(_grid_xyz(ctx, untested) - _grid_xyz(ctx, best.grids), axis=1)
+    d_near = np.min(np.linalg.norm(_grid_xyz(ctx, untested)[:, None] - _grid_xyz(ctx, sorted(tested))[None], axis=2),
+                    axis=1)
+    assert got == {g for g, a, b in zip(untested, d_best, d_near) if a <= b * (1 + 1e-9)}
+    # at most n, spread over the cell: the farthest cell grid from the best comes first
+    few = zoom_candidates(ctx, screened, best, n=2)
+    far = max(got, key=lambda g: np.linalg.norm(_grid_xyz(ctx, [g]) - _grid_xyz(ctx, best.grids)))
+    assert len(few) == 2 and far in {c.grids[0] for c in few}
+    # candidates are the family's own (the same terms as generated), so the names never clash
+    assert all(c.name.startswith("mass_g" if family == "lumped_mass" else "ground_g") for c in new)
+    # zooming around whatever is best next, the family's every grid of the kind is reached
+    seen = list(screened)
+    for _ in range(200):
+        nxt = [c for b in list(seen) if b.family == family and (family == "lumped_mass" or b.term.dofs[0][1] == 3)
+               for c in zoom_candidates(ctx, seen, b, n=3)]
+        if not nxt:
+            break
+        seen += list({c.name: c for c in nxt}.values())
+    assert {c.grids[0] for c in seen if family == "lumped_mass" or c.term.dofs[0][1] == 3} == every
+
+
+def test_zoom_errors_and_user_point_family(frame_pm, monkeypatch):
+    monkeypatch.setattr("femodel._candidates.CANDIDATE_FAMILIES", dict(CANDIDATE_FAMILIES))
+    monkeypatch.setattr("femodel._candidates.POINT_FAMILIES", dict(POINT_FAMILIES))
+    from femodel import PointFamily, _candidates
+
+    ctx = candidate_context(frame_pm, options=CandidateOptions(spread_grids=4))
+    cluster = generate_candidates(frame_pm, families=["element_cluster"], context=ctx)[0]
+    with pytest.raises(ParameterError, match="not a point family"):
+        zoom_candidates(ctx, [], cluster)
+
+    def clamp_at(ctx, like, row):
+        g = int(ctx.grid_ids[row])
+        return ctx.candidate("clamp", AddedMass(f"clamp_g{g}", (g,), 0.5), (g,), f"clamp at {ctx.grid_label(g)}")
+
+    def clamps(ctx):
+        rows = np.flatnonzero(ctx.xyz[:, 0] > np.median(ctx.xyz[:, 0]))
+        yield from (clamp_at(ctx, None, r) for r in rows[ctx.spread(ctx.xyz[rows], 3)])
+
+    with pytest.raises(ParameterError, match="PointFamily"):
+        register_family("clamp", clamps, point=clamp_at)
+    register_family("clamp", clamps, point=PointFamily(
+        rows=lambda ctx, like: np.flatnonzero(ctx.xyz[:, 0] > np.median(ctx.xyz[:, 0])), at=clamp_at))
+    assert "clamp" in _candidates.POINT_FAMILIES
+    first = generate_candidates(frame_pm, families=["clamp"], context=ctx)
+    assert len(first) == 3
+    new = zoom_candidates(ctx, first, first[0])
+    assert new and all(c.family == "clamp" for c in new) and not {c.name for c in new} & {c.name for c in first}
+    register_family("clamp", clamps, replace=True)  # replaced without point: no longer zoomed
+    assert "clamp" not in _candidates.POINT_FAMILIES
+    with pytest.raises(ParameterError, match="not beside context"):
+        generate_candidates(frame_pm, families=["clamp"], context=ctx, options=CandidateOptions())
