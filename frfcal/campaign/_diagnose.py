@@ -204,6 +204,69 @@ def member_residual(camp: Campaign, load, articles, member, cfg=None, model=None
     return check, model_frfs
 
 
+# ----------------------------------------------------------------------------- screening target
+
+
+@dataclass(frozen=True)
+class ScreeningTarget:
+    """What the screening and the acceptance's fits compare the model with, per article, at zeta0 and at each
+    continuation damping (the interface of :class:`frfcal.campaign._stages.EqualizeResult`).
+
+    kind : "debiased" or "equalized" (``[diagnosis] target``)
+    data : tuple of FitData, one per article, at zeta0
+    continuation : tuple of (zeta, tuple of FitData per article)
+    """
+
+    kind: str
+    data: tuple
+    continuation: tuple = ()
+
+    def member(self, idx):
+        """(data, continuation) of the articles ``idx``, as :func:`calibration.screen` takes them."""
+        return ([self.data[i] for i in idx],
+                [(z, [d[i] for i in idx]) for z, d in self.continuation])
+
+
+def debiased_data(article: Article, channels, zeta: float) -> FitData:
+    """The article's raw lines on ``channels`` with its identified poles' damping raised to ``zeta``
+    (:func:`calibration.debiased_target`), weighted per line by its share of log f.
+
+    ``T = H_raw + H_id(max(zeta_id, zeta)) - H_id(zeta_id)``: the identified
+    model enters only through the damping change of its own physical poles,
+    so its misfit to the lines (the mass line below the first mode, a mode
+    labelled negligible) cancels. The raw lines are uneven (dense at the
+    resonances); :func:`calibration.log_frequency_weights` makes the sum over
+    them a quadrature in log f, the measure of the equalized target's
+    half-bandwidth grid.
+    """
+    from dataclasses import replace
+
+    from calibration import debiased_target, log_frequency_weights
+    from frfcal.campaign._stages import raw_data
+
+    raw = raw_data(article, channels)
+    ident = article.identification
+    if ident.model.n_in != len(article.drives):
+        raise CalibrationError(f"article {article.name!r} ({article.path.name}): its identified model has "
+                               f"{ident.model.n_in} inputs, the run file {len(article.drives)} drives "
+                               f"{list(article.drives)}: [diagnosis] target = \"debiased\" needs one per drive "
+                               "(use target = \"equalized\")")
+    t = debiased_target(raw, ident, article.ident_channels, zeta)
+    return replace(t, weights=log_frequency_weights(t.freq_hz))
+
+
+def screening_target(camp: Campaign, articles, eq) -> ScreeningTarget:
+    """The screening's target of every article (``[diagnosis] target``): the equalize stage's data
+    (``"equalized"``) or the debiased raw lines at zeta0 and at the continuation dampings (``"debiased"``)."""
+    if camp.diagnosis.target == "equalized":
+        return ScreeningTarget("equalized", tuple(eq.data), tuple(eq.continuation))
+    chans = camp.channels.calibrate
+    c = camp.calibration
+    data = tuple(debiased_data(a, chans, c.zeta0) for a in articles)
+    cont = tuple((z, tuple(debiased_data(a, chans, z) for a in articles)) for z in c.continuation_zeta)
+    return ScreeningTarget("debiased", data, cont)
+
+
 # ----------------------------------------------------------------------------- nonlinearity
 
 
@@ -867,6 +930,7 @@ def diagnose_stage(camp: Campaign, load, pm, model, articles, eq, cal, val, xval
         gate[name] = (nl, runs, notes)
     gates = tuple(ArticleGate(name, nl, runs, notes) for name, (nl, runs, notes) in gate.items())
     by_name = {g.article: g for g in gates}
+    target = None  # built once, when a member is screened
     out, fits = [], []
     for m, v, x in zip(cal.members, val.members, xval.members):
         names = tuple(dict.fromkeys(articles[i].name for i in m.articles))
@@ -898,7 +962,9 @@ def diagnose_stage(camp: Campaign, load, pm, model, articles, eq, cal, val, xval
                       f"nonlinearly: {what}; no linear effect is accepted in its place")
         else:
             quantity = articles[m.articles[0]].quantity
-            counts, rows, scr, ctx = _screen_member(camp, pm, model, load, eq, m, quantity, log, executor)
+            if target is None:
+                target = screening_target(camp, articles, eq)
+            counts, rows, scr, ctx = _screen_member(camp, pm, model, load, target, m, quantity, log, executor)
             acc, trials, after, fit = _accept_member(camp, load, pm, model, articles, m, check, rows, ctx,
                                                      quantity, executor, log)
             rows = holdout_ranking(ctx["cands"], scr, trials)
@@ -930,7 +996,7 @@ def diagnose_stage(camp: Campaign, load, pm, model, articles, eq, cal, val, xval
         out.append(MemberDiagnosis(m.label, names, verdict, reason, check, nl_modes, sd, chans, counts, rows, scr,
                                    acc, trials, None if extended is None else extended[0],
                                    None if extended is None else np.asarray(extended[1], float), overlay))
-    return DiagnosisResult(gates, tuple(out), _separations(camp, articles, eq, groups, fits, log))
+    return DiagnosisResult(gates, tuple(out), _separations(camp, articles, target or eq, groups, fits, log))
 
 
 def _separations(camp: Campaign, articles, eq, groups, fits, log) -> tuple:

@@ -351,6 +351,12 @@ class DiagnosisSection(_Strict):
     top_n: int = Field(5, ge=1, description="candidates re-fitted nonlinearly after the linear screening")
     max_effects: int = Field(2, ge=1, description="at most this many effects accepted")
     max_evaluations: int = Field(40, ge=5, description="residual evaluations per screening fit stage")
+    target: Literal["debiased", "equalized"] = Field(
+        "debiased", description="what the screening and the acceptance's fits compare the model with: "
+        "'debiased' = the raw calibration lines with the identified poles' damping raised to zeta0 and to each "
+        "continuation damping (calibration.debiased_target; the identification's misfit cancels), weighted per "
+        "line as a quadrature in log f; 'equalized' = the identified model equalized to those dampings on the "
+        "half-bandwidth grids (the paper's target; it carries the identification's misfit)")
 
 
 class OutputSection(_Strict):

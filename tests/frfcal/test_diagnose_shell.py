@@ -53,37 +53,18 @@ _EQUALIZED = ("the identified model does not fit its data (fit SD 0.17-0.20, mos
               "between the first modes; equalized SD 0.29 even on the control) and the equalized target's error, "
               "the same in every case, swamps the effect's raw residual (0.02)")
 
+#: the reasons below were measured with ``[diagnosis] target = "equalized"`` (the screening's target before the
+#: debiased raw lines became the default); with ``"debiased"`` the element cluster passes every criterion
+#: (truth ranked 1st by the screening, 92.2 % explained; accepted, factor 0.699; hold-out 6.98e-4 = 1.2 x the
+#: floor 5.8e-4), and so does the lumped mass (mass_g44 ranked 1st, 25.8 %; accepted, 0.230 kg (+3 %); hold-out
+#: 1.36e-3 = 1.08 x the floor 1.26e-3), the ground spring (ground_g15_z 1st, 17.4 %; accepted 7.17e4 N/m, -1 %;
+#: refined hold-out 1.32e-3) and the sensor mass (1st, 11.7 %; accepted 1.70 g, +2 %; refined hold-out 1.00e-3), the
+#: test's assertions evaluated on one run each; the shaker attachment was not re-measured (docs/diagnosis.md "The
+#: screening's target"): its strict xfails below are the equalized target's and may now XPASS
+_MEASURED = " [measured with target = equalized]"
+
 #: (family, test) -> measured reason the criterion is not met (strict xfail: a fix turns it into a failure)
 XFAIL: dict = {
-    ("element_cluster", "rank"): (
-        "the standard cluster (K x 0.7 on 9 CQUAD4 of PSHELL 1) moves the shell's modes by up to 16 half-power "
-        "bandwidths (MAC down to 0.36; residual 12.7 x its floor); " + _EQUALIZED + ": no candidate's linear score "
-        "exceeds 7.4 % at any stage (zeta 0.08, 0.03, 0.01), the exact truth (cluster_PSHELL1_e17_r2_K, Jaccard 1) "
-        "has 1.8 % (c* -0.17 vs -0.30) and ranks 37th of 496, below the top_n = 5 nonlinear checks; a 2-element "
-        "PSHELL 20 cluster 0.5 m away ranks first at 9.4 % (identification/equalize, screening)"),
-    ("element_cluster", "accept"): (
-        "the truth is never checked; a 2-element PSHELL 20 cluster at its factor bound (x4.0) is accepted, "
-        "hold-out 0.231 -> 0.109, 190 x the truth's floor 5.8e-4 (identification/equalize, screening)"),
-    ("lumped_mass", "rank"): (
-        "residual significant (4.6 x floor) but " + _EQUALIZED + ": the true mass (grid 44, 0.223 kg) has linear c* "
-        "< 0 (clipped, 0 % explained) and ranks 492nd of 496; ground spring g110 y ranks first at 2.9 %"),
-    ("lumped_mass", "accept"): (
-        "nothing accepted: the five checked candidates (ground springs in y, mass at grid 251) raise the raw "
-        "hold-out 0.0229 -> 0.13-0.25 (identification/equalize)"),
-    ("ground_spring", "rank"): (
-        "residual significant (4.5 x floor; the calibration absorbs the shifts: no mode off by more than 0.3 "
-        "half-power bandwidths) but " + _EQUALIZED + ": the true spring (grid 15, z, 7.24e4 N/m) explains 0.36 % "
-        "and ranks 169th of 496; ground spring g110 y ranks first at 2.7 %"),
-    ("ground_spring", "accept"): (
-        "nothing accepted: the five checked candidates raise the raw hold-out 0.0283 -> 0.15-0.23 "
-        "(identification/equalize)"),
-    ("sensor_mass", "rank"): (
-        "residual significant (3.6 x floor; the calibration absorbs the shifts of 1.67 g on each of 16 sensors: no "
-        "mode off by more than 0.5 half-power bandwidths) but " + _EQUALIZED + ": the true common sensor mass has "
-        "linear c* < 0 (clipped, 0 %) and ranks 433rd of 496; ground spring g197 x ranks first at 6.3 %"),
-    ("sensor_mass", "accept"): (
-        "nothing accepted: the five checked candidates raise the raw hold-out 0.0069 -> 0.10-0.17 "
-        "(identification/equalize)"),
     ("shaker_attachment", "rank"): (
         "residual significant (12.2 x floor) but " + _EQUALIZED + ": the true attachment mass (11.5 g at drive grid "
         "150) explains 1.6 % and ranks 20th of 496, its stinger spring (1.56e5 N/m, z) 0 % (430th); a 2-element "
@@ -92,6 +73,8 @@ XFAIL: dict = {
         "nothing accepted: the five checked candidates raise the raw hold-out 0.150 -> 0.23-0.32 "
         "(identification/equalize)"),
 }
+
+XFAIL = {k: v + _MEASURED for k, v in XFAIL.items()}
 
 #: every family case is slow (a 1584-DOF case is 220-280 s CPU: 105-175 s in the main process, 105-120 s in the
 #: pool); the control (74 s CPU) runs by default
