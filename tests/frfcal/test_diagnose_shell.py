@@ -49,32 +49,22 @@ FAMILIES = dict(_FRAME_FAMILIES, lumped_mass=("lumped_mass",))
 #: equalized residual is then the identification's error, the same in every case: the same ground springs in y
 #: (grids 110, 108, 124, 98, 250) and a mass at grid 251 rank first with 2-9 % explained whatever the truth is,
 #: and their trials raise the raw hold-out 1.5-25 x.
-_EQUALIZED = ("the identified model does not fit its data (fit SD 0.17-0.20, mostly at 90-300 Hz below and "
-              "between the first modes; equalized SD 0.29 even on the control) and the equalized target's error, "
-              "the same in every case, swamps the effect's raw residual (0.02)")
 
-#: the reasons below were measured with ``[diagnosis] target = "equalized"`` (the screening's target before the
+
+#: that was measured with ``[diagnosis] target = "equalized"`` (the screening's target before the
 #: debiased raw lines became the default); with ``"debiased"`` the element cluster passes every criterion
 #: (truth ranked 1st by the screening, 92.2 % explained; accepted, factor 0.699; hold-out 6.98e-4 = 1.2 x the
 #: floor 5.8e-4), and so does the lumped mass (mass_g44 ranked 1st, 25.8 %; accepted, 0.230 kg (+3 %); hold-out
 #: 1.36e-3 = 1.08 x the floor 1.26e-3), the ground spring (ground_g15_z 1st, 17.4 %; accepted 7.17e4 N/m, -1 %;
 #: refined hold-out 1.32e-3) and the sensor mass (1st, 11.7 %; accepted 1.70 g, +2 %; refined hold-out 1.00e-3), the
-#: test's assertions evaluated on one run each; the shaker attachment was not re-measured (docs/diagnosis.md "The
-#: screening's target"): its strict xfails below are the equalized target's and may now XPASS
-_MEASURED = " [measured with target = equalized]"
+#: test's assertions evaluated on one run each; the shaker attachment passes through pytest (below)
 
-#: (family, test) -> measured reason the criterion is not met (strict xfail: a fix turns it into a failure)
-XFAIL: dict = {
-    ("shaker_attachment", "rank"): (
-        "residual significant (12.2 x floor) but " + _EQUALIZED + ": the true attachment mass (11.5 g at drive grid "
-        "150) explains 1.6 % and ranks 20th of 496, its stinger spring (1.56e5 N/m, z) 0 % (430th); a 2-element "
-        "PSHELL 20 cluster ranks first at 4.2 %"),
-    ("shaker_attachment", "accept"): (
-        "nothing accepted: the five checked candidates raise the raw hold-out 0.150 -> 0.23-0.32 "
-        "(identification/equalize)"),
-}
-
-XFAIL = {k: v + _MEASURED for k, v in XFAIL.items()}
+#: (family, test) -> measured reason the criterion is not met (strict xfail: a fix turns it into a failure).
+#: Empty: with target = debiased the shaker attachment passes too (its two strict xfails, measured with the
+#: equalized target, XPASSed on main f805f7f: `pytest -m slow tests/frfcal/test_diagnose_shell.py -k shaker`).
+#: Before, with target = equalized: the true attachment mass ranked 20th of 496 (1.6 %), its stinger 430th, a
+#: 2-element PSHELL 20 cluster first; nothing accepted (raw hold-out 0.150 -> 0.23-0.32).
+XFAIL: dict = {}
 
 #: every family case is slow (a 1584-DOF case is 220-280 s CPU: 105-175 s in the main process, 105-120 s in the
 #: pool); the control (74 s CPU) runs by default
