@@ -29,7 +29,7 @@ import pytest
 import femodel
 from frfcal.cli import main
 from tests.frfcal.test_diagnose_families import FAMILIES as _FRAME_FAMILIES
-from tests.frfcal.test_diagnose_families import _magnitude, _truth_center
+from tests.frfcal.test_diagnose_families import assert_accepted_at_the_floor, assert_ranks_first
 
 #: the calibration band: the subframe's first 15 elastic modes (137-576 Hz at 1584 DOF)
 BAND = (100.0, 600.0)
@@ -152,30 +152,13 @@ def test_shell_residual_after_the_plain_calibration_is_significant(case):
 def test_shell_residual_is_significant_and_the_true_effect_ranks_first(case, request):
     family, pm, effects, m, _ = case
     _xfail(request, family, "rank")
-    r = m["residual"]
-    assert r["significant"] and r["ratio"] > 2 and m["verdict"] != "nothing to explain"
-    top = m["ranked"][0]
-    assert top["family"] in FAMILIES[family], f"ranked first: {top['description']}"
-    eff = effects[0]  # the shaker attachment's mass: it dominates (its spring is sized for a quarter shift)
-    dist = float(np.linalg.norm(_truth_center(pm, eff) - np.asarray(top["center"])))
-    assert dist <= 2 * top["element_size"], f"{top['name']} {dist:.3f} m from the truth"
+    assert_ranks_first(m, pm, effects[0], FAMILIES[family])
 
 
 def test_shell_true_effect_is_accepted_with_its_magnitude_and_the_holdout_falls_to_the_floor(case, request):
     family, pm, effects, m, floor = case
     _xfail(request, family, "accept")
-    assert m["accepted"], f"nothing accepted: {[t.get('decision', {}).get('reason') for t in m['trials']]}"
-    a = m["accepted"][0]
-    assert a["family"] in FAMILIES[family], f"accepted first: {a['description']}"
-    eff = effects[0]
-    dist = float(np.linalg.norm(_truth_center(pm, eff) - np.asarray(a["center"])))
-    assert dist <= 2 * a["element_size"], f"{a['name']} {dist:.3f} m from the truth"
-    got = 1.0 - a["value"] if family == "element_cluster" else a["value"]
-    assert got == pytest.approx(_magnitude(eff), rel=0.2)
-    after = m["sd"]["after"]
-    assert after["holdout_refined"] < 2 * floor, (
-        f"hold-out {m['sd']['holdout']:.3g} -> {after['holdout_refined']:.3g} = "
-        f"{after['holdout_refined'] / floor:.2f} x floor {floor:.3g}")
+    assert_accepted_at_the_floor(m, pm, effects[0], family, FAMILIES[family], floor)
 
 
 @pytest.fixture(scope="module")
