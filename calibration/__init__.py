@@ -69,6 +69,7 @@ from calibration._residual import (
     residual_check,
     scatter_sd,
 )
+from calibration._noise import ESTIMATED, NoiseEstimate, estimate_std_error
 from calibration._refine import (
     ModalDampingObjective,
     Refinement,
@@ -152,6 +153,9 @@ __all__ = [
     "mac",
     "mapped_damping",
     "noise_floor_sd",
+    "ESTIMATED",
+    "NoiseEstimate",
+    "estimate_std_error",
     "pair_modes",
     "pairwise_sd",
     "split_halves",
