@@ -116,6 +116,7 @@ class Validation:
     sd_floor: float | None = None
     items: tuple = ()
     damping_source: str = "identified"
+    floor_source: str | None = None
 
     @property
     def floor_ratio(self) -> float | None:
@@ -136,7 +137,8 @@ class Validation:
         if self.damping_source != "identified":
             txt += " (calibrated model: damping estimated on the calibration channels)"
         if self.sd_floor:
-            txt += f", floor ~{self.sd_floor:.2g} ({self.floor_ratio:.1f}x)"
+            src = f" ({self.floor_source})" if self.floor_source and "estimated" in self.floor_source else ""
+            txt += f", floor ~{self.sd_floor:.2g}{src} ({self.floor_ratio:.1f}x)"
         return f"{txt} ({self.verdict})"
 
     def to_dict(self) -> dict:
@@ -149,6 +151,7 @@ class Validation:
             "sd_calibrated": self.sd_calibrated,
             "reduction_percent": 100.0 * (1 - self.sd_calibrated / self.sd_nominal) if self.sd_nominal else None,
             "sd_floor": self.sd_floor,
+            "floor_source": self.floor_source if self.sd_floor is not None else None,
             "floor_ratio": self.floor_ratio,
             "target": self.target,
             "improved": self.improved,
@@ -174,6 +177,7 @@ def validate(
     band_hz=None,
     std_error=None,
     damping=None,
+    floor_source: str | None = None,
 ) -> Validation:
     """Hold-out validation: SD before (nominal) and after calibration against raw data.
 
@@ -189,6 +193,12 @@ def validate(
     std_error : sequence of (n_f, n_out, n_in) arrays or None, one per data item, optional
         Standard errors of the raw FRF values; with them for every item the
         noise floor of the SD is estimated (:func:`noise_floor_sd`).
+        Standard errors estimated from the lines themselves
+        (:func:`calibration.estimate_std_error`) are welcome: say so in
+        ``floor_source``.
+    floor_source : str, optional
+        Where ``std_error`` came from, printed beside an estimated floor
+        (default "per-line standard errors" when given).
     damping : (zeta, p_ref), optional
         Per-mode damping of the calibrated model for every data item (a
         sequence of (r,) arrays assigned at ``p_ref`` on ``sur_calibrated``,
@@ -258,4 +268,5 @@ def validate(
         sd_floor=floor,
         items=items,
         damping_source="identified" if damping is None else "estimated",
+        floor_source=None if floor is None else (floor_source or "per-line standard errors"),
     )

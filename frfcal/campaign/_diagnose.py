@@ -41,7 +41,7 @@ from calibration import (
 from calibration._damping import mapped_damping
 from calibration._metric import LN10
 from frfcal.campaign._schema import Campaign
-from frfcal.campaign._stages import Article, identified_modes, pair_mask
+from frfcal.campaign._stages import Article, floor_std_error, floors_of, identified_modes, pair_mask
 
 VERDICTS = ("nothing to explain", "nonlinear", "effect(s) found", "no effect accepted")
 
@@ -101,15 +101,19 @@ def difference_noise(eps, window: int = 15) -> np.ndarray:
 
 
 def _expected(article: Article, channels, H, eps):
-    """(E|eps|^2 per value, source): the per-line standard errors, else a difference-based estimate.
+    """(E|eps|^2 per value, source): the per-line standard errors, else the estimate from the test lines.
 
-    Without standard errors (e.g. run files imported from UFF58), the noise
-    is :func:`difference_noise` of the residual: it needs neither the
-    identification (whose own misfit would pass for noise) nor a noise model.
+    Without standard errors (e.g. run files imported from UFF58), the
+    standard errors estimated from the test lines themselves
+    (:func:`calibration.estimate_std_error`, the same floor the hold-out
+    prints): it needs neither the identification (whose own misfit would pass
+    for noise) nor the model (a model error must not raise its own floor).
+    Articles built without that estimate fall back to
+    :func:`difference_noise` of the residual.
     """
-    rows = [article.channels.index(n) for n in channels]
-    if article.std_error is not None:
-        return expected_from_std_error(H, article.std_error[:, rows]), "per-line standard errors"
+    se, src = floor_std_error(article, channels)
+    if se is not None:
+        return expected_from_std_error(H, se), src
     return difference_noise(eps), "adjacent-line differences of the residual (no standard errors)"
 
 
@@ -863,7 +867,7 @@ def _refined(camp, pm, model, articles, m, fit, extended_terms, quantity, log):
     Returns (Refinement or None, hold-out SD or None, x, surrogate)."""
     from calibration import FRFModel, build_surrogate, refine, validate
 
-    from frfcal.campaign._stages import raw_data, raw_std_error
+    from frfcal.campaign._stages import raw_data
 
     c = camp.calibration
     if not c.refine:
@@ -892,10 +896,10 @@ def _refined(camp, pm, model, articles, m, fit, extended_terms, quantity, log):
                 break
     h = None
     if camp.channels.holdout:
-        errs = [raw_std_error(a, camp.channels.holdout) for a in arts]
+        errs, src = floors_of(arts, camp.channels.holdout)
         v = validate(sur, sur, ref.p, [raw_data(a, camp.channels.holdout) for a in arts],
                      modes, c.zeta0, None, camp.validation.mac_min, quantity, band,
-                     std_error=None if any(e is None for e in errs) else errs, damping=(ref.zeta, ref.p_zeta))
+                     std_error=errs, damping=(ref.zeta, ref.p_zeta), floor_source=src)
         h = float(v.sd_calibrated)
     log(f"[{m.label}] extended model refined on the raw lines: SD {ref.sd_raw:.4g}"
         + ("" if h is None else f", hold-out SD {h:.4g} (estimated damping)"))

@@ -36,7 +36,7 @@ from frfcal.campaign._report_figures import (
     sweep_quality,
     sweep_quality_figure,
 )
-from frfcal.campaign._stages import identified_modes, raw_data, raw_std_error
+from frfcal.campaign._stages import floor_std_error, identified_modes, raw_data
 
 #: Resolution of the embedded PNG figures, dots per inch (a page of ~20 figures stays a few MB).
 REPORT_DPI = 80
@@ -323,8 +323,9 @@ def _overlays(camp, r: ReportResults, tmp: Path) -> str:
         if m.label in vals:
             p = reported_cycle(m, vals[m.label]).p
         ov = overlay(r.calibrate.surrogate, m.surrogate, p, [raw_data(a, chans) for a in marts],
-                     [raw_std_error(a, chans) for a in marts], identified_modes(marts[0]), chans,
-                     camp.calibration.zeta0, camp.validation.mac_min, band, marts[0].quantity, ext.get(m.label))
+                     [floor_std_error(a, chans)[0] for a in marts], identified_modes(marts[0]), chans,
+                     camp.calibration.zeta0, camp.validation.mac_min, band, marts[0].quantity, ext.get(m.label),
+                     floor_source=floor_std_error(marts[0], chans)[1] or "per-line standard errors")
         dev = ov.deviation()
         floor = None if dev["floor"] is None else float(np.nanmedian(dev["floor"]))
         for name, _ in ov.models:
@@ -406,7 +407,9 @@ def _validation(camp, r: ReportResults, tmp: Path) -> str:
         if val is not None:
             rows += [("hold-out SD, raw lines (nominal -> calibrated)", f"{val.sd_nominal:.4g} -> "
                       f"{val.sd_calibrated:.4g}"),
-                     ("hold-out noise floor SD", val.sd_floor), ("hold-out SD / floor", val.floor_ratio),
+                     ("hold-out noise floor SD" + (f" ({val.floor_source})" if getattr(val, "floor_source", None)
+                                                   and "estimated" in val.floor_source else ""), val.sd_floor),
+                     ("hold-out SD / floor", val.floor_ratio),
                      ("verdict", val.verdict), ("compared values", val.n_values)]
         cv = xv.get(m.label)
         if cv is not None:

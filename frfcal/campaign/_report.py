@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from calibration import crossvalidation_figure, frf_figure, mac_figure, parameter_figure
+from calibration import crossvalidation_figure, frf_figure, mac_figure, noise_floor_sd, parameter_figure
 from frfcal.campaign._stages import (
     CalibrateResult,
     CrossValidationResult,
@@ -16,6 +16,7 @@ from frfcal.campaign._stages import (
     MemberCalibration,
     MemberValidation,
     ValidationResult,
+    floors_of,
     identified_modes,
     raw_data,
 )
@@ -64,6 +65,20 @@ def member_figures(camp, label, pm, sur0, arts, cyc, val, cv, identifiability):
     return figs
 
 
+def _raw_floor(camp, arts):
+    """(noise floor SD of the raw calibration lines, its source), or (None, None): values-weighted over the
+    articles, from their standard errors or, without, the estimate from their lines."""
+    errs, src = floors_of(arts, camp.channels.calibrate)
+    if errs is None:
+        return None, None
+    fl, n = [], []
+    for a, se in zip(arts, errs):
+        d = raw_data(a, camp.channels.calibrate)
+        fl.append(noise_floor_sd(d, se))
+        n.append(d.frf.size if d.mask is None else int(d.mask.sum()))
+    return float(np.dot(fl, n) / sum(n)), src
+
+
 def write_outputs(camp, pm, articles, groups: GroupResult, cal: CalibrateResult, val: ValidationResult,
                   xval: CrossValidationResult, timings: dict, stages: dict, outdir: Path, log=print) -> dict:
     """Write calibration.json (and per member the calibrated BDF and figures); return the result dict."""
@@ -72,6 +87,7 @@ def write_outputs(camp, pm, articles, groups: GroupResult, cal: CalibrateResult,
     for m, v, x in zip(cal.members, val.members, xval.members):
         arts = [articles[i] for i in m.articles]
         cyc, cv, idf = reported_cycle(m, v), x.crossvalidation, m.identifiability
+        raw_floor, raw_src = _raw_floor(camp, arts)
         params = []
         phys = pm.physical(cyc.p)
         for j, name in enumerate(pm.parameters.names):
@@ -92,6 +108,8 @@ def write_outputs(camp, pm, articles, groups: GroupResult, cal: CalibrateResult,
             "sd_raw_calibration": None if cyc.refinement is None else cyc.refinement.sd_raw,
             "sd_raw_calibration_start": None if cyc.refinement is None else cyc.refinement.sd_raw_start,
             "sd_raw_definition": "raw calibration lines, model with identified damping mapped by MAC",
+            "sd_raw_floor": raw_floor,
+            "sd_raw_floor_source": raw_src,
             "identifiability": idf.to_dict(),
             "calibration": cyc.to_dict(),
             "validation": None if v.validation is None else v.validation.to_dict(),

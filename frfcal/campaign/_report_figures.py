@@ -303,6 +303,7 @@ class Overlay:
     channels : tuple of str
     tests : tuple of FitData, raw lines of each article on ``channels``
     std_error : (n_f, n_ch, n_in) or None, standard errors of ``tests[0]``
+    floor_source : str, where ``std_error`` came from ("per-line standard errors" or estimated)
     models : tuple of (name, (n_f, n_ch, n_in) complex)
         "nominal", "calibrated" (and "extended") on ``tests[0]``'s lines.
     """
@@ -311,6 +312,7 @@ class Overlay:
     tests: tuple
     std_error: np.ndarray | None
     models: tuple
+    floor_source: str = "per-line standard errors"
 
     def deviation(self) -> dict:
         """Per line of ``tests[0]``: RMS over channels of |H_model / H_test - 1| for every model, and the
@@ -328,7 +330,7 @@ class Overlay:
 
 
 def overlay(sur_nominal, sur_calibrated, p, tests, std_errors, modes, channels, zeta0: float, mac_min: float,
-            band_hz, quantity: str, extended=None) -> Overlay:
+            band_hz, quantity: str, extended=None, floor_source: str = "per-line standard errors") -> Overlay:
     """The nominal, calibrated (and extended) models on the first article's lines.
 
     Parameters
@@ -349,6 +351,7 @@ def overlay(sur_nominal, sur_calibrated, p, tests, std_errors, modes, channels, 
     quantity : str
     extended : (Surrogate, p) or None
         The extended model of the diagnosis at its parameters.
+    floor_source : str, where ``std_errors`` came from (legend)
 
     Returns
     -------
@@ -366,7 +369,7 @@ def overlay(sur_nominal, sur_calibrated, p, tests, std_errors, modes, channels, 
         ze, *_ = mapped_damping(sur_e, p_e, modes, zeta0, mac_min, band_hz)
         models.append(("extended", model_frf(sur_e, p_e, sur_e.output_index(channels), f, ze, quantity)))
     se0 = None if not std_errors or std_errors[0] is None else std_errors[0]
-    return Overlay(tuple(channels), tuple(tests), se0, tuple(models))
+    return Overlay(tuple(channels), tuple(tests), se0, tuple(models), floor_source)
 
 
 _STYLE = {"nominal": "b--", "calibrated": "r-", "extended": "g-"}
@@ -410,13 +413,15 @@ def frf_overlay_figure(label: str, ov: Overlay, calibrate_channels, zeta0: float
     for mname, _ in ov.models:
         dev_ax.semilogy(f, dev[mname], _STYLE[mname], lw=0.8, label=mname)
     if dev["floor"] is not None:
-        dev_ax.fill_between(f, 1e-4, dev["floor"], color="gold", alpha=0.6, lw=0, label="floor (std error / |H|)")
+        dev_ax.fill_between(f, 1e-4, dev["floor"], color="gold", alpha=0.6, lw=0, label="floor (std error / |H|)" if "estimated" not in ov.floor_source
+                            else "floor (estimated from adjacent lines)")
     dev_ax.set_ylabel("rel. deviation\n(RMS over channels)", fontsize=8)
     dev_ax.legend(fontsize=7, loc="upper right", ncol=4)
     a0 = axes[0]
     a0.plot([], [], color="0.6", lw=1.8, label="test (raw lines)")
     if se0 is not None:
-        a0.fill_between([], [], [], color="gold", alpha=0.5, label="test +- 2 std error (floor)")
+        a0.fill_between([], [], [], color="gold", alpha=0.5, label="test +- 2 std error (floor)"
+                        + ("" if "estimated" not in ov.floor_source else ", estimated"))
     labels = {"nominal": f"nominal (zeta0 {100 * zeta0:g} %)", "calibrated": "calibrated",
               "extended": "extended (diagnosis)"}
     for mname, _ in ov.models:

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from calibration import (
+    ESTIMATED,
     CalibrationError,
     CycleOptions,
     CycleResult,
@@ -36,6 +37,7 @@ from calibration import (
     grouping,
     half_bandwidth_frequencies,
     identifiability,
+    estimate_std_error,
     noise_floor_sd,
     pairwise_sd,
     validate,
@@ -92,6 +94,11 @@ class Article:
     ident_channels : tuple of str, output rows of ``identification``
     quantity : str
     std_error : like ``frf`` or None (the run has none)
+    noise_estimate : like ``frf`` or None
+        Without ``std_error``: the standard errors estimated from the lines
+        themselves (:func:`calibration.estimate_std_error`), for the floors
+        printed beside every SD ("estimated from adjacent lines"); never used
+        as identification or calibration weights.
     pairs : (n_ch, n_in) bool or None: pairs with a signal above the noise (None: all)
     lines : RunLines or None, all lines of the run on ``channels`` x ``drives``
     stored : identification.Identification or None
@@ -110,6 +117,7 @@ class Article:
     ident_channels: tuple
     quantity: str
     std_error: np.ndarray | None = None
+    noise_estimate: np.ndarray | None = None
     pairs: np.ndarray | None = None
     lines: RunLines | None = field(default=None, repr=False)
     stored: object | None = field(default=None, repr=False)
@@ -201,6 +209,7 @@ def load_stage(camp: Campaign, log=print) -> LoadResult:
             ident_channels=tuple(names),
             quantity=run.quantity,
             std_error=se,
+            noise_estimate=None if se is not None else estimate_std_error(f[sel], H, what=str(path)).std_error,
             pairs=None if sig.usable.all() else sig.usable,
             lines=RunLines(f, H_all, valid, se_all),
             stored=stored,
@@ -323,6 +332,29 @@ def raw_std_error(article: Article, channels):
     if article.std_error is None:
         return None
     return article.std_error[:, [article.channels.index(n) for n in channels]]
+
+
+def floor_std_error(article: Article, channels):
+    """(standard errors on ``channels``, source) for a floor: the run's own, else the estimate from the lines.
+
+    Source is "per-line standard errors" or :data:`calibration.ESTIMATED`
+    ("estimated from adjacent lines"); (None, None) when neither is there.
+    """
+    rows = [article.channels.index(n) for n in channels]
+    if article.std_error is not None:
+        return article.std_error[:, rows], "per-line standard errors"
+    est = getattr(article, "noise_estimate", None)
+    if est is None:
+        return None, None
+    return est[:, rows], ESTIMATED
+
+
+def floors_of(articles, channels):
+    """(list of standard errors or None, source) of several articles for :func:`calibration.validate`."""
+    got = [floor_std_error(a, channels) for a in articles]
+    if any(se is None for se, _ in got):
+        return None, None
+    return [se for se, _ in got], " / ".join(sorted({s for _, s in got}))
 
 
 # ----------------------------------------------------------------------------- equalize
@@ -616,12 +648,15 @@ def _per_article(camp: Campaign, sur0, sur, arts, p, band, lower, upper, log, la
                    band_hz=band, max_nfev=c.max_evaluations)
         row = {"article": a.name, "p": r.p.tolist(), "sd_raw_calibration": r.sd_raw, "sd_holdout": None}
         if camp.channels.holdout:
+            errs, src = floors_of([a], camp.channels.holdout)
             v = validate(sur0, sur, r.p, [raw_data(a, camp.channels.holdout)], modes, c.zeta0, None,
-                         camp.validation.mac_min, a.quantity, band)
+                         camp.validation.mac_min, a.quantity, band, std_error=errs, floor_source=src)
             row["sd_holdout"] = v.sd_calibrated
+            row["sd_holdout_floor"] = v.sd_floor
         out.append(row)
         log(f"[{label}] article {a.name}: own estimate, raw-line SD {r.sd_raw:.4g}"
-            + ("" if row["sd_holdout"] is None else f", hold-out SD {row['sd_holdout']:.4g}"))
+            + ("" if row["sd_holdout"] is None else f", hold-out SD {row['sd_holdout']:.4g}")
+            + ("" if row.get("sd_holdout_floor") is None else f" (floor ~{row['sd_holdout_floor']:.2g})"))
     P = np.array([r["p"] for r in out])
     spread = (1 + P).std(axis=0, ddof=1) / (1 + P).mean(axis=0)
     log(f"[{label}] article-to-article spread of the estimates: median {100 * np.median(spread):.3g} %, "
@@ -646,11 +681,11 @@ def validate_stage(camp: Campaign, articles, cal: CalibrateResult, bounds, log=p
         val = None
         if camp.channels.holdout:
             raw = [raw_data(a, camp.channels.holdout) for a in arts]
-            errs = [raw_std_error(a, camp.channels.holdout) for a in arts]
+            errs, src = floors_of(arts, camp.channels.holdout)
             val = validate(cal.surrogate, m.surrogate, m.p, raw, [identified_modes(a) for a in arts], c.zeta0,
                            camp.validation.target_sd, camp.validation.mac_min, arts[0].quantity, band,
-                           std_error=None if any(e is None for e in errs) else errs,
-                           damping=None if ref is None else (ref.zeta, ref.p_zeta))
+                           std_error=errs, damping=None if ref is None else (ref.zeta, ref.p_zeta),
+                           floor_source=src)
             log(f"[{m.label}] {val.summary()}")
         rows = ()
         if ref is not None and len(arts) > 1:

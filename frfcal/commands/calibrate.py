@@ -57,6 +57,12 @@ def run(args) -> int:
     return 0
 
 
+def _source(d) -> str:
+    """" (estimated from adjacent lines)" when the floor was estimated from the lines, else ""."""
+    s = d.get("floor_source") or ""
+    return f" ({s})" if "estimated" in s else ""
+
+
 def print_result(camp, res) -> None:
     """The calibration result as a table per member (parameters, SDs, identifiability)."""
     for m in res["members"]:
@@ -65,9 +71,15 @@ def print_result(camp, res) -> None:
               f"{m['sd_calibration_nominal']:.4g} -> {m['sd_calibration']:.4g}")
         v = m["validation"]
         if v:
-            floor = f", floor ~{v['sd_floor']:.2g} ({v['floor_ratio']:.1f}x)" if v.get("sd_floor") else ""
+            floor = f", floor ~{v['sd_floor']:.2g}{_source(v)} ({v['floor_ratio']:.1f}x)" if v.get("sd_floor") else ""
             print(f"hold-out SD (raw lines, identified damping)  {v['sd_nominal']:.4g} -> {v['sd_calibrated']:.4g}"
                   f"{floor}  ({v['verdict']})")
+        if m.get("sd_raw_calibration") is not None:
+            fl = m.get("sd_raw_floor")
+            print(f"raw calibration lines SD (identified damping)  {m['sd_raw_calibration_start']:.4g} -> "
+                  f"{m['sd_raw_calibration']:.4g}"
+                  + ("" if not fl else f", noise floor ~{fl:.2g}{_source({'floor_source': m.get('sd_raw_floor_source')})}"
+                     f" ({m['sd_raw_calibration'] / fl:.1f}x; the articles' scatter adds to it)"))
         cv = m["crossvalidation"]
         if cv:
             print(f"cross-validation RSE {cv['rse']:.4g} over {cv['realizations']} realizations")

@@ -98,6 +98,22 @@ def test_frame_chain_reaches_the_noise_floor(frame_chain):
         assert m["sd_raw_calibration"] < 2.0 * floor_cal
 
 
+def test_uff_campaign_prints_floors_estimated_from_the_lines(frame_chain):
+    """UFF58 carries no standard errors: the hold-out and raw-line floors are estimated from the lines
+    (calibration.estimate_std_error), said so, and within 30 % of the truth's own floor."""
+    sc, _, result, cal, hold, _ = frame_chain
+    for m in result["members"]:
+        (a,) = m["articles"]
+        v = m["validation"]
+        assert v["floor_source"] == "estimated from adjacent lines"
+        floor_hold, floor_cal = sc.floor_sd(hold, BAND, [a]), sc.floor_sd(cal, BAND, [a])
+        assert abs(v["sd_floor"] / floor_hold - 1) < 0.3, (a, v["sd_floor"], floor_hold)
+        assert m["sd_raw_floor_source"] == "estimated from adjacent lines"
+        assert abs(m["sd_raw_floor"] / floor_cal - 1) < 0.3, (a, m["sd_raw_floor"], floor_cal)
+        # the verdict keeps its words; the floor ratio is the calibrated SD over the estimated floor
+        assert v["verdict"] == "improved" and v["floor_ratio"] == pytest.approx(v["sd_calibrated"] / v["sd_floor"])
+
+
 def test_frame_chain_parameters_within_three_times_the_article_scatter(frame_chain):
     sc, _, result, _, _, _ = frame_chain
     for m in result["members"]:

@@ -139,7 +139,7 @@ def test_control_without_an_effect_has_nothing_to_explain(control):
     m = d["members"][0]
     r = m["residual"]
     assert m["verdict"] == "nothing to explain" and not r["significant"]
-    assert r["ratio"] < r["ratio_threshold"] and r["floor_source"].startswith("adjacent-line")
+    assert r["ratio"] < r["ratio_threshold"] and r["floor_source"] == "estimated from adjacent lines"
     assert 0.5 < r["ratio"] < 1.6  # the calibrated model leaves what the noise leaves
     assert m["ranked"] == [] and m["candidates"] is None and m["screening"] is None
     assert all(not x["significant"] for x in r["modes"])  # no mode off by a half-power bandwidth
