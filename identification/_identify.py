@@ -457,12 +457,115 @@ def identify(
 
 def identification_of_order(data, basis, sv, n, q, enforce_stability, zeta_max, min_contribution, min_importance, refine):
     A, B, C, D, blocks, was_unstable = _fit(data, basis, sv, n, enforce_stability=enforce_stability, refine=refine)
+    return _assemble(data, sv, n, q, (A, B, C, D, blocks, was_unstable), enforce_stability, zeta_max,
+                     min_contribution, min_importance, refine)
+
+
+def weighted_ssr(data: _Data, A, B, C, D) -> float:
+    """Weighted residual sum of squares of a model (identification orientation) on the data's lines."""
+    H = StateSpace(A, B, C, D, data.quantity).frf(data.freq_hz)
+    return float(np.sum(np.abs(data.W * (H - data.H)) ** 2))
+
+
+def local_pole_fit(data: _Data, A, B, C, D, blocks, i: int, window_hz, zeta_max: float = 0.2):
+    """The eigenvalue of block ``i`` that best explains, on the lines within ``window_hz`` (lo, hi), what the
+    rest of the model leaves there.
+
+    On those lines the residual ``R = H - (H_model - H_i)`` of every pair is
+    fitted by ``c / (s - lam) + c' / (s - conj lam) + d0 + d1 s`` (free complex
+    residues per pair, a local background) for ``lam`` on a grid of frequency
+    (steps 1e-4 relative) x damping (2e-4 .. min(zeta_max, 0.05), log), then
+    polished (Nelder-Mead). Pairs are weighted by their mean weight there.
+
+    Returns
+    -------
+    (lam, ratio, bare) : the eigenvalue (Im > 0), the local weighted SSR with it
+        over the SSR of the background alone (``bare``): the share of the local
+        residual the pole leaves (small: a resonance is there).
+    """
+    from scipy.optimize import minimize
+
+    lam_all, X = np.linalg.eig(A)
+    l0 = block_poles(A, blocks)[i]
+    f0 = abs(l0) / (2 * np.pi)
+    w_lo, w_hi = float(window_hz[0]), float(window_hz[1])
+    loc = (data.freq_hz >= w_lo) & (data.freq_hz <= w_hi)
+    if loc.sum() < 8:
+        return l0, 1.0, 0.0
+    Xi = np.linalg.inv(X)
+    own = np.abs(Xi[:, blocks[i]]).sum(axis=1) > 1e-9 * np.abs(Xi).max()
+    s = 1j * data.omega[loc]
+    Hm = StateSpace(A, B, C, D, data.quantity).frf(data.freq_hz[loc])
+    g = 1.0 / (s[:, None] - lam_all[own][None, :])
+    Hi = np.einsum("pr,fr,rm->fpm", C @ X[:, own], g, Xi[own] @ B)
+    w = data.W[loc].mean(axis=0)
+    Y = ((data.H[loc] - (Hm - Hi)) * w[None]).reshape(loc.sum(), -1)
+
+    def cost(lam):
+        G = np.stack([1 / (s - lam), 1 / (s - np.conj(lam)), np.ones_like(s), s], axis=1)
+        Q, _ = np.linalg.qr(G)
+        return float(np.sum(np.abs(Y - Q @ (Q.conj().T @ Y)) ** 2))
+
+    G0 = np.stack([np.ones_like(s), s], axis=1)
+    Q0, _ = np.linalg.qr(G0)
+    bare = float(np.sum(np.abs(Y - Q0 @ (Q0.conj().T @ Y)) ** 2))
+    fr = np.arange(w_lo, w_hi, 1e-4 * f0)
+    zs = np.geomspace(2e-4, min(zeta_max, 0.05), 25)
+
+    def lam_of(fz, z):
+        wn = 2 * np.pi * fz
+        return complex(-z * wn, wn * np.sqrt(max(1 - z * z, 0.0)))
+
+    best = (np.inf, l0)
+    for z in zs:
+        for fz in fr:
+            c = cost(lam_of(fz, z))
+            if c < best[0]:
+                best = (c, (fz, z))
+    fz, z = best[1]
+    res = minimize(lambda x: cost(lam_of(x[0] * f0, np.exp(x[1]))), [fz / f0, np.log(z)], method="Nelder-Mead",
+                   options={"xatol": 1e-7, "fatol": 1e-12 * max(bare, 1e-300), "maxiter": 400})
+    fz, z = float(np.clip(res.x[0] * f0, w_lo, w_hi)), float(np.exp(res.x[1]))
+    lam = lam_of(fz, z)
+    c = cost(lam)
+    return lam, (c / bare if bare > 0 else 1.0), bare
+
+
+def with_pole(data: _Data, A, B, C, D, blocks, i: int, lam, refine: int):
+    """The model with block ``i``'s eigenvalue set to ``lam`` (Im > 0), ``B, D`` / ``C, D`` refitted."""
+    A = A.copy()
+    b = blocks[i]
+    if b.stop - b.start != 2:
+        raise IdentificationError("only a complex pole pair can be moved")
+    sgn = np.sign(A[b.start, b.start + 1]) or 1.0
+    A[b.start, b.start] = A[b.start + 1, b.start + 1] = lam.real
+    A[b.start, b.start + 1] = sgn * abs(lam.imag)
+    A[b.start + 1, b.start] = -sgn * abs(lam.imag)
+    B, D = fit_bd(data.omega, data.H, data.W, A, C)
+    for _ in range(max(int(refine), 1)):
+        C, D = fit_cd(data.omega, data.H, data.W, A, B)
+        B, D = fit_bd(data.omega, data.H, data.W, A, C)
+    return A, B, C, D
+
+
+def _assemble(data, sv, n, q, fitted, enforce_stability, zeta_max, min_contribution, min_importance, refine,
+              confirmed=()):
+    """The Identification of fitted matrices: poles, labels, modal parameters, fit, settings.
+
+    ``confirmed`` : block indices whose pole a local fit confirmed (:func:`local_pole_fit`); they are
+    labelled "physical" unless unstable, real, overdamped, out of band or below ``min_contribution``
+    (the global importance, measured against the residual of the whole band, is not asked of them).
+    """
+    A, B, C, D, blocks, was_unstable = fitted
     lam = block_poles(A, blocks)
     contrib = contributions(data, A, B, C, blocks)
     sep = _separable(data.W)
     # the same weights as the B, D fit: per output when they factor, else per line
     imp = importance(data.omega, data.H, sep[0] if sep is not None else data.W, A, C, blocks)
     labels = label_poles(lam, contrib, imp, was_unstable, data.band_hz, zeta_max, min_contribution, min_importance)
+    if confirmed:
+        labels = tuple("physical" if (k in confirmed and lab == "negligible" and contrib[k] >= min_contribution)
+                       else lab for k, lab in enumerate(labels))
     model = StateSpace(A, B, C, D, data.quantity)
     H_data = data.H
     if data.dual:
@@ -492,6 +595,8 @@ def identification_of_order(data, basis, sv, n, q, enforce_stability, zeta_max, 
         "requested_band_hz": None if data.requested_band_hz is None else list(data.requested_band_hz),
         "band_clipped": data.requested_band_hz is not None and tuple(data.requested_band_hz) != data.band_hz,
     }
+    if confirmed:
+        settings["locally_confirmed_hz"] = [float(abs(lam[k]) / (2 * np.pi)) for k in sorted(confirmed)]
     return Identification(
         model=model,
         singular_values=sv,

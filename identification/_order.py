@@ -8,12 +8,28 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from ._errors import IdentificationError
-from ._identify import Identification, data_basis, default_block_rows, identification_of_order, prepare_data
+from ._identify import (
+    Identification,
+    _assemble,
+    _fit,
+    block_poles,
+    data_basis,
+    default_block_rows,
+    local_pole_fit,
+    prepare_data,
+    weighted_ssr,
+    with_pole,
+)
 from ._poles import mac, pole_damping, pole_frequency_hz
 from ._subspace import realize
 
 #: Largest order scanned by default (state dimension; 60 pole pairs).
 DEFAULT_MAX_ORDER = 120
+#: A stable pole the labels reject is refitted on its lines (:func:`identification._identify.local_pole_fit`);
+#: it is kept when it then leaves at most this share of the local residual the rest of the model leaves there.
+LOCAL_RATIO = 0.1
+#: Half-width of that refit's window, relative to the pole's frequency.
+WINDOW = 0.08
 
 
 @dataclass(frozen=True)
@@ -55,6 +71,10 @@ class OrderSelection:
         The choice in words.
     criteria : dict
         ``tol_frequency``, ``tol_damping``, ``min_mac``, ``n_consistent``, ``band_hz``.
+    refined : tuple of dict
+        Stable poles the labels rejected whose eigenvalue a local fit on their
+        own lines moved and confirmed (``{"from_hz", "to_hz", "damping",
+        "local_ratio"}``): kept as physical, in the stable set at the refined value.
     """
 
     orders: tuple[int, ...]
@@ -68,6 +88,7 @@ class OrderSelection:
     evaluations: tuple[dict, ...]
     reason: str
     criteria: dict = field(default_factory=dict)
+    refined: tuple = ()
 
     @property
     def stable_frequency_hz(self) -> np.ndarray:
@@ -98,6 +119,7 @@ class OrderSelection:
             "missing_hz": [list(m) for m in self.missing_hz],
             "evaluations": [dict(e) for e in self.evaluations],
             "criteria": dict(self.criteria),
+            "refined": [dict(r) for r in self.refined],
         }
 
     @classmethod
@@ -117,6 +139,7 @@ class OrderSelection:
                 evaluations=tuple(dict(e) for e in d["evaluations"]),
                 reason=str(d["reason"]),
                 criteria=dict(d.get("criteria", {})),
+                refined=tuple(dict(r) for r in d.get("refined", ())),
             )
         except KeyError as exc:
             raise IdentificationError(f"order-selection record lacks field {exc.args[0]!r}") from None
@@ -322,8 +345,12 @@ def select_order(
     }
     basis, sv = data_basis(data, q)
 
+    fits: dict = {}
+
     def full(n):
-        return identification_of_order(data, basis, sv, n, q, enforce_stability, zeta_max, min_contribution, min_importance, refine)
+        fits[n] = _fit(data, basis, sv, n, enforce_stability=enforce_stability, refine=refine)
+        return _assemble(data, sv, n, q, fits[n], enforce_stability, zeta_max, min_contribution, min_importance,
+                         refine)
 
     # 1-2: poles of every order and their chains of agreement
     scans = [_candidate_poles(data, basis, sv, n, zeta_max) for n in ords]
@@ -397,6 +424,19 @@ def select_order(
     if not matched:
         best = min(evaluations, key=lambda e: (len(e["missing_hz"]) + len(e["spurious_hz"]), e["order"]))
         chosen = best["order"]
+    refined: list[dict] = []
+    if rejected:
+        lam_s = lam_s.copy()
+        got = _refine_rejected(data, sv, q, chosen, fits[chosen], results[chosen], lam_s, sorted(rejected), crit,
+                               enforce_stability, zeta_max, min_contribution, min_importance, refine)
+        if got is not None:
+            results[chosen], moved = got
+            for s_idx, lam_new, ratio in moved:
+                refined.append({"from_hz": round(float(pole_frequency_hz(lam_s[s_idx])), 4),
+                                "to_hz": round(float(pole_frequency_hz(lam_new)), 4),
+                                "damping": float(pole_damping(lam_new)), "local_ratio": float(ratio)})
+                lam_s[s_idx] = lam_new
+                rejected.discard(s_idx)
     keep = np.array([i not in rejected for i in range(lam_s.size)], dtype=bool)
     rejected_hz = _hz(lam_s[~keep])
 
@@ -438,6 +478,11 @@ def select_order(
         notes.append(f"{_span(run)} {verb} {_list_hz(_hz(lam_s[missing[j_top]]))}")
         if same[0] > 0:
             notes.append(f"orders {ords[0]}-{ords[same[0] - 1]} miss more")
+    if refined:
+        head += "; " + "; ".join(
+            f"stable pole at {r['from_hz']:.1f} Hz labelled non-physical as the subspace placed it, refitted on its "
+            f"lines to {r['to_hz']:.2f} Hz, {100 * r['damping']:.3g} % (leaves {100 * r['local_ratio']:.2g} % of "
+            f"the local residual): physical" for r in refined)
     reason = head + ("; " + "; ".join(notes) if notes else "")
 
     selection = OrderSelection(
@@ -452,8 +497,78 @@ def select_order(
         evaluations=tuple(evaluations),
         reason=reason,
         criteria=crit,
+        refined=tuple(refined),
     )
     return replace(results[chosen], order_selection=selection)
+
+
+def _refine_rejected(data, sv, q, n, fitted, result, lam_s, rejected, crit, enforce_stability, zeta_max,
+                     min_contribution, min_importance, refine):
+    """Refit the stable poles the labels rejected at order ``n`` on their own lines; keep those confirmed.
+
+    A stable pole of the diagram can be placed off its resonance by the
+    subspace step (a mode seen in few channels of many, on a grid of about one
+    line per half-power bandwidth): its own term then misses the data
+    (``negligible``) and the mode is lost although the diagram holds it. Each
+    such pole (the nearest non-physical complex pole at order ``n``, within
+    ``tol_frequency`` of the stable one) is moved to the eigenvalue that best
+    explains what the rest of the model leaves on the lines within :data:`WINDOW`
+    (8 %) of it, never past halfway to a physical pole
+    (:func:`identification._identify.local_pole_fit`), when that leaves at most
+    :data:`LOCAL_RATIO` of the local residual, with ``0 < zeta <= zeta_max``,
+    inside the band, off the window's edge and more than two half-power
+    bandwidths from every physical pole (no duplicate of a mode the model
+    holds). The model is refitted with the moved poles (``B, D`` / ``C, D``)
+    and kept only when its weighted residual does not grow, every physical
+    pole stays physical, and no other pole becomes physical; a moved pole is
+    physical when its contribution reaches ``min_contribution`` (the global
+    importance, a ratio to the residual of the whole band, is not asked: a
+    misfit elsewhere would drown any weakly excited mode).
+
+    Returns (Identification, [(stable index, new eigenvalue, local ratio)]) or None.
+    """
+    A, B, C, D, blocks, was_unstable = fitted
+    lam_b = block_poles(A, blocks)
+    labels = result.poles.labels
+    phys = [k for k, lab in enumerate(labels) if lab == "physical"]
+    f_b, z_b = pole_frequency_hz(lam_b), pole_damping(lam_b)
+    lo, hi = data.band_hz
+    moves, used = [], set()
+    for s_idx in rejected:
+        fs = float(pole_frequency_hz(lam_s[s_idx]))
+        cand = [k for k in range(len(blocks)) if labels[k] != "physical" and k not in used
+                and blocks[k].stop - blocks[k].start == 2 and abs(f_b[k] - fs) <= crit["tol_frequency"] * fs]
+        if not cand:
+            continue
+        k = min(cand, key=lambda j: abs(lam_b[j] - lam_s[s_idx]))
+        # the window: WINDOW either side, never past halfway to a physical pole (no jump onto its misfit)
+        below = [f_b[p] for p in phys if f_b[p] < f_b[k]]
+        above = [f_b[p] for p in phys if f_b[p] > f_b[k]]
+        w_lo = max(f_b[k] * (1 - WINDOW), (max(below) + f_b[k]) / 2 if below else 0.0, lo)
+        w_hi = min(f_b[k] * (1 + WINDOW), (min(above) + f_b[k]) / 2 if above else np.inf, hi)
+        lam_new, ratio, _ = local_pole_fit(data, A, B, C, D, blocks, k, (w_lo, w_hi), zeta_max=zeta_max)
+        fn, zn = float(pole_frequency_hz(lam_new)), float(pole_damping(lam_new))
+        near = any(abs(fn - f_b[p]) <= 2 * max(2 * z_b[p] * f_b[p], 2 * zn * fn) for p in phys)
+        edge = min(fn - w_lo, w_hi - fn) <= 1e-3 * f_b[k]
+        if ratio <= LOCAL_RATIO and 0 < zn <= zeta_max and lo <= fn <= hi and not near and not edge:
+            moves.append((k, s_idx, lam_new, ratio))
+            used.add(k)
+    if not moves:
+        return None
+    A2, B2, C2, D2 = A, B, C, D
+    for k, _, lam_new, _ in moves:
+        A2, B2, C2, D2 = with_pole(data, A2, B2, C2, D2, blocks, k, lam_new, refine)
+    if weighted_ssr(data, A2, B2, C2, D2) > weighted_ssr(data, A, B, C, D):
+        return None
+    r2 = _assemble(data, sv, n, q, (A2, B2, C2, D2, blocks, was_unstable), enforce_stability, zeta_max,
+                   min_contribution, min_importance, refine, confirmed=frozenset(k for k, *_ in moves))
+    moved = {k for k, *_ in moves}
+    phys2 = {k for k, lab in enumerate(r2.poles.labels) if lab == "physical"}
+    if not set(phys) <= phys2 or (phys2 - set(phys)) - moved:
+        return None
+    kept = [(s_idx, lam2, ratio) for (k, s_idx, _, ratio), lam2 in
+            ((m, block_poles(A2, blocks)[m[0]]) for m in moves) if k in phys2]
+    return (r2, kept) if kept else None
 
 
 def _shapes(r: Identification, dual: bool) -> np.ndarray:
