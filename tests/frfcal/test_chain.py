@@ -98,18 +98,32 @@ def test_frame_chain_reaches_the_noise_floor(frame_chain):
         assert m["sd_raw_calibration"] < 2.0 * floor_cal
 
 
+def _standard_error_floor(sc, channels, article):
+    """The floor the true standard errors would print (noise_floor_sd's formula on the noisy lines)."""
+    z = sc.truth()
+    idx, lo, hi, (i,) = sc._selection(channels, BAND, [article])
+    f = z[f"frequency_hz_{i}"]
+    sel = (f >= lo) & (f <= hi)
+    q = (z[f"sigma_{i}"][sel][:, idx] / np.abs(z[f"noisy_{i}"][sel][:, idx])) ** 2 / np.log(10.0) ** 2
+    return float(np.mean(q[:, sc.signal_pairs(i, [str(z["sensors"][k]) for k in idx], (lo, hi))]))
+
+
 def test_uff_campaign_prints_floors_estimated_from_the_lines(frame_chain):
     """UFF58 carries no standard errors: the hold-out and raw-line floors are estimated from the lines
-    (calibration.estimate_std_error), said so, and within 30 % of the truth's own floor."""
+    (calibration.estimate_std_error) and said so; the hold-out's within 30 % of the truth's own floor, both
+    within 30 % of the floor the true standard errors give. (On the raw calibration lines the truth's own
+    floor is 2x lower on A1: one pair, s14 / F2, at SNR near 1 on its anti-resonances holds most of the mean
+    of (sigma/|H|)^2, where |log10(H_noisy/H)|^2 saturates; that pair's true standard errors give 2.7x its
+    truth floor too.)"""
     sc, _, result, cal, hold, _ = frame_chain
     for m in result["members"]:
         (a,) = m["articles"]
         v = m["validation"]
         assert v["floor_source"] == "estimated from adjacent lines"
-        floor_hold, floor_cal = sc.floor_sd(hold, BAND, [a]), sc.floor_sd(cal, BAND, [a])
-        assert abs(v["sd_floor"] / floor_hold - 1) < 0.3, (a, v["sd_floor"], floor_hold)
+        assert abs(v["sd_floor"] / sc.floor_sd(hold, BAND, [a]) - 1) < 0.3, (a, v["sd_floor"])
+        assert abs(v["sd_floor"] / _standard_error_floor(sc, hold, a) - 1) < 0.3, (a, v["sd_floor"])
         assert m["sd_raw_floor_source"] == "estimated from adjacent lines"
-        assert abs(m["sd_raw_floor"] / floor_cal - 1) < 0.3, (a, m["sd_raw_floor"], floor_cal)
+        assert abs(m["sd_raw_floor"] / _standard_error_floor(sc, cal, a) - 1) < 0.3, (a, m["sd_raw_floor"])
         # the verdict keeps its words; the floor ratio is the calibrated SD over the estimated floor
         assert v["verdict"] == "improved" and v["floor_ratio"] == pytest.approx(v["sd_calibrated"] / v["sd_floor"])
 
