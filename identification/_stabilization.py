@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from types import SimpleNamespace
 
 import numpy as np
 
 from ._errors import IdentificationError
 from ._identify import Identification, identification_of_order, data_basis, choose_block_rows, prepare_data, block_modal
-from ._poles import Poles, mac
-from ._subspace import real_modal_form
+from ._poles import Poles, label_poles, mac
+from ._subspace import real_modal_form, realize
 
 
 @dataclass(frozen=True)
@@ -77,6 +78,24 @@ class Stabilization:
         return keep
 
 
+def _order_poles(data, basis, sv, n: int, zeta_max: float):
+    """(Poles, shapes ``C x`` (n_out, n_poles)) of order ``n`` from the shift invariance alone (no ``B, D``
+    fit), labelled without the fit-based test."""
+    p = data.H.shape[1]
+    Ad, Cd = realize(basis, sv, n, p)
+    eye = np.eye(n)
+    Pi = np.linalg.inv(Ad + eye)
+    A = data.alpha * (Ad - eye) @ Pi
+    C = (Cd @ Pi) / data.out_scale[:, None]
+    lam, X = np.linalg.eig(A)
+    keep = np.flatnonzero(lam.imag >= 0)
+    keep = keep[np.argsort(np.abs(lam[keep]))]
+    lam, sh = lam[keep], C @ X[:, keep]
+    inf = np.full(lam.size, np.inf)
+    labs = label_poles(lam, inf, inf, lam.real > 0, data.band_hz, zeta_max, 0.0, 0.0)
+    return Poles(lam, labs, np.full(lam.size, np.nan), np.full(lam.size, np.nan)), sh
+
+
 def stabilization(
     freq_hz,
     H,
@@ -94,6 +113,7 @@ def stabilization(
     tol_frequency: float = 0.005,
     tol_damping: float = 0.05,
     min_mac: float = 0.95,
+    labels: bool = True,
 ) -> Stabilization:
     """Identify a sequence of orders and check pole consistency across them.
 
@@ -110,6 +130,13 @@ def stabilization(
         Relative change allowed for a pole to count as stable.
     min_mac : float
         MAC with the nearest previous pole for shape stability.
+    labels : bool
+        True: every order is identified (``B, D`` fit) and labelled as in
+        :func:`identify`. False (cheap, for pictures): the poles of each order
+        come from the shift invariance alone (no ``B, D`` fit), and the
+        fit-based test (``negligible``: contribution, importance) is not made:
+        "physical" then means in band, stable and ``0 < zeta <= zeta_max``;
+        contribution and importance are NaN. About 3x cheaper.
     Other parameters as in :func:`identify`.
     """
     ords = tuple(int(o) for o in orders)
@@ -122,12 +149,16 @@ def stabilization(
     prev: Identification | None = None
     prev_shapes = None
     for n in ords:
-        ident = identification_of_order(
-            data, basis, sv, n, q, enforce_stability, zeta_max, min_contribution, min_importance, refine=0
-        )
-        Am, Bm, Cm, blocks = real_modal_form(ident.model.A, ident.model.B, ident.model.C)
-        sh, _ = block_modal(Am, Bm, Cm, blocks)
-        sh = sh if len(blocks) else np.zeros((ident.model.n_out, 0), complex)
+        if labels:
+            ident = identification_of_order(
+                data, basis, sv, n, q, enforce_stability, zeta_max, min_contribution, min_importance, refine=0
+            )
+            Am, Bm, Cm, blocks = real_modal_form(ident.model.A, ident.model.B, ident.model.C)
+            sh, _ = block_modal(Am, Bm, Cm, blocks)
+            sh = sh if len(blocks) else np.zeros((ident.model.n_out, 0), complex)
+        else:
+            poles_n, sh = _order_poles(data, basis, sv, n, zeta_max)
+            ident = SimpleNamespace(poles=poles_n)
         f = ident.poles.frequency_hz
         z = ident.poles.damping
         npol = f.size
