@@ -6,9 +6,10 @@ looked for, the residual is compared with what the data alone leave:
 * the **noise floor**: per value ``E|eps|^2`` under measurement noise alone,
   ``(sigma / |H|)^2 / (ln 10)^2`` from the per-line standard errors ``sigma``
   (:func:`calibration.noise_floor_sd`), or, without standard errors, the
-  identification's own fit residual per channel (``Identification.fit_deviation``,
-  square deviation of the identified model against the raw lines: an upper
-  estimate of the noise, since it also holds the identification's misfit);
+  standard errors estimated from the test lines themselves
+  (:func:`calibration.estimate_std_error`, source "estimated from adjacent
+  lines"; the identification's own fit residual is not a floor: it holds the
+  identification's misfit);
 * the **test-to-test scatter** of an ensemble: the part of one article's
   deviation from a model of several articles that their differences explain
   (:func:`scatter_sd`).
@@ -322,7 +323,8 @@ def residual_check(items, channels, drives, *, scatter: float = 0.0, band_hz=Non
             bands.append(PlaceResidual("band", f"{lo:.4g}-{hi:.4g} Hz", *s[:5], s[5]))
     sd, ex, ratio, z, n, sig = allv
     verdict = "significant" if sig else "inside the floor"
-    test = (f"residual SD {sd:.3g} vs expected {ex:.3g} (noise floor {floor:.3g} from {floor_source}"
+    src = floor_source if floor_source.startswith("estimated") else f"from {floor_source}"
+    test = (f"residual SD {sd:.3g} vs expected {ex:.3g} (noise floor {floor:.3g} {src}"
             + (f" + test-to-test scatter {scatter:.3g}" if scatter else "") + f"): ratio {ratio:.3g}"
             + f" ({'>' if ratio > ratio_threshold else '<='} {ratio_threshold:g}), chi-square with {2 * n} dof "
             + f"{z:.3g} sigma ({'>' if z > z_threshold else '<='} {z_threshold:g}): {verdict}")
