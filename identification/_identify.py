@@ -474,8 +474,9 @@ def local_pole_fit(data: _Data, A, B, C, D, blocks, i: int, window_hz, zeta_max:
     On those lines the residual ``R = H - (H_model - H_i)`` of every pair is
     fitted by ``c / (s - lam) + c' / (s - conj lam) + d0 + d1 s`` (free complex
     residues per pair, a local background) for ``lam`` on a grid of frequency
-    (steps 1e-4 relative) x damping (2e-4 .. min(zeta_max, 0.05), log), then
-    polished (Nelder-Mead). Pairs are weighted by their mean weight there.
+    (steps of a quarter half-power bandwidth, at least 1e-4 relative) x
+    damping (2e-4 .. min(zeta_max, 0.05), 25 log steps), then polished
+    (Nelder-Mead). Pairs are weighted by their mean weight there.
 
     Returns
     -------
@@ -509,19 +510,28 @@ def local_pole_fit(data: _Data, A, B, C, D, blocks, i: int, window_hz, zeta_max:
     G0 = np.stack([np.ones_like(s), s], axis=1)
     Q0, _ = np.linalg.qr(G0)
     bare = float(np.sum(np.abs(Y - Q0 @ (Q0.conj().T @ Y)) ** 2))
-    fr = np.arange(w_lo, w_hi, 1e-4 * f0)
     zs = np.geomspace(2e-4, min(zeta_max, 0.05), 25)
+    yy = float(np.sum(np.abs(Y) ** 2))
 
     def lam_of(fz, z):
         wn = 2 * np.pi * fz
         return complex(-z * wn, wn * np.sqrt(max(1 - z * z, 0.0)))
 
-    best = (np.inf, l0)
-    for z in zs:
-        for fz in fr:
-            c = cost(lam_of(fz, z))
-            if c < best[0]:
-                best = (c, (fz, z))
+    best = (np.inf, None)
+    for z in zs:  # frequency steps of a quarter half-power bandwidth at this damping, batched
+        fr = np.arange(w_lo, w_hi, max(z / 2, 1e-4) * f0)
+        wn = 2 * np.pi * fr
+        lt = -z * wn + 1j * wn * np.sqrt(1 - z * z)
+        G = np.empty((fr.size, s.size, 4), complex)
+        G[:, :, 0] = 1 / (s[None, :] - lt[:, None])
+        G[:, :, 1] = 1 / (s[None, :] - np.conj(lt)[:, None])
+        G[:, :, 2] = 1.0
+        G[:, :, 3] = s[None, :]
+        Q = np.linalg.qr(G)[0]
+        c = yy - np.sum(np.abs(np.einsum("kfj,fp->kjp", Q.conj(), Y)) ** 2, axis=(1, 2))
+        j = int(np.argmin(c))
+        if c[j] < best[0]:
+            best = (float(c[j]), (fr[j], z))
     fz, z = best[1]
     res = minimize(lambda x: cost(lam_of(x[0] * f0, np.exp(x[1]))), [fz / f0, np.log(z)], method="Nelder-Mead",
                    options={"xatol": 1e-7, "fatol": 1e-12 * max(bare, 1e-300), "maxiter": 400})
