@@ -409,7 +409,12 @@ def refreshed_modes(K, M, T_old, max_hz: float, shift_hz: float, extra=None, cac
     solve = _factor(_shifted(K, M, s, cache), cache)
     r_old = T_old.shape[1]
     k_extra = 0 if extra is None else extra.shape[1]
-    Q = solve(M @ T_old if extra is None else np.hstack([M @ T_old, extra]))  # (n, r_old + k_extra)
+    rhs = np.empty((n, r_old + k_extra), order="F")  # column-major: what CHOLMOD reads, no conversion copy
+    rhs[:, :r_old] = M @ T_old
+    if k_extra:
+        rhs[:, r_old:] = extra
+    Q = solve(rhs)  # (n, r_old + k_extra)
+    del rhs
     MQ = M @ Q
     Qo, MQo = Q[:, :r_old], MQ[:, :r_old]  # views: BLAS takes the row stride as it is
     # Rayleigh-Ritz on span(Qo), rank-cut on its Gram matrix: Z^T (Qo^T M Qo) Z = I
@@ -601,7 +606,7 @@ def build_surrogate(
     with ThreadPoolExecutor(max_workers=2) as pool, _blas_threads(1):
         Kr = _projected(model.K, T, pool)
         Mr = _projected(model.M, T, pool)
-    Kr, Mr, T = m_orthonormalized(Kr, Mr, T, p, "raise enrich_tol or lower basis_factor")
+    Kr, Mr, T = m_orthonormalized(Kr, Mr, T, p, "raise enrich_tol or lower basis_factor", overwrite=True)
     t6 = time.perf_counter()
     sur = Surrogate(
         K=Kr,
@@ -740,12 +745,14 @@ def basis_residuals(model: FRFModel, sur: Surrogate, basis: np.ndarray, p, band_
                       time.process_time() - c0)
 
 
-def m_orthonormalized(Kr: AffineMatrix, Mr: AffineMatrix, T: np.ndarray, p, remedy: str):
+def m_orthonormalized(Kr: AffineMatrix, Mr: AffineMatrix, T: np.ndarray, p, remedy: str, overwrite: bool = False):
     """Reduced terms and basis made exactly M-orthonormal at p by a congruence in reduced space.
 
     With M_r(p) = L L^T, the basis T L^-T and the terms L^-1 (.) L^-T; no
-    n-sized work but the one product T L^-T. A reduced mass that is not
-    definite means the basis is numerically dependent (``remedy`` says what to change).
+    n-sized work but the one product T L^-T, a triangular one (BLAS trmm:
+    half the flops of a GEMM), in place in T's memory with ``overwrite``
+    (T C-contiguous). A reduced mass that is not definite means the basis is
+    numerically dependent (``remedy`` says what to change).
     """
     try:
         L = np.linalg.cholesky(_sym(Mr.at(p)))
@@ -755,7 +762,13 @@ def m_orthonormalized(Kr: AffineMatrix, Mr: AffineMatrix, T: np.ndarray, p, reme
             f"(reduced mass not definite); {remedy}") from None
     if np.abs(L - np.eye(L.shape[0])).max() > 1e-12:
         Li = sla.solve_triangular(L, np.eye(L.shape[0]), lower=True)
-        Kr, Mr, T = _congruent(Kr, Li), _congruent(Mr, Li), T @ Li.T
+        Kr, Mr = _congruent(Kr, Li), _congruent(Mr, Li)
+        from scipy.linalg.blas import dtrmm
+
+        T = np.asarray(T, dtype=float)
+        own = overwrite and T.flags.c_contiguous
+        # (T Li^T)^T = Li T^T: T^T is T's memory read column-major, so trmm works on it as it lies
+        T = dtrmm(1.0, Li, T.T if own else np.array(T.T, order="F"), side=0, lower=1, overwrite_b=1).T
     return Kr, Mr, T
 
 
