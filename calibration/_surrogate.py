@@ -414,17 +414,20 @@ def refreshed_modes(K, M, T_old, max_hz: float, shift_hz: float, extra=None, cac
     if k_extra:
         rhs[:, r_old:] = extra
     Q = solve(rhs)  # (n, r_old + k_extra)
+    Qo = Q[:, :r_old]  # view: BLAS takes the row stride as it is
+    # Qo^T K Qo without K: K Qo = (K + s M) Qo - s M Qo = M T_old - s M Qo, so
+    # Qo^T K Qo = Qo^T (M T_old) - s Qo^T M Qo (the solve's residual enters as the rounding of K Qo would)
+    QtMT = Qo.T @ rhs[:, :r_old]
     del rhs
     MQ = M @ Q
-    Qo, MQo = Q[:, :r_old], MQ[:, :r_old]  # views: BLAS takes the row stride as it is
+    MQo = MQ[:, :r_old]
     # Rayleigh-Ritz on span(Qo), rank-cut on its Gram matrix: Z^T (Qo^T M Qo) Z = I
-    g, U = np.linalg.eigh(_sym(Qo.T @ MQo))
+    Gq = _sym(Qo.T @ MQo)
+    g, U = np.linalg.eigh(Gq)
     if g.size == 0 or g.max() <= 0:
         raise CalibrationError("block inverse iteration returned a null basis")
     Y = U[:, g > 1e-12 * g.max()] / np.sqrt(g[g > 1e-12 * g.max()])
-    KQo = (K @ Q)[:, :r_old]  # the whole block: contiguous for the sparse product (the extra columns cost less than a copy)
-    lam, V = np.linalg.eigh(_sym(Y.T @ (Qo.T @ KQo) @ Y))
-    del KQo
+    lam, V = np.linalg.eigh(_sym(Y.T @ (_sym(QtMT) - s * Gq) @ Y))
     m = int(np.count_nonzero(lam <= (2 * np.pi * max_hz) ** 2))  # eigh: ascending, so a leading block
     YV = Y @ V
     r_new = YV.shape[1]
