@@ -44,3 +44,38 @@ def test_deck_table_and_import_as_the_lab_gives_them(one_article, capsys):
     assert not np.allclose(run.sensors[9].direction, [-1, 0, 0])      # FLR10 is skewed 30 deg about y
     Hn = np.load(out / "truth" / "A1.npz")["Hn"][1:]                   # SI; the file holds mm/s^2/N
     np.testing.assert_allclose(run.frf, Hn, rtol=1e-5)
+
+
+def _names():
+    return {e: f"{e} ({n}{'+-'[c < 0]}{'XYZ'[abs(c) - 1]})" for e, n, c in oc.RESPONSES}
+
+
+@pytest.mark.slow
+def test_the_whole_chain_on_five_articles(tmp_path):
+    """``frfcal run`` on the five articles (about 45 min wall on the 2-core machine at load 10-19)."""
+    truth = oc.build(tmp_path)
+    camp = oc.campaign(tmp_path, _names())
+    assert main(["run", str(camp), "--quiet"]) == 0
+    res = json.loads((tmp_path / "out" / "calibration.json").read_text())
+    # grouping: the closed gap of A4, A5 splits the ensemble 3 + 2
+    members = {tuple(m["articles"]): m for m in res["members"]}
+    assert set(members) == {("A1", "A2", "A3"), ("A4", "A5")}
+    # calibration of the articles without the effect: the group's mean parameters (in the model class)
+    m = members[("A1", "A2", "A3")]
+    p_true = {k: np.mean([truth["articles"][a]["values"][k] / oc.NOMINAL[k] - 1 for a in ("A1", "A2", "A3")])
+              for k in oc.NOMINAL}
+    for r in m["parameters"]:
+        assert abs(r["p"] - p_true[r["name"]]) < 0.02, (r["name"], r["p"], p_true[r["name"]])
+    # validation of the group without the effect: at its floor (the group's mean truth against the lines)
+    floor1 = oc.group_floor(tmp_path, ("A1", "A2", "A3"))
+    assert m["validation"]["sd_calibrated"] < 2 * floor1["holdout"]
+    # diagnosis: the control group is left alone; the gap group gets the closed pairs, 30 N/mm each
+    d = {tuple(g["articles"]): g for g in json.loads((tmp_path / "out" / "diagnosis.json").read_text())["members"]}
+    assert not d[("A1", "A2", "A3")]["accepted"]
+    g = d[("A4", "A5")]
+    assert g["residual"]["significant"] and g["accepted"], g["verdict"]
+    a = g["accepted"][0]
+    assert a["family"] == "contact_spring" and a["name"].endswith("_w4"), a["description"]
+    assert a["value"] == pytest.approx(oc.GAP_RATE_N_PER_MM * 1e3, rel=0.2)
+    floor2 = oc.group_floor(tmp_path, ("A4", "A5"))
+    assert g["sd"]["after"]["holdout_refined"] < 2 * floor2["holdout"]
