@@ -12,6 +12,10 @@ and direction), never by free text, so a MIMO file (n_out x n_in records)
 becomes an (n_freq, n_out, n_in) run. ``id2`` names are used only in files
 frfcal wrote (``id1`` starting ``frfcal FRF``).
 
+Direction codes are along the axes of the node's displacement coordinate
+system when the file has the test geometry (nodes 2411/15 with systems
+2420/18): a skewed sensor's code is rotated into the global vector.
+
 Export writes **binary UFF58b** by default: the abscissa and ordinate are raw
 IEEE doubles, so a run file -> UFF -> run file round trip is bit-exact. (The
 ASCII UFF58 format stores frequencies as E13.5, i.e. 6 significant digits; use
@@ -220,6 +224,83 @@ def _file_units_scale(path: Path, units) -> float | None:
     return force / length
 
 
+def _cs_axes_18(path: Path, rec: list[tuple[int, dict]]) -> dict[int, tuple[int, np.ndarray, int]]:
+    """Dataset 18 systems: label -> (type, axes in the reference system as columns, reference label)."""
+    out = {}
+    for n, d in rec:
+        for k, lab in enumerate(np.atleast_1d(d.get("cs_num", []))):
+            # pyuff: one row per system
+            o, xp, xz = (np.atleast_2d(np.asarray(d[key], float))[k] for key in ("ref_o", "x_point", "xz_point"))
+            ex = xp - o
+            ex = ex / (np.linalg.norm(ex) or 1.0)
+            ez = (xz - o) - ((xz - o) @ ex) * ex      # the xz point's part normal to x: the +z side
+            if np.linalg.norm(ex) == 0 or np.linalg.norm(ez) < 1e-9 * max(np.linalg.norm(xz - o), 1e-300):
+                raise UffError(f"{path}: coordinate system {int(lab)} (dataset {n}, type 18): its origin, x point "
+                               "and xz point do not define a system")
+            ez = ez / np.linalg.norm(ez)
+            out[int(lab)] = (int(np.atleast_1d(d["cs_type"])[k]), np.column_stack([ex, np.cross(ez, ex), ez]),
+                             int(np.atleast_1d(d["ref_cs_num"])[k]))
+    return out
+
+
+def _cs_axes_2420(path: Path, rec: list[tuple[int, dict]]) -> dict[int, tuple[int, np.ndarray, int]]:
+    """Dataset 2420 systems: label -> (type, axes in global as columns, 0).
+
+    The first three rows of the 2420 transformation matrix are the direction cosines of the local x, y, z
+    axes in the global system (row 4 the origin), so the axes as columns are its transpose.
+    """
+    out = {}
+    for n, d in rec:
+        for lab, typ, T in zip(d.get("CS_sys_labels", []), d.get("CS_types", []), d.get("CS_matrices", [])):
+            R = np.asarray(T, float)[:3, :3].T
+            if not np.allclose(R.T @ R, np.eye(3), atol=1e-5):
+                raise UffError(f"{path}: coordinate system {int(lab)} (dataset {n}, type 2420): the rotation rows "
+                               "of its transformation matrix are not orthonormal")
+            out[int(lab)] = (int(typ), R, 0)
+    return out
+
+
+def _displacement_axes(path: Path) -> dict[int, np.ndarray]:
+    """Node -> axes (columns, global) of its displacement coordinate system, for nodes whose system is not global.
+
+    The test geometry (node datasets 2411 or 15, coordinate systems 2420 or 18) says in which system each
+    node's direction codes are: a skewed accelerometer is a node with a local displacement system, and
+    its record's +Y means that system's y axis. Cartesian systems only (a cylindrical or spherical
+    displacement system depends on the node's position: refused, naming the node).
+    """
+    nodes = _read_records(path, (2411, 15))
+    if not nodes:
+        return {}
+    systems = {**_cs_axes_18(path, _read_records(path, (18,))), **_cs_axes_2420(path, _read_records(path, (2420,)))}
+
+    def to_global(lab: int, node: int, seen=()) -> np.ndarray:
+        if lab == 0:
+            return np.eye(3)
+        if lab not in systems:
+            raise UffError(f"{path}: node {node} gives displacement coordinate system {lab}, which the file "
+                           "does not define (datasets 2420/18): its direction codes cannot be placed")
+        typ, R, ref = systems[lab]
+        if typ != 0:
+            raise UffError(f"{path}: node {node}: displacement coordinate system {lab} is "
+                           f"{ {1: 'cylindrical', 2: 'spherical'}.get(typ, f'of type {typ}') }; only cartesian "
+                           "systems are supported for direction codes")
+        if lab in seen:
+            raise UffError(f"{path}: coordinate system {lab} refers to itself (through {list(seen)})")
+        return to_global(ref, node, seen + (lab,)) @ R
+
+    out: dict[int, np.ndarray] = {}
+    given: dict[int, int] = {}
+    for n, d in nodes:
+        for node, cs in zip(np.atleast_1d(d.get("node_nums", [])), np.atleast_1d(d.get("disp_cs", []))):
+            node, cs = int(node), int(cs)
+            if given.setdefault(node, cs) != cs:
+                raise UffError(f"{path}: node {node} is given displacement coordinate systems {given[node]} and "
+                               f"{cs} (dataset {n})")
+            if cs != 0:
+                out[node] = to_global(cs, node)
+    return out
+
+
 def _listing(items, limit: int = 6) -> str:
     items = list(items)
     more = f" and {len(items) - limit} more" if len(items) > limit else ""
@@ -279,6 +360,8 @@ def import_uff(path, out, *, article: str | None = None, overwrite: bool = False
         raise UffError(f"{path}: no UFF58 records")
     # records without unit labels are in the file's unit system (dataset 164), when it has one
     file_scale = _file_units_scale(path, _read_records(path, (164,)))
+    # direction codes of nodes with a local displacement system (the test geometry's 2411/15 + 2420/18)
+    node_axes = _displacement_axes(path)
 
     def rec(n: int, s: dict) -> str:
         return (f"record {n} (response {int(s.get('rsp_node', 0))}/{int(s.get('rsp_dir', 0))}, "
@@ -353,7 +436,10 @@ def import_uff(path, out, *, article: str | None = None, overwrite: bool = False
             if vec is None and not 1 <= abs(code) <= 3:
                 raise UffError(f"{path}: {rec(n, s)}: {'response' if side == 'rsp' else 'reference'} direction "
                                f"code {code} is not a translation (+-1..3 = +-X, +-Y, +-Z)")
-            vec = vec if vec is not None else _code_dir(code)
+            if vec is None:
+                vec = _code_dir(code)
+                if node in node_axes:   # the code is along an axis of the node's own system
+                    vec = tuple(float(x) for x in np.round(node_axes[node] @ np.asarray(vec), 12) + 0.0)
             key = (node, vec)
             ent = _entity(s.get(f"{side}_ent_name", ""))
             given = ""

@@ -76,8 +76,13 @@ def read_bdf(path, *, units: str = "si", allow_unsupported: bool = False) -> FEM
     log = logging.getLogger("femodel.pynastran")
     log.setLevel(logging.ERROR)
     bdf = BDF(debug=None, log=log)
+    import contextlib
+    import io as _io
+
     try:
-        with warnings.catch_warnings():
+        # pyNastran prints its parse errors (duplicate cards, ...) on stdout as well as raising them: that
+        # text would corrupt the one JSON object of `--json` (it is in the ModelError below)
+        with warnings.catch_warnings(), contextlib.redirect_stdout(_io.StringIO()):
             warnings.simplefilter("ignore")
             mode = _deck_kind(path)
             if mode == "bulk-with-begin":
@@ -93,7 +98,8 @@ def read_bdf(path, *, units: str = "si", allow_unsupported: bool = False) -> FEM
             else:
                 bdf.read_bdf(str(path), xref=False, validate=False, punch=(mode == "bulk"))
     except (SyntaxError, RuntimeError, ValueError, KeyError, IndexError, TypeError, AssertionError) as exc:
-        raise ModelError(f"{path}: pyNastran could not parse the deck: {exc}") from None
+        msg = " ".join(str(exc).split())   # one line: pyNastran's messages span several
+        raise ModelError(f"{path}: pyNastran could not parse the deck: {msg}") from None
 
     counts = card_counts(dict(bdf.card_count), getattr(bdf, "reject_cards", []) or [])
     unsupported = {k: v for k, v in counts.items() if k not in SUPPORTED_CARDS and k not in NEUTRAL_CARDS}

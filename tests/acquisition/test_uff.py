@@ -282,3 +282,54 @@ def test_records_without_unit_labels_take_the_units_dataset_164(tmp_path):
     np.testing.assert_allclose(run.frf[:, 0, 0], (2.0 + 1.0j) * 9.80665, rtol=1e-12)
     with pytest.raises(UffError, match=r"units datasets \(164\) 1, 2 disagree"):
         import_uff(_with_units_dataset(tmp_path / "two.uff", 1000.0, 1.0, second=(1.0, 1.0)), tmp_path / "two.h5")
+
+
+def _skewed_file(path, geometry):
+    """Node 7 (+Z, response) and node 8 (+Y, reference) records with the test geometry ``geometry`` first."""
+    import pyuff
+
+    sets = list(geometry)
+    for rn, rd in ((7, 3), (8, 2)):
+        ds = pyuff.prepare_58(binary=0, func_type=4, rsp_node=rn, rsp_dir=rd, ref_node=8, ref_dir=2, ord_data_type=6,
+                              abscissa_spacing=1, abscissa_min=10.0, abscissa_inc=0.5, data=np.full(10, 2.0 + 1.0j),
+                              x=10 + 0.5 * np.arange(10), ordinate_spec_data_type=12, orddenom_spec_data_type=13,
+                              ordinate_axis_units_lab="m/s^2", orddenom_axis_units_lab="N", abscissa_spec_data_type=18)
+        ds["type"] = 58
+        sets.append(ds)
+    pyuff.UFF(str(path)).write_sets(sets, mode="overwrite")
+    return path
+
+
+def _nodes(disp_cs, kind=2411):
+    return {"type": kind, "node_nums": np.array([7.0, 8.0]), "def_cs": np.zeros(2), "disp_cs": np.array(disp_cs, float),
+            "color": np.full(2, 11.0), "x": np.array([0.0, 0.1]), "y": np.zeros(2), "z": np.zeros(2)}
+
+
+def _cs2420(label, R, typ=0):
+    # rows 1-3: direction cosines of the local x, y, z axes in global; row 4: origin
+    return {"type": 2420, "Part_UID": 1, "Part_Name": "test", "CS_sys_labels": [label], "CS_types": [typ],
+            "CS_colors": [8], "CS_names": [f"CS{label}"], "CS_matrices": [np.vstack([np.asarray(R).T, np.zeros(3)])]}
+
+
+def test_direction_codes_are_in_the_nodes_displacement_system(tmp_path):
+    # A skewed accelerometer as test software exports it: its node has a local displacement system (2411
+    # + 2420, or 15 + 18) and the record's direction code is along that system's axis. Before, the test
+    # geometry was skipped and +Z was taken as global Z, silently.
+    c, s = np.cos(np.radians(30)), np.sin(np.radians(30))
+    Rx = np.array([[1, 0, 0], [0, c, -s], [0, s, c]])      # local axes as columns: rotated 30 deg about x
+    run = import_uff(_skewed_file(tmp_path / "a.uff", [_cs2420(12, Rx), _nodes([12, 0])]), tmp_path / "a.h5")
+    np.testing.assert_allclose(run.sensors[0].direction, [0, -s, c], atol=1e-12)   # local +Z
+    np.testing.assert_allclose(run.drives[0].direction, [0, 1, 0], atol=1e-12)     # node 8 in global
+    assert run.sensors[1].direction == (0.0, 1.0, 0.0)
+    # dataset 18 (origin, point on +x, point in the xz plane) and 15: node 8's +Y is local y = global -X
+    cs18 = {"type": 18, "cs_num": [3], "cs_type": [0], "ref_cs_num": [0], "color": [8], "method": [1],
+            "cs_name": ["rot"], "ref_o": np.zeros((1, 3)), "x_point": np.array([[0.0, 1.0, 0.0]]),
+            "xz_point": np.array([[0.0, 0.0, 1.0]])}
+    run = import_uff(_skewed_file(tmp_path / "b.uff", [cs18, _nodes([0, 3], kind=15)]), tmp_path / "b.h5")
+    np.testing.assert_allclose(run.drives[0].direction, [-1, 0, 0], atol=1e-12)
+    np.testing.assert_allclose(run.sensors[0].direction, [0, 0, 1], atol=1e-12)
+    # a system the file does not define, or a cylindrical one: refused naming the node
+    with pytest.raises(UffError, match="node 7 gives displacement coordinate system 12, which the file does not"):
+        import_uff(_skewed_file(tmp_path / "c.uff", [_nodes([12, 0])]), tmp_path / "c.h5")
+    with pytest.raises(UffError, match="node 7: displacement coordinate system 12 is cylindrical"):
+        import_uff(_skewed_file(tmp_path / "d.uff", [_cs2420(12, Rx, typ=1), _nodes([12, 0])]), tmp_path / "d.h5")

@@ -111,3 +111,19 @@ def test_rejected_cards_are_counted_never_zero(tmp_path):
     # counted once whether or not pyNastran's own count has them
     assert card_counts({"GRID": 2}, [["RADLST", "1"], ["radlst*", "2"]]) == {"GRID": 2, "RADLST": 2}
     assert card_counts({"GRID": 2, "RADLST": 2}, [["RADLST", "1"], ["RADLST", "2"]]) == {"GRID": 2, "RADLST": 2}
+
+
+def test_a_parse_error_is_one_line_and_prints_nothing(tmp_path, capfd):
+    # A PELAS and a PBUSH sharing id 21 (one property id space in Nastran): pyNastran printed its
+    # multi-line report on stdout too, which broke `frfcal modes --json` (stdout is one JSON object)
+    from frfcal.cli import main
+
+    p = _deck(tmp_path, "PELAS,21,300.\nPBUSH,21,K,800.\nCELAS1,5,21,1,3,2,3\n")
+    with pytest.raises(femodel.ModelError) as exc:
+        femodel.read_bdf(p)
+    msg = str(exc.value)
+    assert "\n" not in msg and "not unique=[21]" in msg and str(p) in msg
+    capfd.readouterr()
+    assert main(["modes", str(p), "--json"]) == 2
+    out, err = capfd.readouterr()
+    assert out == "" and err.count("\n") == 1 and "not unique" in err
