@@ -1,0 +1,53 @@
+"""The ranked-candidates table of ``frfcal diagnose`` (frfcal/commands/diagnose.py ``ranked_lines``)."""
+
+from __future__ import annotations
+
+import io
+
+from frfcal.commands.diagnose import print_diagnosis, ranked_lines
+
+
+def _row(rank, family, grids, parts, size, explained, holdout, checked=True):
+    return {"rank": rank, "family": family, "grids": grids, "parts": parts, "center": [0.123, -1.5, 2e-3],
+            "size": size, "explained": explained, "explained_holdout": holdout, "checked": checked}
+
+
+ROWS = [
+    _row(1, "shaker_attachment_mass", [18], ["PBAR 3"], "0.654 kg", 0.459, 0.93),
+    _row(2, "element_cluster", list(range(101, 112)), ["PSHELL 12", "PSHELL 15", "PSHELL 16"],
+         "stiffness factor 0.649", 0.922, None),
+    _row(3, "stinger_spring", [18], ["PBAR 3"], "7.24e+04 N/m", 0.031, -0.12, checked=False),
+    _row(10, "contact_spring", [40211, 40877], ["PSHELL 2+PSHELL 3", "PSHELL 15"], "4.2e+07 N/m", 0.0, None),
+]
+
+
+def test_columns_stay_aligned_whatever_the_family_name_location_or_size():
+    head, *lines = ranked_lines(ROWS)
+    # each heading's column: the family and location cells start where their headings start, the numbers end
+    # where theirs end
+    fam0, loc0 = head.index("family"), head.index("location")
+    size1, expl1, hold1 = (head.index(h) + len(h) for h in ("size", "explained", "hold-out"))
+    for r, ln in zip(ROWS, lines):
+        assert ln.index(r["family"]) == fam0, ln
+        assert ln.index("grids ") == loc0, ln
+        assert ln[:size1].endswith(r["size"]), ln
+        assert ln[:expl1].endswith(f"{100 * r['explained']:.1f}%"), ln
+        h = r["explained_holdout"]
+        assert ln[:hold1].endswith("-" if h is None else f"{100 * h:.1f}%"), ln
+        assert ln.endswith("(linear)") == (not r["checked"])
+        assert ln[fam0 + len(r["family"])] == " "  # the longest family is followed by a separator, not cut
+    assert "shaker_attachment_mass " in lines[0]
+    assert "101 102 103 104..." in lines[1] and "PSHELL 16" not in lines[1]  # 4 grids, 2 parts shown
+
+
+def test_print_diagnosis_prints_the_aligned_table():
+    member = {"member": "all", "articles": ["A1"], "verdict": "effect(s) found", "reason": "r",
+              "residual": {"test": "t", "ranked": []}, "nonlinear_modes": [], "ranked": ROWS,
+              "candidates": {"shaker_attachment_mass": 1}, "accepted": [], "trials": [],
+              "sd": {"calibration_raw": 0.01, "holdout": 0.02, "crossvalidation_rse": None,
+                     "residual_all_channels": 0.02, "floor": 0.001, "floor_source": "s", "scatter": 0.0}}
+    out = io.StringIO()
+    print_diagnosis({"gates": [], "members": [member], "separations": [], "result_file": "x.json"}, out)
+    text = out.getvalue().splitlines()
+    k = next(i for i, ln in enumerate(text) if ln.lstrip().startswith("# "))
+    assert text[k:k + 1 + len(ROWS)] == ranked_lines(ROWS)
