@@ -750,12 +750,24 @@ def _accept_member(camp, load, pm, model, articles, m, check, rows, ctx, quantit
                  "holdout_floor_ratio": (h_ref if h_ref is not None else base["holdout"]) / floor
                  if floor > 0 else None,
                  "n_independent_residuals": n_res, "residual": check_after.to_dict()}
-        fit_acc = (fit_acc, x_ref, frfs_after)
         n_p = pm.n_params
         for j, a in enumerate(accepted):  # the refined magnitudes (raw lines, estimated damping) are reported
             cd = ctx["cands"][[cd.name for cd in ctx["cands"]].index(a["name"])]
             a["c_equalized"], a["c"] = a["c"], float(x_ref[n_p + j])
             a["value"], a["unit"], a["size"] = _physical(cd.term, a["c"])
+        # an effect accepted on the screening's target may be refined on the raw lines to a size the data do not
+        # see (a spring at 1e-37 N/m): dropped, and reported as such
+        sizes = refined_sizes(camp, arts, sur_ref, x_ref, damping, n_p, accepted, n_res, quantity)
+        n_fitted = len(accepted)
+        accepted, dropped, x_kept = drop_negligible(accepted, sizes, x_ref, n_p)
+        if dropped:
+            after["negligible"] = dropped
+            for a in dropped:
+                z = a["refined_effect"]
+                log(f"[{m.label}] {a['name']} refined to {a['size']}: negligible (without it the hold-out SD is "
+                    f"x{1 / z['ratio']:.4f}, less than the penalty x{1 / z['penalty_ratio']:.4f} of one "
+                    f"parameter; largest mode shift {z['max_mode_shift']:.2e}): dropped")
+        fit_acc = (fit_acc, x_kept, frfs_after, n_fitted)
     return tuple(accepted), tuple(trials), after, fit_acc
 
 
@@ -861,9 +873,9 @@ def _refined(camp, pm, model, articles, m, fit, extended_terms, quantity, log):
     calibrated model's "before".
 
     Returns (Refinement or None, hold-out SD or None, x, surrogate)."""
-    from calibration import FRFModel, build_surrogate, refine, validate
+    from calibration import FRFModel, build_surrogate, refine
 
-    from frfcal.campaign._stages import raw_data, raw_std_error
+    from frfcal.campaign._stages import raw_data
 
     c = camp.calibration
     if not c.refine:
@@ -892,14 +904,73 @@ def _refined(camp, pm, model, articles, m, fit, extended_terms, quantity, log):
                 break
     h = None
     if camp.channels.holdout:
-        errs = [raw_std_error(a, camp.channels.holdout) for a in arts]
-        v = validate(sur, sur, ref.p, [raw_data(a, camp.channels.holdout) for a in arts],
-                     modes, c.zeta0, None, camp.validation.mac_min, quantity, band,
-                     std_error=None if any(e is None for e in errs) else errs, damping=(ref.zeta, ref.p_zeta))
-        h = float(v.sd_calibrated)
+        h = _holdout_at(camp, arts, sur, ref.p, quantity, (ref.zeta, ref.p_zeta), camp.channels.holdout)
     log(f"[{m.label}] extended model refined on the raw lines: SD {ref.sd_raw:.4g}"
         + ("" if h is None else f", hold-out SD {h:.4g} (estimated damping)"))
     return ref, h, ref.p, sur
+
+
+def _holdout_at(camp, arts, sur, x, quantity, damping, channels) -> float:
+    """SD of (sur, x) on the raw lines of ``channels`` with ``damping`` ((zeta per article, p_ref) as the
+    refinement estimated it, or None: the identified damping mapped by MAC), per-line standard errors when
+    every article has them."""
+    from calibration import validate
+
+    from frfcal.campaign._stages import raw_data, raw_std_error
+
+    errs = [raw_std_error(a, channels) for a in arts]
+    v = validate(sur, sur, x, [raw_data(a, channels) for a in arts], [identified_modes(a) for a in arts],
+                 camp.calibration.zeta0, None, camp.validation.mac_min, quantity,
+                 (camp.band.low_hz, camp.band.high_hz), std_error=None if any(e is None for e in errs) else errs,
+                 damping=damping)
+    return float(v.sd_calibrated)
+
+
+def _mode_shift(sur, x, x0, band) -> float:
+    """Largest relative frequency change of the model's elastic modes in ``band`` between x0 and x (sorted
+    eigenvalues of the reduced model: a small change keeps their order)."""
+    from calibration import reduced_modes
+
+    f = [np.sqrt(np.clip(reduced_modes(sur, np.asarray(v, float))[0], 0, None)) / (2 * np.pi) for v in (x, x0)]
+    use = (f[1] > sur.rigid_hz) & (f[1] >= band[0]) & (f[1] <= band[1])
+    return float(np.max(np.abs(f[0][use] / f[1][use] - 1.0))) if use.any() else 0.0
+
+
+def refined_sizes(camp, arts, sur, x, damping, n_p: int, accepted, n_res: int, quantity) -> list:
+    """Per accepted effect, its final (refined) size seen by the data: the hold-out SD (raw lines of the
+    hold-out channels, or of the calibration channels without any; the damping the refinement estimated) of
+    the final model ``(sur, x)`` and of the same model with the effect's magnitude ``x[n_p + j]`` set to 0,
+    beside the acceptance's penalty for its parameter (:func:`calibration.negligible_effect`), and the largest
+    relative shift of a mode in band it makes. ``negligible``: the model is as good without it (an effect
+    refined to ~0 after it was accepted on the screening's target)."""
+    from calibration import negligible_effect
+
+    chans = list(camp.channels.holdout) or list(camp.channels.calibrate)
+    band = (camp.band.low_hz, camp.band.high_hz)
+    x = np.asarray(x, float)
+    h = _holdout_at(camp, arts, sur, x, quantity, damping, chans)
+    out = []
+    for j, _ in enumerate(accepted):
+        x0 = x.copy()
+        x0[n_p + j] = 0.0
+        h0 = _holdout_at(camp, arts, sur, x0, quantity, damping, chans)
+        neg, ratio, allowed = negligible_effect(h, h0, max(int(n_res), 2))
+        out.append({"holdout_with": h, "holdout_without": h0, "ratio": ratio, "penalty_ratio": allowed,
+                    "max_mode_shift": _mode_shift(sur, x, x0, band), "negligible": neg})
+    return out
+
+
+def drop_negligible(accepted, sizes, x, n_p: int) -> tuple:
+    """Split the accepted rows by their refined size (:func:`refined_sizes`): (kept rows, negligible rows,
+    x of the model with the kept effects only: ``[p, c of the kept]``). Every row gets ``refined_effect``
+    (its size record) and ``term_index`` (its position among the terms of the fitted model)."""
+    x = np.asarray(x, float)
+    kept, dropped = [], []
+    for j, (a, z) in enumerate(zip(accepted, sizes)):
+        a = dict(a, refined_effect=dict(z), term_index=j)
+        (dropped if z["negligible"] else kept).append(a)
+    x_kept = np.concatenate([x[:n_p], [x[n_p + a["term_index"]] for a in kept]])
+    return kept, dropped, x_kept
 
 
 def diagnose_stage(camp: Campaign, load, pm, model, articles, eq, cal, val, xval, executor=None,
@@ -973,13 +1044,21 @@ def diagnose_stage(camp: Campaign, load, pm, model, articles, eq, cal, val, xval
                 counts[cd.family] = counts.get(cd.family, 0) + 1
             if after is not None:
                 sd["after"] = after
+            dropped = (after or {}).get("negligible", ())
+            negl = ("; " + "; ".join(f"{a['name']} was accepted but refined to {a['size']}, negligible "
+                                     f"(the model is as good without it): dropped" for a in dropped)
+                    if dropped else "")
             if acc:
                 verdict = "effect(s) found"
                 extended = (tuple(ctx["cands"][[cd.name for cd in ctx["cands"]].index(a["name"])] for a in acc),
                             fit[1])
                 frfs_after = fit[2]
-                fits.append((m, acc, fit[0], extended[0]))
-                reason = "accepted: " + "; ".join(f"{a['description']}: {a['size']}" for a in acc)
+                fits.append((m, acc, fit[0], extended[0], fit[3]))
+                reason = "accepted: " + "; ".join(f"{a['description']}: {a['size']}" for a in acc) + negl
+            elif dropped:
+                verdict = "no effect accepted"
+                reason = (f"the residual is significant ({check.ratio:.3g} x the floor) and no nonlinearity is "
+                          f"flagged; " + negl[2:])
             else:
                 verdict = "no effect accepted"
                 top = rows[0] if rows else None
@@ -1017,12 +1096,12 @@ def _separations(camp: Campaign, articles, eq, groups, fits, log) -> tuple:
     data = [[eq.data[i]] for i in use]
     cont = [(z, [[d[i]] for i in use]) for z, d in eq.continuation]
     out = []
-    for m, acc, fit, cands in fits:
-        n_p = fit.surrogate.n_params - len(acc)
-        for j, (a, cd) in enumerate(zip(acc, cands)):
+    for m, acc, fit, cands, n_fitted in fits:
+        n_p = fit.surrogate.n_params - n_fitted  # the fit holds every accepted term, negligible ones included
+        for a, cd in zip(acc, cands):
             t0 = time.perf_counter()
             sep = separating_effect(fit.surrogate, fit.x, data, camp.calibration.zeta0, label[use], fit.lower,
-                                    fit.upper, index=n_p + j, refit_p=True, continuation=cont,
+                                    fit.upper, index=n_p + a.get("term_index", 0), refit_p=True, continuation=cont,
                                     max_nfev=camp.diagnosis.max_evaluations)
             per = [float(_physical(cd.term, float(c))[0]) for c in sep.magnitude]
             log(f"[{m.label}] {a['name']} per article: "

@@ -79,6 +79,12 @@ def print_diagnosis(d: dict, out) -> None:
         for a in m["accepted"]:
             print(f"ACCEPTED: {a['description']}: {a['size']} (grids {', '.join(map(str, a['grids']))}; "
                   f"{', '.join(a['parts'])}): {a['decision']['reason']}", file=out)
+        for a in (m["sd"].get("after") or {}).get("negligible", []):
+            z = a["refined_effect"]
+            print(f"NEGLIGIBLE, dropped: {a['description']}: accepted, then refined to {a['size']}: without it the "
+                  f"hold-out SD is x{z['holdout_without'] / z['holdout_with'] if z['holdout_with'] else float('inf'):.4f}"
+                  f" (the penalty of one parameter: x{1 / z['penalty_ratio']:.4f}), largest mode shift "
+                  f"{100 * z['max_mode_shift']:.2g} %", file=out)
         if not m["accepted"] and m["trials"]:
             t = m["trials"][0]
             if "decision" in t:

@@ -51,3 +51,24 @@ def test_print_diagnosis_prints_the_aligned_table():
     text = out.getvalue().splitlines()
     k = next(i for i, ln in enumerate(text) if ln.lstrip().startswith("# "))
     assert text[k:k + 1 + len(ROWS)] == ranked_lines(ROWS)
+
+
+def test_print_diagnosis_reports_a_negligible_effect_as_dropped():
+    z = {"holdout_with": 0.0125, "holdout_without": 0.0125, "ratio": 1.0, "penalty_ratio": 0.9877,
+         "max_mode_shift": 0.0, "negligible": True}
+    neg = dict(ROWS[2], name="stinger_g18", description="stinger spring at grid 18", size="1e-37 N/m",
+               refined_effect=z)
+    member = {"member": "all", "articles": ["A1"], "verdict": "no effect accepted", "reason": "r",
+              "residual": {"test": "t", "ranked": []}, "nonlinear_modes": [], "ranked": [], "accepted": [],
+              "trials": [],
+              "sd": {"calibration_raw": 0.01, "holdout": 0.02, "crossvalidation_rse": None,
+                     "residual_all_channels": 0.02, "floor": 0.001, "floor_source": "s", "scatter": 0.0,
+                     "after": {"calibration_raw": 0.01, "holdout_refined": 0.0125, "holdout_floor_ratio": 1.2,
+                               "floor_holdout": 0.0104, "holdout_before_same_footing": 0.02, "holdout": 0.019,
+                               "crossvalidation_rse_before": 0.1, "crossvalidation_rse": 0.09,
+                               "residual": {"test": "t"}, "negligible": [neg]}}}
+    out = io.StringIO()
+    print_diagnosis({"gates": [], "members": [member], "separations": [], "result_file": "x.json"}, out)
+    (line,) = [ln for ln in out.getvalue().splitlines() if ln.startswith("NEGLIGIBLE")]
+    assert "stinger spring at grid 18" in line and "1e-37 N/m" in line and "x1.0000" in line
+    assert not any(ln.startswith("ACCEPTED") for ln in out.getvalue().splitlines())
