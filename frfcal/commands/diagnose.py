@@ -79,6 +79,10 @@ def print_diagnosis(d: dict, out) -> None:
         for a in m["accepted"]:
             print(f"ACCEPTED: {a['description']}: {a['size']} (grids {', '.join(map(str, a['grids']))}; "
                   f"{', '.join(a['parts'])}): {a['decision']['reason']}", file=out)
+            if len(a.get("tied", ())) > 1:
+                print(f"  place: the lowest hold-out SD of {len(a['tied'])} places the screening could not tell "
+                      "apart: " + ", ".join(f"grid {'/'.join(map(str, x['grids']))} {x['holdout_after']:.4g}"
+                                            for x in sorted(a["tied"], key=lambda x: x["holdout_after"])), file=out)
         for a in (m["sd"].get("after") or {}).get("negligible", []):
             z = a["refined_effect"]
             print(f"NEGLIGIBLE, dropped: {a['description']}: accepted, then refined to {a['size']}: without it the "
