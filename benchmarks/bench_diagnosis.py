@@ -42,6 +42,7 @@ and of the deck extended by the accepted candidate at its fitted magnitude
 
     python benchmarks/bench_diagnosis.py [--dof 200000] [--effect contact_spring] [--candidates-per-family 500]
                                          [--seed 11] [--target debiased|equalized]
+                                         [--continuation-lines raw|half-bandwidth]
                                          [--out benchmarks/results/diagnosis.json]
 
 Prints a table and writes benchmarks/results/diagnosis.json. A quick check:
@@ -192,6 +193,9 @@ def main(argv=None) -> int:
                     help="the screening's and the acceptance's target ([diagnosis] target; default: the campaign "
                          "default, " + repr(_default_target()) + "); the hold-out SD of the trials is on the same "
                          "target's hold-out channels")
+    ap.add_argument("--continuation-lines", choices=("raw", "half-bandwidth"), default="raw",
+                    help="[diagnosis] continuation_lines of the debiased target: every raw line at the continuation "
+                         "stages, or the raw line nearest each point of the stage's half-bandwidth grid")
     ap.add_argument("--no-zoom", dest="zoom", action="store_false",
                     help="no zoom of the point families (CandidateOptions.zoom_rounds = 0)")
     ap.add_argument("--no-model-sd", action="store_true", help="skip the full-order hold-out SD with truth damping")
@@ -242,7 +246,7 @@ def main(argv=None) -> int:
     del pm0
     camp = load_campaign(sc.write_campaign(
         tmp / "campaign.toml", calibrate=cal_ch, holdout=hold_ch, band_hz=BAND,
-        calibration={"starts": args.starts}, crossvalidation={"realizations": 0}, diagnosis={"target": args.target},
+        calibration={"starts": args.starts}, crossvalidation={"realizations": 0}, diagnosis={"target": args.target, "continuation_lines": args.continuation_lines},
         output={"dir": str(tmp / "out"), "figures": False}))
 
     def log(m):
@@ -447,6 +451,7 @@ def _diagnose(args, ex, sc, effects, camp, model, articles, eq, cal, pool, senso
 
     out = {
         "dof": int(ex.n_dof), "effect": args.effect, "target": target.kind,
+        "continuation_lines": args.continuation_lines,
         "target_lines": {"zeta0": [int(d.frf.shape[0]) for d in data],
                          **{f"{z:g}": [int(d.frf.shape[0]) for d in ds] for z, ds in cont}}, "truth_effects": [e.record(sc.articles) for e in effects],
         "n_candidates": len(cands), "n_zoomed": len(s.zoomed), "zoom": bool(args.zoom),

@@ -40,6 +40,7 @@ from calibration._fit import (
     calibrate_cycles,
     latin_hypercube_starts,
     log_frequency_weights,
+    thinned_lines,
     run_start,
 )
 from calibration._metric import log_deviation, square_deviation, stacked
@@ -141,6 +142,7 @@ __all__ = [
     "SignalPairs",
     "signal_pairs",
     "log_frequency_weights",
+    "thinned_lines",
     "CrossValidation",
     "Identifiability",
     "IdentifiedModes",

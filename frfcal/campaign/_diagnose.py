@@ -227,7 +227,7 @@ class ScreeningTarget:
                 [(z, [d[i] for i in idx]) for z, d in self.continuation])
 
 
-def debiased_data(article: Article, channels, zeta: float) -> FitData:
+def debiased_data(article: Article, channels, zeta: float, grid_hz=None) -> FitData:
     """The article's raw lines on ``channels`` with its identified poles' damping raised to ``zeta``
     (:func:`calibration.debiased_target`), weighted per line by its share of log f.
 
@@ -237,11 +237,12 @@ def debiased_data(article: Article, channels, zeta: float) -> FitData:
     labelled negligible) cancels. The raw lines are uneven (dense at the
     resonances); :func:`calibration.log_frequency_weights` makes the sum over
     them a quadrature in log f, the measure of the equalized target's
-    half-bandwidth grid.
+    half-bandwidth grid. ``grid_hz``: thinned to the raw line nearest each of these frequencies
+    (:func:`calibration.thinned_lines`).
     """
     from dataclasses import replace
 
-    from calibration import debiased_target, log_frequency_weights
+    from calibration import debiased_target, log_frequency_weights, thinned_lines
     from frfcal.campaign._stages import raw_data
 
     raw = raw_data(article, channels)
@@ -252,7 +253,8 @@ def debiased_data(article: Article, channels, zeta: float) -> FitData:
                                f"{list(article.drives)}: [diagnosis] target = \"debiased\" needs one per drive "
                                "(use target = \"equalized\")")
     t = debiased_target(raw, ident, article.ident_channels, zeta)
-    return replace(t, weights=log_frequency_weights(t.freq_hz))
+    t = replace(t, weights=log_frequency_weights(t.freq_hz))
+    return t if grid_hz is None else thinned_lines(t, grid_hz)
 
 
 def screening_target(camp: Campaign, articles, eq) -> ScreeningTarget:
@@ -260,10 +262,18 @@ def screening_target(camp: Campaign, articles, eq) -> ScreeningTarget:
     (``"equalized"``) or the debiased raw lines at zeta0 and at the continuation dampings (``"debiased"``)."""
     if camp.diagnosis.target == "equalized":
         return ScreeningTarget("equalized", tuple(eq.data), tuple(eq.continuation))
+    from calibration import half_bandwidth_frequencies
+
     chans = camp.channels.calibrate
     c = camp.calibration
     data = tuple(debiased_data(a, chans, c.zeta0) for a in articles)
-    cont = tuple((z, tuple(debiased_data(a, chans, z) for a in articles)) for z in c.continuation_zeta)
+    thin = camp.diagnosis.continuation_lines == "half-bandwidth"
+
+    def grid(z):  # [diagnosis] continuation_lines: a wider stage on its own half-bandwidth grid's nearest lines
+        return half_bandwidth_frequencies(camp.band.low_hz, camp.band.high_hz, z, c.samples_per_half_bandwidth) \
+            if thin and z > c.zeta0 else None
+
+    cont = tuple((z, tuple(debiased_data(a, chans, z, grid(z)) for a in articles)) for z in c.continuation_zeta)
     return ScreeningTarget("debiased", data, cont)
 
 
