@@ -898,9 +898,11 @@ def holdout_ranking(cands, scr, trials, n: int = 10) -> tuple:
     explains); the hold-out fraction is measured on data the fit did not see, and is what the acceptance
     judges. Every row keeps its screening numbers and ``screening_rank``."""
     single = {t["names"][0]: t for t in trials if len(t["names"]) == 1}
-    full = ranked_table(cands, scr, n=max(n, len(scr.checks)))
+    # every singly recalibrated candidate, wherever the screening ranked it (a place tied with a point effect,
+    # _tied_places, may lie far down the screening's order)
+    full = ranked_table(cands, scr, n=len(scr.names) if single else max(n, len(scr.checks)))
     tried = sorted((r for r in full if r["name"] in single), key=lambda r: single[r["name"]]["holdout_after"])
-    rest = [r for r in full if r["name"] not in single]
+    rest = [r for r in full if r["name"] not in single][:max(n, len(scr.checks))]
     out = []
     for k, r in enumerate((tried + rest)[:n]):
         t = single.get(r["name"])

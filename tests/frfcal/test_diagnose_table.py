@@ -72,3 +72,35 @@ def test_print_diagnosis_reports_a_negligible_effect_as_dropped():
     (line,) = [ln for ln in out.getvalue().splitlines() if ln.startswith("NEGLIGIBLE")]
     assert "stinger spring at grid 18" in line and "1e-37 N/m" in line and "x1.0000" in line
     assert not any(ln.startswith("ACCEPTED") for ln in out.getvalue().splitlines())
+
+
+def test_the_ranking_puts_every_singly_recalibrated_place_first_wherever_the_screening_ranked_it():
+    """A place tried because it tied with the best point effect (_tied_places) may lie far down the screening's
+    order; the reported ranking (by the hold-out SD of the single recalibrations) must still show it."""
+    from types import SimpleNamespace as NS
+
+    import numpy as np
+
+    from frfcal.campaign._diagnose import holdout_ranking
+
+    class Term:
+        unit = "N/m"
+
+        def value(self, c):
+            return 6.2e4 * c
+
+    n = 40
+    cands = [NS(name=f"ground_g{k}_z", family="ground_spring", grids=(k,), parts=("PSHELL 2",),
+                center=(0.0, 0.02 * k, 0.0), size=0.04, description=f"spring at grid {k}", term=Term())
+             for k in range(n)]
+    explained = np.linspace(0.2, 0.01, n)  # the screening's order is the grid order
+    chk = NS(name="ground_g0_z", c=1.3, explained=0.21, converged=True)
+    scr = NS(names=tuple(c.name for c in cands), order=np.arange(n), explained=explained, c_linear=np.ones(n),
+             significant=np.ones(n, bool), checks=(chk,), check=lambda name: chk if name == chk.name else None)
+    trials = [{"names": ["ground_g0_z"], "holdout_before": 0.028, "holdout_after": 0.00597},
+              {"names": ["ground_g33_z"], "holdout_before": 0.028, "holdout_after": 0.00552, "tied_with": "ground_g0_z"},
+              {"names": ["ground_g0_z", "ground_g33_z"], "holdout_before": 0.00552, "holdout_after": 0.0055}]
+    rows = holdout_ranking(cands, scr, trials, n=10)
+    assert [r["name"] for r in rows[:3]] == ["ground_g33_z", "ground_g0_z", "ground_g1_z"]
+    assert rows[0]["screening_rank"] == 34 and rows[0]["explained_holdout"] == 1 - 0.00552 / 0.028
+    assert rows[2]["explained_holdout"] is None and len(rows) == 10
