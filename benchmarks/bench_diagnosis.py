@@ -24,9 +24,16 @@ Timed, the diagnosis stages (wall and process CPU time each):
    table; ``--no-zoom`` without), nonlinear re-fits of the ``--n-check`` best);
 4. acceptance: ``calibration.fit_with`` of the ``--top`` best singly (from
    their converged nonlinear checks, ``fit_with(warm=...)``; ``--no-warm``:
-   from the baseline through the continuation stages) and the top two combined, hold-out SD (equalized hold-out channels) and
+   from the baseline through the continuation stages) and the top two combined, hold-out SD (the target's
+   hold-out channels) and
    ``calibration.cross_validate`` (same splits) before and after, and
    ``calibration.accept``.
+
+The target (``--target``, default the campaign default ``[diagnosis] target = "debiased"``): what the
+screening, the fits and the hold-out compare the model with, as the diagnose stage builds it
+(``frfcal.campaign._diagnose.screening_target``): ``debiased`` the raw lines with the identified poles'
+damping raised to each stage's, ``equalized`` the identified model on the half-bandwidth grids. Built
+before the timed stages (its time is in the untimed table).
 
 Then (untimed) the hold-out SD with the truth damping of the calibrated deck
 and of the deck extended by the accepted candidate at its fitted magnitude
@@ -34,7 +41,9 @@ and of the deck extended by the accepted candidate at its fitted magnitude
 (``SynthCampaign.floor_sd``).
 
     python benchmarks/bench_diagnosis.py [--dof 200000] [--effect contact_spring] [--candidates-per-family 500]
-                                         [--seed 11] [--out benchmarks/results/diagnosis.json]
+                                         [--seed 11] [--target debiased|equalized]
+                                         [--continuation-lines raw|half-bandwidth]
+                                         [--out benchmarks/results/diagnosis.json]
 
 Prints a table and writes benchmarks/results/diagnosis.json. A quick check:
 ``--dof 20000 --out /tmp/diag.json``.
@@ -152,6 +161,13 @@ def matches(fe, length_m, effects, family, cands) -> np.ndarray:
     return out
 
 
+def _default_target() -> str:
+    """The campaign's default ``[diagnosis] target``."""
+    from frfcal.campaign._schema import DiagnosisSection
+
+    return DiagnosisSection().target
+
+
 def physical(term, c):
     """Physical value of a term at normalized magnitude c (spring rate, mass, or the factor 1 + c)."""
     from femodel import ElementFactor
@@ -173,6 +189,13 @@ def main(argv=None) -> int:
     ap.add_argument("--top", type=int, default=3, help="candidates fitted singly in the acceptance")
     ap.add_argument("--cv-realizations", type=int, default=5, help="cross-validation splits of the acceptance")
     ap.add_argument("--workers", type=int, default=None)
+    ap.add_argument("--target", choices=("debiased", "equalized"), default=None,
+                    help="the screening's and the acceptance's target ([diagnosis] target; default: the campaign "
+                         "default, " + repr(_default_target()) + "); the hold-out SD of the trials is on the same "
+                         "target's hold-out channels")
+    ap.add_argument("--continuation-lines", choices=("raw", "half-bandwidth"), default="raw",
+                    help="[diagnosis] continuation_lines of the debiased target: every raw line at the continuation "
+                         "stages, or the raw line nearest each point of the stage's half-bandwidth grid")
     ap.add_argument("--no-zoom", dest="zoom", action="store_false",
                     help="no zoom of the point families (CandidateOptions.zoom_rounds = 0)")
     ap.add_argument("--no-model-sd", action="store_true", help="skip the full-order hold-out SD with truth damping")
@@ -181,6 +204,7 @@ def main(argv=None) -> int:
                          "not from its converged nonlinear check (fit_with's warm)")
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "diagnosis.json"))
     args = ap.parse_args(argv)
+    args.target = args.target or _default_target()
     from frfcal._malloc import keep_large_allocations
 
     malloc_tuned = keep_large_allocations()  # as the frfcal command does
@@ -222,7 +246,7 @@ def main(argv=None) -> int:
     del pm0
     camp = load_campaign(sc.write_campaign(
         tmp / "campaign.toml", calibrate=cal_ch, holdout=hold_ch, band_hz=BAND,
-        calibration={"starts": args.starts}, crossvalidation={"realizations": 0},
+        calibration={"starts": args.starts}, crossvalidation={"realizations": 0}, diagnosis={"target": args.target, "continuation_lines": args.continuation_lines},
         output={"dir": str(tmp / "out"), "figures": False}))
 
     def log(m):
@@ -251,6 +275,7 @@ def _diagnose(args, ex, sc, effects, camp, model, articles, eq, cal, pool, senso
     from calibration import CandidateTerm, accept, cross_validate, fit_with, holdout_sd, screen, shifted_solver
     from femodel import CandidateOptions, candidate_context, generate_candidates
     from frfcal.campaign._diagnose import point_zoom
+    from frfcal.campaign._diagnose import debiased_data, screening_target
     from frfcal.campaign._stages import equalized_data
 
     pm = model.parametric
@@ -258,8 +283,14 @@ def _diagnose(args, ex, sc, effects, camp, model, articles, eq, cal, pool, senso
     p_cal, sur, basis = m.p, m.surrogate, m.basis
     zeta = camp.calibration.zeta0
     quantity = articles[0].quantity
-    data, cont = eq.member(m.articles)
-    hold = [equalized_data(articles[i], zeta, eq.freq_hz, hold_ch) for i in m.articles]
+    t0 = time.perf_counter()
+    target = screening_target(camp, articles, eq)  # [diagnosis] target (--target), as the diagnose stage builds it
+    data, cont = target.member(m.articles)
+    if target.kind == "debiased":
+        hold = [debiased_data(articles[i], hold_ch, zeta) for i in m.articles]
+    else:
+        hold = [equalized_data(articles[i], zeta, eq.freq_hz, hold_ch) for i in m.articles]
+    prep["screening target (" + target.kind + ")"] = time.perf_counter() - t0
     shift_hz = max(BAND[0] / 4.0, BAND[1] / 50.0)  # build_surrogate's default
     print(f"calibrated: surrogate {sur.size}, p {np.array2string(p_cal, precision=3)}; "
           f"preparation {sum(prep.values()):.0f} s (not timed)", flush=True)
@@ -377,6 +408,8 @@ def _diagnose(args, ex, sc, effects, camp, model, articles, eq, cal, pool, senso
 
     # ------------------------------------------------------------------ report
     print()
+    print(f"target {target.kind}: {sum(d.frf.shape[0] for d in data)} lines at zeta0, "
+          + ", ".join(f"{sum(d.frf.shape[0] for d in ds)} at {z:g}" for z, ds in cont))
     print(f"{ex.n_dof} DOF, {len(cands)} candidates ({len(s.zoomed)} of them zoomed), surrogate {sur.size}, "
           f"{data[0].frf.shape[0]} lines x {data[0].frf.shape[1]} outputs x {data[0].frf.shape[2]} drives; "
           f"{os.cpu_count()} cores, load average {load0[0]:.1f} at start, {os.getloadavg()[0]:.1f} now")
@@ -417,7 +450,10 @@ def _diagnose(args, ex, sc, effects, camp, model, articles, eq, cal, pool, senso
         print(f"hold-out SD with truth damping, {k}: {v:.4g} ({v / floor:.2f} x floor)")
 
     out = {
-        "dof": int(ex.n_dof), "effect": args.effect, "truth_effects": [e.record(sc.articles) for e in effects],
+        "dof": int(ex.n_dof), "effect": args.effect, "target": target.kind,
+        "continuation_lines": args.continuation_lines,
+        "target_lines": {"zeta0": [int(d.frf.shape[0]) for d in data],
+                         **{f"{z:g}": [int(d.frf.shape[0]) for d in ds] for z, ds in cont}}, "truth_effects": [e.record(sc.articles) for e in effects],
         "n_candidates": len(cands), "n_zoomed": len(s.zoomed), "zoom": bool(args.zoom),
         "candidates_per_family": per_family, "cap_per_family": args.candidates_per_family,
         "derivative_cpu_s_per_family": deriv_s, "cores": os.cpu_count(), "load_avg_start": load0,

@@ -4,6 +4,7 @@ from calibration._accept import (
     Acceptance,
     Separation,
     accept,
+    negligible_effect,
     rank_separating,
     separating_effect,
     separation_score,
@@ -39,6 +40,7 @@ from calibration._fit import (
     calibrate_cycles,
     latin_hypercube_starts,
     log_frequency_weights,
+    thinned_lines,
     run_start,
 )
 from calibration._metric import log_deviation, square_deviation, stacked
@@ -119,6 +121,7 @@ __all__ = [
     "Acceptance",
     "Separation",
     "accept",
+    "negligible_effect",
     "separating_effect",
     "rank_separating",
     "separation_score",
@@ -140,6 +143,7 @@ __all__ = [
     "SignalPairs",
     "signal_pairs",
     "log_frequency_weights",
+    "thinned_lines",
     "CrossValidation",
     "Identifiability",
     "IdentifiedModes",

@@ -152,6 +152,37 @@ def accept(
                       + ("; at the floor now" if stop else ""), **common)
 
 
+def negligible_effect(holdout_with: float, holdout_without: float, n_residuals: int, n_params: int = 1) -> tuple:
+    """Whether an accepted effect, at its final (refined) size, is negligible: setting it to zero in the final
+    model raises the hold-out SD by less than the acceptance's penalty for its parameters (:func:`accept`, rule
+    2: the factor exp(k ln(n) / n)); the data then do not see it at that size and the model is as good
+    without it (e.g. a spring refined to 1e-37 N/m: the ratio is exactly 1).
+
+    Parameters
+    ----------
+    holdout_with, holdout_without : float
+        Hold-out SD of the final model, and of the same model with the effect's magnitude set to 0 (no re-fit).
+    n_residuals : int
+        Independent residuals of the hold-out comparison (as for :func:`accept`).
+    n_params : int
+        The effect's parameters.
+
+    Returns
+    -------
+    (negligible: bool, ratio with / without: float, the penalty ratio exp(-k ln(n) / n): float)
+    """
+    hw, h0 = float(holdout_with), float(holdout_without)
+    if not (hw >= 0 and h0 > 0) or not np.isfinite([hw, h0]).all():
+        raise CalibrationError(f"negligible_effect: hold-out SDs must be finite and >= 0 (> 0 without the "
+                               f"effect), got {hw}, {h0}")
+    if n_params < 1 or n_residuals < 2:
+        raise CalibrationError(f"negligible_effect: need n_params >= 1 and n_residuals >= 2, got {n_params}, "
+                               f"{n_residuals}")
+    allowed = float(np.exp(-n_params * np.log(n_residuals) / n_residuals))
+    ratio = hw / h0
+    return bool(ratio >= allowed), float(ratio), allowed
+
+
 @dataclass(frozen=True)
 class Separation:
     """Per-article magnitude of an effect and whether it separates article groups.

@@ -133,6 +133,35 @@ def log_frequency_weights(freq_hz) -> np.ndarray:
     return w / w.mean() if w.sum() > 0 else np.ones(f.size)
 
 
+def thinned_lines(data: FitData, grid_hz) -> FitData:
+    """The lines of ``data`` nearest (in log f) to each point of ``grid_hz``, once each, weighted by their share of
+    log f (:func:`log_frequency_weights`).
+
+    A continuation stage at a wide damping zeta varies on the scale of its half-power bandwidth 2 zeta f; raw
+    lines (dense at the resonances, hundreds per stage) then carry far more values than that stage resolves.
+    Thinned to its half-bandwidth grid (:func:`half_bandwidth_frequencies`), the stage keeps the quadrature of
+    log f that the weights give the full set, with about as many lines as the equalized target has there.
+    Lines are taken, not averaged: the values stay measured values (noise included).
+    """
+    f = np.asarray(data.freq_hz, float)
+    g = np.asarray(grid_hz, float)
+    if g.ndim != 1 or g.size == 0 or not np.all(np.isfinite(g)) or np.any(g <= 0):
+        raise CalibrationError(f"thinned_lines{' ' + data.article if data.article else ''}: grid_hz must be a "
+                               "non-empty 1-D array of positive frequencies")
+    order = np.argsort(f)
+    lf = np.log(f[order])
+    pos = np.clip(np.searchsorted(lf, np.log(g)), 1, lf.size - 1) if lf.size > 1 else np.zeros(g.size, int)
+    if lf.size > 1:
+        left = np.log(g) - lf[pos - 1] < lf[pos] - np.log(g)
+        pos = np.where(left, pos - 1, pos)
+    keep = np.unique(order[pos])
+    if keep.size >= f.size:
+        return data
+    return replace(data, freq_hz=f[keep], frf=np.asarray(data.frf)[keep],
+                   mask=None if data.mask is None else np.asarray(data.mask)[keep],
+                   weights=log_frequency_weights(f[keep]))
+
+
 def value_weights(data) -> np.ndarray | None:
     """sqrt of the line weights of data sets over their compared values, scaled to mean square 1 (None: all 1)."""
     if all(d.weights is None for d in data):

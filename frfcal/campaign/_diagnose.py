@@ -231,7 +231,7 @@ class ScreeningTarget:
                 [(z, [d[i] for i in idx]) for z, d in self.continuation])
 
 
-def debiased_data(article: Article, channels, zeta: float) -> FitData:
+def debiased_data(article: Article, channels, zeta: float, grid_hz=None) -> FitData:
     """The article's raw lines on ``channels`` with its identified poles' damping raised to ``zeta``
     (:func:`calibration.debiased_target`), weighted per line by its share of log f.
 
@@ -241,11 +241,12 @@ def debiased_data(article: Article, channels, zeta: float) -> FitData:
     labelled negligible) cancels. The raw lines are uneven (dense at the
     resonances); :func:`calibration.log_frequency_weights` makes the sum over
     them a quadrature in log f, the measure of the equalized target's
-    half-bandwidth grid.
+    half-bandwidth grid. ``grid_hz``: thinned to the raw line nearest each of these frequencies
+    (:func:`calibration.thinned_lines`).
     """
     from dataclasses import replace
 
-    from calibration import debiased_target, log_frequency_weights
+    from calibration import debiased_target, log_frequency_weights, thinned_lines
     from frfcal.campaign._stages import raw_data
 
     raw = raw_data(article, channels)
@@ -256,7 +257,8 @@ def debiased_data(article: Article, channels, zeta: float) -> FitData:
                                f"{list(article.drives)}: [diagnosis] target = \"debiased\" needs one per drive "
                                "(use target = \"equalized\")")
     t = debiased_target(raw, ident, article.ident_channels, zeta)
-    return replace(t, weights=log_frequency_weights(t.freq_hz))
+    t = replace(t, weights=log_frequency_weights(t.freq_hz))
+    return t if grid_hz is None else thinned_lines(t, grid_hz)
 
 
 def screening_target(camp: Campaign, articles, eq) -> ScreeningTarget:
@@ -264,10 +266,18 @@ def screening_target(camp: Campaign, articles, eq) -> ScreeningTarget:
     (``"equalized"``) or the debiased raw lines at zeta0 and at the continuation dampings (``"debiased"``)."""
     if camp.diagnosis.target == "equalized":
         return ScreeningTarget("equalized", tuple(eq.data), tuple(eq.continuation))
+    from calibration import half_bandwidth_frequencies
+
     chans = camp.channels.calibrate
     c = camp.calibration
     data = tuple(debiased_data(a, chans, c.zeta0) for a in articles)
-    cont = tuple((z, tuple(debiased_data(a, chans, z) for a in articles)) for z in c.continuation_zeta)
+    thin = camp.diagnosis.continuation_lines == "half-bandwidth"
+
+    def grid(z):  # [diagnosis] continuation_lines: a wider stage on its own half-bandwidth grid's nearest lines
+        return half_bandwidth_frequencies(camp.band.low_hz, camp.band.high_hz, z, c.samples_per_half_bandwidth) \
+            if thin and z > c.zeta0 else None
+
+    cont = tuple((z, tuple(debiased_data(a, chans, z, grid(z)) for a in articles)) for z in c.continuation_zeta)
     return ScreeningTarget("debiased", data, cont)
 
 
@@ -550,7 +560,7 @@ def _screen_member(camp: Campaign, pm, model, load, eq, m, quantity, log, execut
         counts[cd.family] = counts.get(cd.family, 0) + 1
     rows = ranked_table(cands, scr)
     ctx = dict(cands=cands, terms=terms, sur=sur, T=T, data=data, cont=cont, screening=scr, zoom=zoom,
-               zoom_rounds=cctx.options.zoom_rounds)
+               zoom_rounds=cctx.options.zoom_rounds, cctx=cctx, screening_now=scr)
     log(f"[{m.label}] screened {len(cands)} candidates ({len(scr.zoomed)} of them zoomed) in "
         f"{time.perf_counter() - t0:.1f} s; first: "
         + "; ".join(f"{r['family']} {r['name']} ({r['size']}, explained {100 * r['explained']:.1f} %)"
@@ -695,6 +705,7 @@ def _accept_member(camp, load, pm, model, articles, m, check, rows, ctx, quantit
             trials.append(trial)
         if best is None:
             break
+        best = _tied_places(camp, articles, m, model, pm, ctx, accepted, best, trials, quantity, log)
         r, ha, fit, trial = best
         new = list(r.get("members", [r["name"]]))
         check_try = member_residual(camp, load, articles, m, model=(fit.surrogate, fit.x, None))[0]
@@ -754,13 +765,96 @@ def _accept_member(camp, load, pm, model, articles, m, check, rows, ctx, quantit
                  "holdout_floor_ratio": (h_ref if h_ref is not None else base["holdout"]) / floor
                  if floor > 0 else None,
                  "n_independent_residuals": n_res, "residual": check_after.to_dict()}
-        fit_acc = (fit_acc, x_ref, frfs_after)
         n_p = pm.n_params
         for j, a in enumerate(accepted):  # the refined magnitudes (raw lines, estimated damping) are reported
             cd = ctx["cands"][[cd.name for cd in ctx["cands"]].index(a["name"])]
             a["c_equalized"], a["c"] = a["c"], float(x_ref[n_p + j])
             a["value"], a["unit"], a["size"] = _physical(cd.term, a["c"])
+        # an effect accepted on the screening's target may be refined on the raw lines to a size the data do not
+        # see (a spring at 1e-37 N/m): dropped, and reported as such
+        sizes = refined_sizes(camp, arts, sur_ref, x_ref, damping, n_p, accepted, n_res, quantity)
+        n_fitted = len(accepted)
+        accepted, dropped, x_kept = drop_negligible(accepted, sizes, x_ref, n_p)
+        if dropped:
+            after["negligible"] = dropped
+            for a in dropped:
+                z = a["refined_effect"]
+                log(f"[{m.label}] {a['name']} refined to {a['size']}: negligible (without it the hold-out SD is "
+                    f"x{1 / z['ratio']:.4f}, less than the penalty x{1 / z['penalty_ratio']:.4f} of one "
+                    f"parameter; largest mode shift {z['max_mode_shift']:.2e}): dropped")
+        fit_acc = (fit_acc, x_kept, frfs_after, n_fitted)
     return tuple(accepted), tuple(trials), after, fit_acc
+
+
+def _tied_places(camp, articles, m, model, pm, ctx, accepted, best, trials, quantity, log):
+    """The place of a point effect where the screening cannot tell: the candidates of the best trial's point
+    family and kind (``femodel.POINT_FAMILIES``: a ground spring's component, a lumped mass) whose linear
+    screening score lies within the linear score's own error of the best's, measured at the best by its
+    nonlinear check (|explained re-fitted - explained linear|), are recalibrated too (``fit_with`` as the
+    acceptance's trials: from the member's point through the continuation stages; at most ``zoom_grids``, best
+    linear score first), and the lowest hold-out SD wins (the acceptance's footing).
+
+    Why: a zoom chain takes one nonlinear check (its best linear score), and the acceptance tries only checked
+    candidates; where the scores tie (springs to ground near a free edge: 14.4-14.7 % linear, 17.3-17.6 %
+    re-fitted, a 3 % linearization error) the check goes to any of them. On the shell the true spring's grid
+    was never tried and one 2.5 element sizes away was accepted (+40 %); tried, the truth's grid has the lower
+    hold-out SD.
+
+    Returns ``best`` (row, hold-out, fit, trial), replaced when a tied place has a lower hold-out SD; the row
+    then carries ``located_from`` (the screened candidate it replaced) and ``tied`` (the places tried, with
+    their hold-out SD). Every place tried is appended to ``trials`` (``tied_with``)."""
+    from calibration import fit_with
+    from femodel import POINT_FAMILIES
+
+    r, ha, fit, trial = best
+    cctx, scr = ctx.get("cctx"), ctx.get("screening_now")
+    if "members" in r or cctx is None or scr is None or r["family"] not in POINT_FAMILIES:
+        return best
+    chk = scr.check(r["name"])
+    if chk is None:
+        return best
+    cands = {cd.name: cd for cd in ctx["cands"]}
+    me = cands[r["name"]]
+    pf = POINT_FAMILIES[me.family]
+    kind = pf.key(me)
+    k_me = scr.names.index(r["name"])
+    band = abs(float(chk.explained) - float(chk.explained_linear))
+    lin = scr.explained
+    done = {n for t in trials for n in t["names"][len(accepted):] if len(t["names"]) == len(accepted) + 1}
+    tied = [k for k in np.argsort(-lin, kind="stable")
+            if lin[k] > 0 and lin[k] >= lin[k_me] - band and scr.names[k] not in done and scr.names[k] in cands
+            and cands[scr.names[k]].family == me.family and len(cands[scr.names[k]].grids) == 1
+            and pf.key(cands[scr.names[k]]) == kind][:cctx.options.zoom_grids]
+    if not tied:
+        return best
+    cfg, c = camp.diagnosis, camp.calibration
+    shift = max(camp.band.low_hz / 4.0, camp.band.high_hz / 50.0)
+    by_name = {t.name: t for t in ctx["terms"]}
+    acc_names = [a["name"] for a in accepted]
+    rows = {x["name"]: x for x in ranked_table(ctx["cands"], scr, n=len(scr.names))}
+    t0 = time.perf_counter()
+    out = [(r["name"], ha)]
+    for k in tied:
+        name = scr.names[k]
+        # as the acceptance's own trials: from the member's point through the continuation stages (a start at
+        # the best's fitted point, where the parameters absorbed part of the effect at its place, favours it)
+        f2 = fit_with(ctx["sur"], ctx["T"], model, [by_name[n] for n in acc_names + [name]], ctx["data"], c.zeta0,
+                      pm.lower, pm.upper, p0=m.p, c0=[a["c"] for a in accepted] + [float(scr.c_linear[k])],
+                      continuation=ctx["cont"], quantity=quantity, shift_hz=shift, max_nfev=cfg.max_evaluations)
+        h2, _ = _holdout(camp, articles, m, f2.surrogate, f2.x, quantity)
+        t2 = {"names": acc_names + [name], "c": f2.c.tolist(), "sd_equalized": f2.sd,
+              "holdout_before": trial["holdout_before"], "holdout_after": h2, "tied_with": r["name"]}
+        if "screened_after" in trial:
+            t2["screened_after"] = trial["screened_after"]
+        trials.append(t2)
+        out.append((name, h2))
+        if h2 < best[1]:
+            best = (dict(rows[name], located_from=r["name"]), h2, f2, t2)
+    log(f"[{m.label}] {r['name']}: {len(tied)} place(s) tied with it in the screening (linear score within "
+        f"{100 * band:.2g} % of its {100 * lin[k_me]:.3g} %) recalibrated in {time.perf_counter() - t0:.1f} s; "
+        f"lowest hold-out SD: {best[0]['name']} ({best[1]:.4g}; {r['name']} {ha:.4g})")
+    best[0]["tied"] = [{"name": n, "grids": list(cands[n].grids), "holdout_after": h} for n, h in out]
+    return best
 
 
 def _compounds(ctx, scr, tried) -> list:
@@ -808,9 +902,11 @@ def holdout_ranking(cands, scr, trials, n: int = 10) -> tuple:
     explains); the hold-out fraction is measured on data the fit did not see, and is what the acceptance
     judges. Every row keeps its screening numbers and ``screening_rank``."""
     single = {t["names"][0]: t for t in trials if len(t["names"]) == 1}
-    full = ranked_table(cands, scr, n=max(n, len(scr.checks)))
+    # every singly recalibrated candidate, wherever the screening ranked it (a place tied with a point effect,
+    # _tied_places, may lie far down the screening's order)
+    full = ranked_table(cands, scr, n=len(scr.names) if single else max(n, len(scr.checks)))
     tried = sorted((r for r in full if r["name"] in single), key=lambda r: single[r["name"]]["holdout_after"])
-    rest = [r for r in full if r["name"] not in single]
+    rest = [r for r in full if r["name"] not in single][:max(n, len(scr.checks))]
     out = []
     for k, r in enumerate((tried + rest)[:n]):
         t = single.get(r["name"])
@@ -843,6 +939,7 @@ def _rescreen(camp, model, m, ctx, fit, accepted, quantity, executor, log):
                  quantity=quantity, model=extended_model(model, [by_name[a] for a in accepted]), n_check=cfg.top_n,
                  shift_hz=shift, continuation=ctx["cont"], max_nfev=cfg.max_evaluations, executor=executor,
                  groups=[family[t.name] for t in rest], zoom=ctx["zoom"], zoom_rounds=ctx["zoom_rounds"])
+    ctx["screening_now"] = scr  # the ties of a point effect in the next round are this screening's (_tied_places)
     rows = ranked_table(ctx["cands"], scr)
     n_p = fit.surrogate.n_params - len(accepted)
     starts = {}
@@ -865,7 +962,7 @@ def _refined(camp, pm, model, articles, m, fit, extended_terms, quantity, log):
     calibrated model's "before".
 
     Returns (Refinement or None, hold-out SD or None, x, surrogate)."""
-    from calibration import FRFModel, build_surrogate, refine, validate
+    from calibration import FRFModel, build_surrogate, refine
 
     from frfcal.campaign._stages import raw_data
 
@@ -896,14 +993,72 @@ def _refined(camp, pm, model, articles, m, fit, extended_terms, quantity, log):
                 break
     h = None
     if camp.channels.holdout:
-        errs, src = floors_of(arts, camp.channels.holdout)
-        v = validate(sur, sur, ref.p, [raw_data(a, camp.channels.holdout) for a in arts],
-                     modes, c.zeta0, None, camp.validation.mac_min, quantity, band,
-                     std_error=errs, damping=(ref.zeta, ref.p_zeta), floor_source=src)
-        h = float(v.sd_calibrated)
+        h = _holdout_at(camp, arts, sur, ref.p, quantity, (ref.zeta, ref.p_zeta), camp.channels.holdout)
     log(f"[{m.label}] extended model refined on the raw lines: SD {ref.sd_raw:.4g}"
         + ("" if h is None else f", hold-out SD {h:.4g} (estimated damping)"))
     return ref, h, ref.p, sur
+
+
+def _holdout_at(camp, arts, sur, x, quantity, damping, channels) -> float:
+    """SD of (sur, x) on the raw lines of ``channels`` with ``damping`` ((zeta per article, p_ref) as the
+    refinement estimated it, or None: the identified damping mapped by MAC), per-line standard errors when
+    every article has them."""
+    from calibration import validate
+
+    from frfcal.campaign._stages import raw_data
+
+    errs, src = floors_of(arts, channels)
+    v = validate(sur, sur, x, [raw_data(a, channels) for a in arts], [identified_modes(a) for a in arts],
+                 camp.calibration.zeta0, None, camp.validation.mac_min, quantity,
+                 (camp.band.low_hz, camp.band.high_hz), std_error=errs, damping=damping, floor_source=src)
+    return float(v.sd_calibrated)
+
+
+def _mode_shift(sur, x, x0, band) -> float:
+    """Largest relative frequency change of the model's elastic modes in ``band`` between x0 and x (sorted
+    eigenvalues of the reduced model: a small change keeps their order)."""
+    from calibration import reduced_modes
+
+    f = [np.sqrt(np.clip(reduced_modes(sur, np.asarray(v, float))[0], 0, None)) / (2 * np.pi) for v in (x, x0)]
+    use = (f[1] > sur.rigid_hz) & (f[1] >= band[0]) & (f[1] <= band[1])
+    return float(np.max(np.abs(f[0][use] / f[1][use] - 1.0))) if use.any() else 0.0
+
+
+def refined_sizes(camp, arts, sur, x, damping, n_p: int, accepted, n_res: int, quantity) -> list:
+    """Per accepted effect, its final (refined) size seen by the data: the hold-out SD (raw lines of the
+    hold-out channels, or of the calibration channels without any; the damping the refinement estimated) of
+    the final model ``(sur, x)`` and of the same model with the effect's magnitude ``x[n_p + j]`` set to 0,
+    beside the acceptance's penalty for its parameter (:func:`calibration.negligible_effect`), and the largest
+    relative shift of a mode in band it makes. ``negligible``: the model is as good without it (an effect
+    refined to ~0 after it was accepted on the screening's target)."""
+    from calibration import negligible_effect
+
+    chans = list(camp.channels.holdout) or list(camp.channels.calibrate)
+    band = (camp.band.low_hz, camp.band.high_hz)
+    x = np.asarray(x, float)
+    h = _holdout_at(camp, arts, sur, x, quantity, damping, chans)
+    out = []
+    for j, _ in enumerate(accepted):
+        x0 = x.copy()
+        x0[n_p + j] = 0.0
+        h0 = _holdout_at(camp, arts, sur, x0, quantity, damping, chans)
+        neg, ratio, allowed = negligible_effect(h, h0, max(int(n_res), 2))
+        out.append({"holdout_with": h, "holdout_without": h0, "ratio": ratio, "penalty_ratio": allowed,
+                    "max_mode_shift": _mode_shift(sur, x, x0, band), "negligible": neg})
+    return out
+
+
+def drop_negligible(accepted, sizes, x, n_p: int) -> tuple:
+    """Split the accepted rows by their refined size (:func:`refined_sizes`): (kept rows, negligible rows,
+    x of the model with the kept effects only: ``[p, c of the kept]``). Every row gets ``refined_effect``
+    (its size record) and ``term_index`` (its position among the terms of the fitted model)."""
+    x = np.asarray(x, float)
+    kept, dropped = [], []
+    for j, (a, z) in enumerate(zip(accepted, sizes)):
+        a = dict(a, refined_effect=dict(z), term_index=j)
+        (dropped if z["negligible"] else kept).append(a)
+    x_kept = np.concatenate([x[:n_p], [x[n_p + a["term_index"]] for a in kept]])
+    return kept, dropped, x_kept
 
 
 def diagnose_stage(camp: Campaign, load, pm, model, articles, eq, cal, val, xval, executor=None,
@@ -977,13 +1132,21 @@ def diagnose_stage(camp: Campaign, load, pm, model, articles, eq, cal, val, xval
                 counts[cd.family] = counts.get(cd.family, 0) + 1
             if after is not None:
                 sd["after"] = after
+            dropped = (after or {}).get("negligible", ())
+            negl = ("; " + "; ".join(f"{a['name']} was accepted but refined to {a['size']}, negligible "
+                                     f"(the model is as good without it): dropped" for a in dropped)
+                    if dropped else "")
             if acc:
                 verdict = "effect(s) found"
                 extended = (tuple(ctx["cands"][[cd.name for cd in ctx["cands"]].index(a["name"])] for a in acc),
                             fit[1])
                 frfs_after = fit[2]
-                fits.append((m, acc, fit[0], extended[0]))
-                reason = "accepted: " + "; ".join(f"{a['description']}: {a['size']}" for a in acc)
+                fits.append((m, acc, fit[0], extended[0], fit[3]))
+                reason = "accepted: " + "; ".join(f"{a['description']}: {a['size']}" for a in acc) + negl
+            elif dropped:
+                verdict = "no effect accepted"
+                reason = (f"the residual is significant ({check.ratio:.3g} x the floor) and no nonlinearity is "
+                          f"flagged; " + negl[2:])
             else:
                 verdict = "no effect accepted"
                 top = rows[0] if rows else None
@@ -1021,12 +1184,12 @@ def _separations(camp: Campaign, articles, eq, groups, fits, log) -> tuple:
     data = [[eq.data[i]] for i in use]
     cont = [(z, [[d[i]] for i in use]) for z, d in eq.continuation]
     out = []
-    for m, acc, fit, cands in fits:
-        n_p = fit.surrogate.n_params - len(acc)
-        for j, (a, cd) in enumerate(zip(acc, cands)):
+    for m, acc, fit, cands, n_fitted in fits:
+        n_p = fit.surrogate.n_params - n_fitted  # the fit holds every accepted term, negligible ones included
+        for a, cd in zip(acc, cands):
             t0 = time.perf_counter()
             sep = separating_effect(fit.surrogate, fit.x, data, camp.calibration.zeta0, label[use], fit.lower,
-                                    fit.upper, index=n_p + j, refit_p=True, continuation=cont,
+                                    fit.upper, index=n_p + a.get("term_index", 0), refit_p=True, continuation=cont,
                                     max_nfev=camp.diagnosis.max_evaluations)
             per = [float(_physical(cd.term, float(c))[0]) for c in sep.magnitude]
             log(f"[{m.label}] {a['name']} per article: "

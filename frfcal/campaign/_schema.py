@@ -351,6 +351,10 @@ class DiagnosisSection(_Strict):
     top_n: int = Field(5, ge=1, description="candidates re-fitted nonlinearly after the linear screening")
     max_effects: int = Field(2, ge=1, description="at most this many effects accepted")
     max_evaluations: int = Field(40, ge=5, description="residual evaluations per screening fit stage")
+    continuation_lines: Literal["raw", "half-bandwidth"] = Field(
+        "raw", description="lines of the debiased target's continuation stages (wider damping than zeta0): "
+        "'raw' = every raw line; 'half-bandwidth' = the raw line nearest each point of that stage's half-bandwidth "
+        "grid (calibration.thinned_lines; about the equalized target's count there, cheaper screening)")
     target: Literal["debiased", "equalized"] = Field(
         "debiased", description="what the screening and the acceptance's fits compare the model with: "
         "'debiased' = the raw calibration lines with the identified poles' damping raised to zeta0 and to each "

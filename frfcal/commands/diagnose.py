@@ -21,6 +21,27 @@ def _fmt(x, spec=".4g"):
     return "n/a" if x is None else format(x, spec)
 
 
+def ranked_lines(rows) -> list:
+    """The ranked candidates as table lines (header first): every column as wide as its longest entry (at
+    least its heading), so a long family name (``shaker_attachment_mass``), a location with four grids and
+    two parts or a long size never shifts the columns after it."""
+    cells = []
+    for r in rows:
+        loc = ("grids " + " ".join(map(str, r["grids"][:4])) + ("..." if len(r["grids"]) > 4 else "")
+               + f" ({', '.join(r['parts'][:2])}) at ({', '.join(f'{x:.3g}' for x in r['center'])})")
+        h = r.get("explained_holdout")
+        cells.append((str(r["rank"]), r["family"], loc, r["size"], f"{100 * r['explained']:.1f}%",
+                      "-" if h is None else f"{100 * h:.1f}%", "" if r["checked"] else "(linear)"))
+    head = ("#", "family", "location", "size", "explained", "hold-out", "")
+    w = [max([len(head[k])] + [len(c[k]) for c in cells]) for k in range(len(head))]
+    left = (False, True, True, False, False, False, True)  # text columns left-aligned, numbers right-aligned
+
+    def line(c):
+        return " ".join(x.ljust(n) if lf else x.rjust(n) for x, n, lf in zip(c, w, left)).rstrip()
+
+    return [line(head)] + [line(c) for c in cells]
+
+
 def print_diagnosis(d: dict, out) -> None:
     """The human-readable diagnosis (``d`` = the ``diagnosis`` entry of the result)."""
     for g in d["gates"]:
@@ -53,17 +74,21 @@ def print_diagnosis(d: dict, out) -> None:
             print(f"nonlinear ({x['article']}): {x['check']} at {what}{x['frequency_hz']:.5g} Hz{extra}", file=out)
         if m["ranked"]:
             print(f"candidates screened: " + ", ".join(f"{k} {v}" for k, v in m["candidates"].items()), file=out)
-            print(f"{'#':>3} {'family':<18}{'location':<44}{'size':>24}{'explained':>11}{'hold-out':>10}", file=out)
-            for r in m["ranked"][:10]:
-                loc = ("grids " + " ".join(map(str, r["grids"][:4])) + ("..." if len(r["grids"]) > 4 else "")
-                       + f" ({', '.join(r['parts'][:2])}) at ({', '.join(f'{x:.3g}' for x in r['center'])})")
-                h = r.get("explained_holdout")
-                print(f"{r['rank']:>3} {r['family']:<18}{loc:<44}{r['size']:>24}{100 * r['explained']:10.1f}%"
-                      + (f"{100 * h:9.1f}%" if h is not None else f"{'-':>10}")
-                      + ("" if r["checked"] else " (linear)"), file=out)
+            for line in ranked_lines(m["ranked"][:10]):
+                print(line, file=out)
         for a in m["accepted"]:
             print(f"ACCEPTED: {a['description']}: {a['size']} (grids {', '.join(map(str, a['grids']))}; "
                   f"{', '.join(a['parts'])}): {a['decision']['reason']}", file=out)
+            if len(a.get("tied", ())) > 1:
+                print(f"  place: the lowest hold-out SD of {len(a['tied'])} places the screening could not tell "
+                      "apart: " + ", ".join(f"grid {'/'.join(map(str, x['grids']))} {x['holdout_after']:.4g}"
+                                            for x in sorted(a["tied"], key=lambda x: x["holdout_after"])), file=out)
+        for a in (m["sd"].get("after") or {}).get("negligible", []):
+            z = a["refined_effect"]
+            print(f"NEGLIGIBLE, dropped: {a['description']}: accepted, then refined to {a['size']}: without it the "
+                  f"hold-out SD is x{z['holdout_without'] / z['holdout_with'] if z['holdout_with'] else float('inf'):.4f}"
+                  f" (the penalty of one parameter: x{1 / z['penalty_ratio']:.4f}), largest mode shift "
+                  f"{100 * z['max_mode_shift']:.2g} %", file=out)
         if not m["accepted"] and m["trials"]:
             t = m["trials"][0]
             if "decision" in t:

@@ -263,7 +263,14 @@ def test_the_unmodelled_mass_is_accepted_and_brings_the_holdout_to_the_floor(lum
     dec = a["decision"]
     assert dec["accepted"] and dec["holdout_ratio"] < dec["penalty_ratio"]
     assert dec["cv_improvement"] > dec["cv_scatter"]
+    # its refined size is seen by the data (not negligible, calibration.negligible_effect): the refined model
+    # without it is many times worse on the hold-out, and it moves the modes by far more than round-off
+    z = a["refined_effect"]
+    assert not z["negligible"] and z["ratio"] < z["penalty_ratio"] and z["holdout_without"] > 5 * z["holdout_with"]
+    assert z["max_mode_shift"] > 1e-3
     after = m["sd"]["after"]
+    assert "negligible" not in after
+    assert z["holdout_with"] == pytest.approx(after["holdout_refined"], rel=1e-9)  # the same footing
     floor = sc.floor_sd(channels=hold)  # the truth against its own noise on the hold-out channels
     assert after["holdout_refined"] < 2 * floor
     assert after["holdout_refined"] < 0.05 * m["sd"]["holdout"]

@@ -64,14 +64,11 @@ FAMILIES = dict(_FRAME_FAMILIES, lumped_mass=("lumped_mass",))
 #: equalized target, XPASSed on main f805f7f: `pytest -m slow tests/frfcal/test_diagnose_shell.py -k shaker`).
 #: Before, with target = equalized: the true attachment mass ranked 20th of 496 (1.6 %), its stinger 430th, a
 #: 2-element PSHELL 20 cluster first; nothing accepted (raw hold-out 0.150 -> 0.23-0.32).
-XFAIL: dict = {
-    ("ground_spring", "rank"): (
-        "on the merged main (ec05418: debiased target + zoom) a ground spring at grid 27 (z) ranks first and is "
-        "accepted, 0.100 m from the truth's grid 15 = 2.5 element sizes (limit 2); on the debiased-target branch "
-        "alone (before the zoom merge) ground_g15_z ranked first (17.4 %): the zoom's interplay not yet measured"),
-    ("ground_spring", "accept"): (
-        "ground_g27_z accepted, 0.100 m from the truth (2.5 element sizes; see the rank reason)"),
-}
+#: The ground spring failed on main 6eaf6ae (debiased target + zoom): ground_g27_z accepted 0.100 m (2.5 element
+#: sizes) from the truth's grid 15 at +40 %: the springs near the rail end tie in the screening (14.4-14.7 % linear,
+#: 17.3-17.6 % re-fitted) and grid 15 was never checked nor tried; the acceptance now recalibrates the places that
+#: tie with the best point effect and keeps the lowest hold-out SD (frfcal/campaign/_diagnose.py _tied_places).
+XFAIL: dict = {}
 
 #: every family case is slow (a 1584-DOF case is 220-280 s CPU: 105-175 s in the main process, 105-120 s in the
 #: pool); the control (74 s CPU) runs by default
