@@ -1001,8 +1001,8 @@ def _refined(camp, pm, model, articles, m, fit, extended_terms, quantity, log):
 
 def _holdout_at(camp, arts, sur, x, quantity, damping, channels) -> float:
     """SD of (sur, x) on the raw lines of ``channels`` with ``damping`` ((zeta per article, p_ref) as the
-    refinement estimated it, or None: the identified damping mapped by MAC), per-line standard errors when
-    every article has them."""
+    refinement estimated it, or None: the identified damping mapped by MAC); the floor's standard errors as
+    :func:`floors_of` gives them (measured, else estimated from adjacent lines)."""
     from calibration import validate
 
     from frfcal.campaign._stages import raw_data
