@@ -389,58 +389,37 @@ def full_modes(K, M, max_hz: float, shift_hz: float, max_modes: int = 600, dense
 def refreshed_modes(K, M, T_old, max_hz: float, shift_hz: float, extra=None, cache: dict | None = None):
     """Modes of (K, M) up to ``max_hz`` from one block inverse iteration on an old basis.
 
-    Returns ``(freqs_hz, Z, MZ, m, n_rest, solve)``: ``Z`` (n, q) holds, side
-    by side, the m mode shapes (M-normalized), the ``n_rest`` other
-    inverse-iterated Ritz vectors (M-orthonormal, above ``max_hz``; reused as
-    enrichment) and, with ``extra`` (n, k) given, ``(K + s M)^-1 extra``
-    (solved in the same block solve); ``MZ = M Z``; ``solve`` solves with
-    K + s M. Small models (dense path) have no rest: ``n_rest`` is None.
-
-    The Ritz vectors are written straight into their columns of ``Z`` (one
-    GEMM each for Z and M Z, no column gathers: the Ritz values come out of
-    ``eigh`` ascending, so the modes are a leading block).
+    Returns the triple of :func:`full_modes`, the rest of the inverse-iterated
+    basis (M-orthonormal Ritz vectors above ``max_hz``, reused as enrichment),
+    ``M @ shapes`` and ``M @`` that rest. With ``extra`` (n, k) given,
+    ``(K + s M)^-1 extra`` is solved in the same block solve and returned as a
+    seventh item.
     """
     s = (2 * np.pi * shift_hz) ** 2
     n = K.shape[0]
     if n <= 1500:
         f, Phi, solve = full_modes(K, M, max_hz, shift_hz)
-        Z = Phi if extra is None else np.hstack([Phi, solve(extra)])
-        return f, Z, M @ Z, Phi.shape[1], None, solve
+        out = (f, Phi, solve, None, M @ Phi, None)
+        return out if extra is None else (*out, solve(extra))
     solve = _factor(_shifted(K, M, s, cache), cache)
     r_old = T_old.shape[1]
-    k_extra = 0 if extra is None else extra.shape[1]
-    rhs = np.empty((n, r_old + k_extra), order="F")  # column-major: what CHOLMOD reads, no conversion copy
-    rhs[:, :r_old] = M @ T_old
-    if k_extra:
-        rhs[:, r_old:] = extra
-    Q = solve(rhs)  # (n, r_old + k_extra)
-    Qo = Q[:, :r_old]  # view: BLAS takes the row stride as it is
-    # Qo^T K Qo without K: K Qo = (K + s M) Qo - s M Qo = M T_old - s M Qo, so
-    # Qo^T K Qo = Qo^T (M T_old) - s Qo^T M Qo (the solve's residual enters as the rounding of K Qo would)
-    QtMT = Qo.T @ rhs[:, :r_old]
-    del rhs
+    Q = solve(M @ T_old if extra is None else np.hstack([M @ T_old, extra]))
+    if extra is not None:
+        Q, X_extra = Q[:, :r_old], np.ascontiguousarray(Q[:, r_old:])
+    # Rayleigh-Ritz on span(Q), rank-cut on its Gram matrix: Z^T (Q^T M Q) Z = I
     MQ = M @ Q
-    MQo = MQ[:, :r_old]
-    # Rayleigh-Ritz on span(Qo), rank-cut on its Gram matrix: Z^T (Qo^T M Qo) Z = I
-    Gq = _sym(Qo.T @ MQo)
-    g, U = np.linalg.eigh(Gq)
+    g, U = np.linalg.eigh(_sym(Q.T @ MQ))
     if g.size == 0 or g.max() <= 0:
         raise CalibrationError("block inverse iteration returned a null basis")
     Y = U[:, g > 1e-12 * g.max()] / np.sqrt(g[g > 1e-12 * g.max()])
-    lam, V = np.linalg.eigh(_sym(Y.T @ (_sym(QtMT) - s * Gq) @ Y))
-    m = int(np.count_nonzero(lam <= (2 * np.pi * max_hz) ** 2))  # eigh: ascending, so a leading block
-    YV = Y @ V
-    r_new = YV.shape[1]
-    Z = np.empty((n, r_new + k_extra))
-    MZ = np.empty_like(Z)
-    np.matmul(Qo, YV, out=Z[:, :r_new])
-    np.matmul(MQo, YV, out=MZ[:, :r_new])
-    if k_extra:
-        Z[:, r_new:] = Q[:, r_old:]
-        MZ[:, r_new:] = MQ[:, r_old:]
-    del Q, MQ, Qo, MQo
-    lam = np.clip(lam[:m], 0.0, None)
-    return np.sqrt(lam) / (2 * np.pi), Z, MZ, m, r_new - m, solve
+    lam, V = np.linalg.eigh(_sym(Y.T @ (Q.T @ (K @ Q)) @ Y))
+    keep = lam <= (2 * np.pi * max_hz) ** 2
+    Q = Q @ (Y @ V)
+    MQ = MQ @ (Y @ V)
+    lam = np.clip(lam[keep], 0.0, None)
+    out = (np.sqrt(lam) / (2 * np.pi), np.ascontiguousarray(Q[:, keep]), solve, np.ascontiguousarray(Q[:, ~keep]),
+           np.ascontiguousarray(MQ[:, keep]), np.ascontiguousarray(MQ[:, ~keep]))
+    return out if extra is None else (*out, X_extra)
 
 
 def assembled(model: FRFModel, p) -> tuple:
@@ -556,19 +535,17 @@ def build_surrogate(
     t0 = time.perf_counter()
     K0, M0 = assembled(model, p)
     t1 = time.perf_counter()
-    carried = Zi = MZi = None
+    carried = Mcarried = None
     B = model.inputs.toarray() if sp.issparse(model.inputs) else np.asarray(model.inputs, float)
     C = model.outputs.toarray() if sp.issparse(model.outputs) else np.asarray(model.outputs, float)
     loads = np.hstack([B, C.T])
     if previous_basis is None:
         freqs, Phi, solve = full_modes(K0, M0, basis_factor * high, shift_hz, max_modes=max_modes, cache=cache)
+        MPhi = M0 @ Phi
         static = None
     else:  # statics in the same block solve as the inverse iteration
-        freqs, Zi, MZi, m, n_rest, solve = refreshed_modes(
+        freqs, Phi, solve, carried, MPhi, Mcarried, static = refreshed_modes(
             K0, M0, previous_basis, basis_factor * high, shift_hz, extra=loads, cache=cache)
-        Phi, static = Zi[:, :m], Zi[:, Zi.shape[1] - loads.shape[1]:]
-        if n_rest is not None:
-            carried = Zi[:, m:m + n_rest]
     t2 = time.perf_counter()
     # kept for basis_residuals (the adequacy test of this basis at later points); freed by the next build
     cache["last_solve"] = (p.copy(), float((2 * np.pi * shift_hz) ** 2), solve)
@@ -592,24 +569,22 @@ def build_surrogate(
             if rhs.shape[1]:
                 E = solve(rhs)
     t4 = time.perf_counter()
-    m = Phi.shape[1]
-    if E is not None and E is carried:  # Zi = [modes, carried rest, statics] and M Zi are at hand
-        Z, MZ = Zi, MZi
-        groups = [np.arange(Z.shape[1] - static.shape[1], Z.shape[1]), np.arange(m, m + carried.shape[1])]
-    else:
-        parts = [Phi, static] + ([] if E is None else [E])
-        Z = np.hstack(parts)
-        MZ = M0 @ Z
-        groups = [np.arange(m, m + static.shape[1]), np.arange(m + static.shape[1], Z.shape[1])]
-    del Zi, MZi, Phi, static, E, carried
-    T, n_static, n_enrich = _completed_basis(Z, MZ, m, groups, [1e-10, enrich_tol])
-    del Z, MZ
+    W = static if E is None else np.hstack([static, E])
+    MW = np.hstack([M0 @ static, Mcarried]) if E is not None and E is carried else None
+    A = _complement_coefficients(W, Phi, MPhi, M0, [static.shape[1], W.shape[1] - static.shape[1]],
+                                 [1e-10, enrich_tol], MW)
+    del MW
+    n_static, n_enrich = A[0].shape[1], A[1].shape[1]
+    A = np.hstack(A)
+    WA = W @ A
+    T = np.hstack([Phi, WA - Phi @ (MPhi.T @ WA)])
+    del W, WA
     t5 = time.perf_counter()
     warm.result()
     with ThreadPoolExecutor(max_workers=2) as pool, _blas_threads(1):
         Kr = _projected(model.K, T, pool)
         Mr = _projected(model.M, T, pool)
-    Kr, Mr, T = m_orthonormalized(Kr, Mr, T, p, "raise enrich_tol or lower basis_factor", overwrite=True)
+    Kr, Mr, T = m_orthonormalized(Kr, Mr, T, p, "raise enrich_tol or lower basis_factor")
     t6 = time.perf_counter()
     sur = Surrogate(
         K=Kr,
@@ -748,14 +723,12 @@ def basis_residuals(model: FRFModel, sur: Surrogate, basis: np.ndarray, p, band_
                       time.process_time() - c0)
 
 
-def m_orthonormalized(Kr: AffineMatrix, Mr: AffineMatrix, T: np.ndarray, p, remedy: str, overwrite: bool = False):
+def m_orthonormalized(Kr: AffineMatrix, Mr: AffineMatrix, T: np.ndarray, p, remedy: str):
     """Reduced terms and basis made exactly M-orthonormal at p by a congruence in reduced space.
 
     With M_r(p) = L L^T, the basis T L^-T and the terms L^-1 (.) L^-T; no
-    n-sized work but the one product T L^-T, a triangular one (BLAS trmm:
-    half the flops of a GEMM), in place in T's memory with ``overwrite``
-    (T C-contiguous). A reduced mass that is not definite means the basis is
-    numerically dependent (``remedy`` says what to change).
+    n-sized work but the one product T L^-T. A reduced mass that is not
+    definite means the basis is numerically dependent (``remedy`` says what to change).
     """
     try:
         L = np.linalg.cholesky(_sym(Mr.at(p)))
@@ -765,31 +738,30 @@ def m_orthonormalized(Kr: AffineMatrix, Mr: AffineMatrix, T: np.ndarray, p, reme
             f"(reduced mass not definite); {remedy}") from None
     if np.abs(L - np.eye(L.shape[0])).max() > 1e-12:
         Li = sla.solve_triangular(L, np.eye(L.shape[0]), lower=True)
-        Kr, Mr = _congruent(Kr, Li), _congruent(Mr, Li)
-        from scipy.linalg.blas import dtrmm
-
-        T = np.asarray(T, dtype=float)
-        own = overwrite and T.flags.c_contiguous
-        # (T Li^T)^T = Li T^T: T^T is T's memory read column-major, so trmm works on it as it lies
-        T = dtrmm(1.0, Li, T.T if own else np.array(T.T, order="F"), side=0, lower=1, overwrite_b=1).T
+        Kr, Mr, T = _congruent(Kr, Li), _congruent(Mr, Li), T @ Li.T
     return Kr, Mr, T
 
 
-def _complement_from_gram(G, sizes, tols) -> list:
-    """Coefficients of M-orthonormal complements of column groups of W, from their Gram matrix.
+def _complement_coefficients(W, Phi, MPhi, M, sizes, tols, MW=None) -> list:
+    """Coefficients of M-orthonormal complements of column groups of W, from one Gram matrix.
 
-    W = [W_1, W_2, ...] (column groups of ``sizes``); G (k, k) is the Gram
-    matrix of W with its part along the M-orthonormal modes Phi removed,
-    ``W^T M W - P^T P`` with ``P = Phi^T M W``. Returns A_g (k, k_g) such
-    that the complement basis of group g is ``(W - Phi P) A_g``. Group g is
-    made orthogonal (in G) to the groups before it and cut where the
-    eigenvalues of its Gram matrix fall below ``tols[g]`` times their
-    largest. Columns keep their size, so an enrichment vector counts by how
-    far its mode shape moves per unit parameter. (Unit-norm columns were
-    tried at 200k DOF: 85 instead of 49 enrichment vectors, LM twice as slow,
-    and still three cycles.)
+    W = [W_1, W_2, ...] (column groups of ``sizes``). Group g is made
+    M-orthogonal to Phi (M-orthonormal, ``MPhi = M Phi``) and to the groups
+    before it, and cut where the eigenvalues of its Gram matrix fall below
+    ``tols[g]`` times their largest. Columns keep their size, so an
+    enrichment vector counts by how far its mode shape moves per unit
+    parameter. (Unit-norm columns were tried at 200k DOF: 85 instead of 49
+    enrichment vectors, LM twice as slow, and still three cycles.)
+
+    Returns A_g (k, k_g) such that the complement basis is
+    ``(W - Phi MPhi^T W) A_g``. All of it runs on the (k, k) Gram matrix of W
+    and its (m, k) overlap with Phi: one sparse product ``M W`` (none when
+    ``MW`` is given) and two GEMMs at full size, instead of repeated
+    Gram-Schmidt passes over (n, k) blocks.
     """
-    k = G.shape[0]
+    k = W.shape[1]
+    P = MPhi.T @ W
+    G = W.T @ (M @ W if MW is None else MW) - P.T @ P  # Gram of W minus its Phi part
     G = _sym(G)
     out, done = [], np.zeros((k, 0))
     start = 0
@@ -813,35 +785,6 @@ def _complement_from_gram(G, sizes, tols) -> list:
         out.append(Ag)
         done = np.hstack([done, Ag])
     return out
-
-
-def _completed_basis(Z, MZ, m: int, groups, tols) -> tuple:
-    """The basis [Phi, complements of the groups] from one block Z and M Z, in one GEMM.
-
-    ``Z[:, :m]`` are M-orthonormal mode shapes Phi; ``groups`` are column
-    index arrays of Z (statics, then enrichment) to be made M-orthogonal to
-    Phi and to each other (:func:`_complement_from_gram`, tolerances
-    ``tols``). All of it runs on the Gram matrix ``Z^T M Z`` (one GEMM at
-    full size); the basis is then ``T = Z S`` with ``S = [[I, -P A], [0, A]]``
-    (P = Phi^T M W): one more GEMM, where forming ``W A``, ``Phi (P A)``,
-    their difference and ``[Phi, .]`` one after another took five passes over
-    (n, r) blocks (1.4 s CPU of a 7.8 s re-basis at 200k DOF).
-
-    Returns (T, n_static, n_enrich): T (n, m + k_1 + k_2), the kept column
-    counts of the two groups.
-    """
-    ix = np.concatenate([np.asarray(g, int) for g in groups])
-    G = Z.T @ MZ  # (q, q)
-    P = G[:m][:, ix]  # Phi^T M W
-    Gw = G[ix][:, ix] - P.T @ P  # Gram of W minus its Phi part
-    A = _complement_from_gram(Gw, [len(g) for g in groups], tols)
-    counts = [a.shape[1] for a in A]
-    A = np.hstack(A)
-    S = np.zeros((Z.shape[1], m + A.shape[1]))
-    S[:m, :m] = np.eye(m)
-    S[:m, m:] = -P @ A
-    S[ix, m:] += A
-    return Z @ S, counts[0], counts[1]
 
 
 def _congruent(A: AffineMatrix, Li: np.ndarray) -> AffineMatrix:
