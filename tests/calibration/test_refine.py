@@ -171,3 +171,30 @@ def test_estimated_damping_follows_each_mode_to_a_new_basis():
     # the k-th estimated mode (in frequency order; no crossing for this move) keeps its damping
     np.testing.assert_allclose(z_new[0][np.sort(fit_new[0])], zeta[fit])
     assert np.all(f1[fit_new[0]] > 1.0)
+
+
+def test_compressed_least_squares_takes_the_full_problems_steps():
+    """The (n+1)-row QR compression of [J f] gives least_squares(trf, x_scale="jac") the same iterates."""
+    from scipy.optimize import least_squares
+
+    from calibration._refine import _compressed
+
+    rng = np.random.default_rng(3)
+    t = np.linspace(0, 1, 4000)
+    y = 2.0 * np.exp(-1.3 * t) * np.cos(7.0 * t + 0.4) + 0.01 * rng.normal(size=t.size)
+
+    def fun(x):
+        return x[0] * np.exp(-x[1] * t) * np.cos(x[2] * t + x[3]) - y
+
+    def jac(x):
+        e, c, s = np.exp(-x[1] * t), np.cos(x[2] * t + x[3]), np.sin(x[2] * t + x[3])
+        return np.column_stack([e * c, -x[0] * t * e * c, -x[0] * t * e * s, -x[0] * e * s])
+
+    kw = dict(bounds=([0, 0, 5, -1], [5, 5, 9, 1]), method="trf", x_scale="jac", xtol=1e-12, ftol=1e-12)
+    full = least_squares(fun, [1.0, 1.0, 6.5, 0.0], jac=jac, **kw)
+    f, j = _compressed(fun, jac)
+    comp = least_squares(f, [1.0, 1.0, 6.5, 0.0], jac=j, **kw)
+    assert f(full.x).shape == (5,)
+    assert np.allclose(comp.x, full.x, rtol=1e-9, atol=1e-12)
+    assert comp.cost == pytest.approx(full.cost, rel=1e-9)
+    assert comp.nfev == full.nfev
