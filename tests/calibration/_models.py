@@ -81,3 +81,16 @@ def beam_model(n_el: int = 40, length_m: float = 1.2, sensors=None, drive: int =
         parameter_names=PARAMS,
     )
     return model, sensors
+
+
+def frame_sensor_model(pm):
+    """(grids, dirs, FRFModel) of the diagnosis tests' frame set-up: every 8th grid of the parametric model
+    ``pm`` (first 10), skewed unit directions (seeded, mostly +z), drives at sensors 0 and 5."""
+    import femodel
+
+    gids = np.asarray(pm.assembly.model.grid_ids)
+    grids = [int(g) for g in gids[::8]][:10]
+    d = np.random.default_rng(1).normal(size=(len(grids), 3)) + [0, 0, 2]
+    dirs = d / np.linalg.norm(d, axis=1, keepdims=True)
+    C = femodel.sensor_matrix(pm.assembly, grids, dirs)
+    return grids, dirs, FRFModel(pm.K, pm.M, C[[0, 5]].T, C, parameter_names=pm.names, parametric=pm)

@@ -37,17 +37,13 @@ from calibration import (
     separating_effect,
 )
 from femodel import AddedMass, AddedSpring, ElementFactor, parametric_model
+from tests.calibration._models import frame_sensor_model
 
 ZETA = 0.02
 BAND = (5.0, 150.0)
 SHIFT_HZ = max(BAND[0] / 4, BAND[1] / 50)
 #: the truth's existing parameters (E_ladder, rho_ladder, E_cradle, M_engine, M_tank, k_mount_xy, k_mount_z)
 P_OLD = np.array([0.05, -0.03, 0.08, 0.1, -0.1, 0.2, -0.1])
-
-
-def _unit(v):
-    v = np.asarray(v, float)
-    return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
 
 def _contact_pairs(fe):
@@ -95,11 +91,7 @@ def _candidates(pm, terms, p):
 def frame(tmp_path_factory):
     ex = femodel.example_frame(tmp_path_factory.mktemp("diag_frame"))
     pm = parametric_model(ex.params)
-    gids = np.asarray(pm.assembly.model.grid_ids)
-    grids = [int(g) for g in gids[::8]][:10]
-    dirs = _unit(np.random.default_rng(1).normal(size=(len(grids), 3)) + [0, 0, 2])
-    C = femodel.sensor_matrix(pm.assembly, grids, dirs)
-    model = FRFModel(pm.K, pm.M, C[[0, 5]].T, C, parameter_names=pm.names, parametric=pm)
+    _, _, model = frame_sensor_model(pm)
     sur, T = build_surrogate(model, np.zeros(pm.n_params), BAND)
     terms = _terms(pm)
     cands = _candidates(pm, terms, P_OLD)

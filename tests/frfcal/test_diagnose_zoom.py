@@ -18,6 +18,7 @@ import femodel
 from calibration import FitData, FRFModel, build_surrogate, full_order_frf, half_bandwidth_frequencies, screen
 from femodel import AddedMass, CandidateOptions, candidate_context, generate_candidates, parametric_model
 from frfcal.campaign._diagnose import candidate_term, point_zoom
+from tests.calibration._models import frame_sensor_model
 
 ZETA = 0.02
 BAND = (5.0, 150.0)
@@ -29,12 +30,7 @@ P_TRUE = np.array([0.05, -0.03, 0.08, 0.1, -0.1, 0.2, -0.1])
 def frame(tmp_path_factory):
     ex = femodel.example_frame(tmp_path_factory.mktemp("zoom_frame"))
     pm = parametric_model(ex.params)
-    gids = np.asarray(pm.assembly.model.grid_ids)
-    grids = [int(g) for g in gids[::8]][:10]
-    d = np.random.default_rng(1).normal(size=(len(grids), 3)) + [0, 0, 2]
-    dirs = d / np.linalg.norm(d, axis=1, keepdims=True)
-    C = femodel.sensor_matrix(pm.assembly, grids, dirs)
-    model = FRFModel(pm.K, pm.M, C[[0, 5]].T, C, parameter_names=pm.names, parametric=pm)
+    grids, dirs, model = frame_sensor_model(pm)
     sur, T = build_surrogate(model, np.zeros(pm.n_params), BAND)
     ctx = candidate_context(pm, sensors=grids, drives=[(grids[0], dirs[0]), (grids[5], dirs[5])],
                             options=CandidateOptions(spread_grids=8))
