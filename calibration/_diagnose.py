@@ -836,14 +836,21 @@ def screen(
         if solve is None:
             solve = shifted_solver(model, sur.p_basis, shift_hz)
         start = lin[0].p  # the nonlinear fits run through the stages from the first stage's baseline
-        jobs = [_check_job(sur, basis, model, cands[i], stages, quantity, start, c_lin[i], lower, upper, max_nfev,
-                           solve) for i in top]
+        jobs = []
+
+        def built():  # each check's extension is built here while the executor runs the checks built before
+            for i in top:
+                jobs.append(_check_job(sur, basis, model, cands[i], stages, quantity, start, c_lin[i], lower, upper,
+                                       max_nfev, solve))
+                yield jobs[-1][0]
+
         if executor is None:
-            outs = [(run_start(job), t) for job, t in jobs]
+            outs = [(run_start(job), jobs[-1][1]) for job in built()]
         else:
             tf = time.perf_counter()
-            fits = executor.map(run_start, [job for job, _ in jobs])
-            share = (time.perf_counter() - tf) / len(jobs)  # the pool's wall time, spread over the checks
+            fits = executor.map(run_start, built())
+            # the pool's wall time beyond the extensions, spread over the checks
+            share = max(time.perf_counter() - tf - sum(t for _, t in jobs), 0.0) / len(jobs)
             outs = [(o, t + share) for o, (_, t) in zip(fits, jobs)]
         outs = [list(o) + [0] for o in outs]
         for _ in range(max(int(continue_checks), 0)):

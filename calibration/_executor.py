@@ -106,13 +106,18 @@ class ProcessExecutor:
             pool.submit(_import_modules, tuple(modules))
 
     def map(self, fn: Callable, items: Iterable) -> list:
-        items = list(items)
-        if len(items) <= 1 or self.max_workers == 1:
+        """``[fn(x) for x in items]`` in the workers. A list or tuple of one item runs here; any other
+        iterable (a generator) is submitted item by item as it yields, so the caller's work producing the
+        next item (e.g. the screening's next candidate extension) overlaps with the workers' runs."""
+        lazy = not isinstance(items, (list, tuple))
+        if self.max_workers == 1 or (not lazy and len(items) <= 1):
+            items = list(items)
             return [fn(x) for x in _progress(items, len(items), self.progress)]
         from concurrent.futures import as_completed
 
         pool = self._get_pool()
         futures = {pool.submit(fn, x): i for i, x in enumerate(items)}
+        items = range(len(futures))
         out = [None] * len(items)
         for fut in _progress(as_completed(futures), len(items), self.progress):
             out[futures[fut]] = fut.result()

@@ -957,18 +957,44 @@ def contact_pairs(ctx: CandidateContext) -> np.ndarray:
     d = np.linalg.norm(ctx.xyz[pairs[:, 0]] - ctx.xyz[pairs[:, 1]], axis=1)
     n_parts = int(part_of.max()) + 1
 
-    def nearest(x, y):
-        """Pairs where y is (one of) the nearest grids of its part to x."""
+    def nearest(x, y, dist):
+        """Where y is (one of) the nearest grids of its part to x, among every (x, y) given."""
         key = x * n_parts + part_of[y]
-        order = np.lexsort((d, key))
+        order = np.lexsort((dist, key))
         k = key[order]
         first = np.r_[True, k[1:] != k[:-1]]
-        best = np.minimum.reduceat(d[order], np.flatnonzero(first))
-        low = np.empty_like(d)
+        best = np.minimum.reduceat(dist[order], np.flatnonzero(first))
+        low = np.empty_like(dist)
         low[order] = np.repeat(best, np.diff(np.r_[np.flatnonzero(first), k.size]))
-        return d <= low * (1.0 + 1e-9) + 1e-15
+        return dist <= low * (1.0 + 1e-9) + 1e-15
 
-    pairs = pairs[nearest(pairs[:, 0], pairs[:, 1]) & nearest(pairs[:, 1], pairs[:, 0])]
+    # a grid's nearest grid of a part is sought among ALL its pairs, whichever end of the (i < j) pair it is:
+    # each orientation once (checked over one orientation only, a web grid beyond the edge of a doubler
+    # paired with the doubler's edge grid although the edge grid's facing web grid is nearer)
+    n_p = len(pairs)
+    ok = nearest(np.r_[pairs[:, 0], pairs[:, 1]], np.r_[pairs[:, 1], pairs[:, 0]], np.r_[d, d])
+    pairs, d = pairs[ok[:n_p] & ok[n_p:]], d[ok[:n_p] & ok[n_p:]]
+    # a pair behind a nearer one: j lies beyond another grid k that i faces in (about) the same direction
+    # (a doubler's edge grid facing the web/skin junction at 2 mm and the skin grid behind it at 7 mm):
+    # contact acts on the nearest surface, not through it
+    if len(pairs):
+        u = (ctx.xyz[pairs[:, 1]] - ctx.xyz[pairs[:, 0]]) / np.maximum(d, 1e-300)[:, None]
+        ends = np.r_[pairs[:, 0], pairs[:, 1]]
+        dirs = np.vstack([u, -u])
+        dd = np.r_[d, d]
+        order = np.lexsort((dd, ends))
+        cos_tol = math.cos(math.radians(o.contact_axis_deg))
+        hidden = np.zeros(2 * len(pairs), bool)
+        starts = np.flatnonzero(np.r_[True, ends[order][1:] != ends[order][:-1]])
+        for a, b in zip(starts, np.r_[starts[1:], order.size]):
+            grp = order[a:b]
+            if grp.size < 2:
+                continue
+            cos = dirs[grp] @ dirs[grp].T  # rows by increasing distance
+            near = dd[grp][None, :] < dd[grp][:, None] * (1.0 - 1e-9)
+            hidden[grp] = np.any((cos >= cos_tol) & near, axis=1)
+        keep = ~(hidden[:len(pairs)] | hidden[len(pairs):])
+        pairs, d = pairs[keep], d[keep]
     inc = _incidence(ctx)
     joined = np.asarray(inc[pairs[:, 0]].multiply(inc[pairs[:, 1]]).sum(axis=1)).ravel() > 0
     if o.contact_hops >= 2:
@@ -1048,14 +1074,74 @@ def contact_spring_family(ctx: CandidateContext):
             cand = _contact_candidate(ctx, pr[keep], pa, pb, name, part_of, kd, cos_tol)
             if cand is not None:
                 yield cand
+    yield from _junction_gaps(ctx, pairs, keyset, part_of, kd, cos_tol)
 
 
-def _contact_candidate(ctx: CandidateContext, sel, pa: str, pb: str, name: str, part_of, kd, cos_tol: float):
+def _junction_gaps(ctx: CandidateContext, pairs, keyset: dict, part_of, kd, cos_tol: float):
+    """One physical gap whose facing grids carry different part labels: one candidate per connected stretch.
+
+    A sheet facing a web whose edge row is a junction (web + skin: label
+    "PSHELL 2+PSHELL 3") gives two part pairs, (PSHELL 3, PSHELL 21) and
+    (PSHELL 2+PSHELL 3, PSHELL 21), for what is one gap; the per-part-pair
+    candidates then cover it only in pieces. Part pairs are merged when both
+    sides share a part; each connected stretch (midpoints within two element
+    sizes) that holds pairs of two or more part pairs is one candidate
+    ``contact_<a>_<b>_gap<k>``, a and b the parts the sides share.
+    """
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    keys = sorted(keyset)
+    sides = [(set(a.split("+")), set(b.split("+"))) for a, b in keys]
+    link = np.zeros((len(keys), len(keys)), bool)
+    for u, (a1, b1) in enumerate(sides):
+        for v, (a2, b2) in enumerate(sides):
+            link[u, v] = bool((a1 & a2 and b1 & b2) or (a1 & b2 and b1 & a2))
+    n_groups, group = connected_components(sp.csr_matrix(link), directed=False)
+    for g in range(n_groups):
+        ks = [keys[u] for u in np.flatnonzero(group == g)]
+        if len(ks) < 2:
+            continue
+        a_common, b_common = sides[keys.index(ks[0])]
+        for a, b in ks[1:]:
+            sa, sb = set(a.split("+")), set(b.split("+"))
+            if a_common & sa and b_common & sb:
+                a_common, b_common = a_common & sa, b_common & sb
+            else:
+                a_common, b_common = a_common & sb, b_common & sa
+        members = [k for key in ks for k in keyset[key]]
+        pr = pairs[members]
+        # orient every pair side a -> side b
+        on_a = [bool(set(part_of[i].split("+")) & a_common) and not set(part_of[i].split("+")) & b_common
+                for i in pr[:, 0].tolist()]
+        pr = np.where(np.array(on_a)[:, None], pr, pr[:, ::-1])
+        of_key = np.repeat(np.arange(len(ks)), [len(keyset[key]) for key in ks])
+        mid = 0.5 * (ctx.xyz[pr[:, 0]] + ctx.xyz[pr[:, 1]])
+        h = float(np.median(np.maximum(ctx.grid_sizes[pr[:, 0]], ctx.grid_sizes[pr[:, 1]])))
+        links = cKDTree(mid).query_pairs(r=2.0 * h, output_type="ndarray")
+        graph = sp.csr_matrix((np.ones(len(links)), (links[:, 0], links[:, 1])), shape=(len(pr), len(pr)))
+        _, comp = connected_components(graph, directed=False)
+        pa, pb = "+".join(sorted(a_common)), "+".join(sorted(b_common))
+        n = 0
+        for k in np.unique(comp):
+            if np.unique(of_key[comp == k]).size < 2:
+                continue  # within one part pair: its own candidates cover it
+            n += 1
+            cand = _contact_candidate(ctx, pr[comp == k], pa, pb, f"contact_{_slug(pa)}_{_slug(pb)}_gap{n}",
+                                      part_of, kd, cos_tol, oriented=True)
+            if cand is not None:
+                yield cand
+
+
+def _contact_candidate(ctx: CandidateContext, sel, pa: str, pb: str, name: str, part_of, kd, cos_tol: float,
+                       oriented: bool = False):
     """The contact-spring Candidate of the grid pairs ``sel`` ((k, 2) grid rows) of parts ``pa`` and ``pb``:
-    one common rate on every pair (None when no pair has a free, stiff component)."""
+    one common rate on every pair (None when no pair has a free, stiff component). ``oriented``: the rows
+    are (side a, side b) already."""
     o = ctx.options
     # orient each pair part a -> part b for the description
-    sel = np.array([(i, j) if part_of[i] == pa else (j, i) for i, j in sel.tolist()])
+    if not oriented:
+        sel = np.array([(i, j) if part_of[i] == pa else (j, i) for i, j in sel.tolist()])
     gap = ctx.xyz[sel[:, 1]] - ctx.xyz[sel[:, 0]]
     dist = np.linalg.norm(gap, axis=1)
     dofs, rates = [], []

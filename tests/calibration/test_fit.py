@@ -207,6 +207,30 @@ def test_process_executor_started_early_imports_in_the_workers():
         assert ex.map(_square, range(4)) == [0, 1, 4, 9]
 
 
+def _started_at(_):
+    import time
+
+    return time.time()
+
+
+def test_process_executor_runs_a_generators_items_while_it_yields_the_next():
+    import time
+
+    done = {}
+
+    def slow():  # the caller's work between items (the screening builds the next check's extension)
+        for i in range(4):
+            yield i
+            time.sleep(0.5)
+        done["t"] = time.time()
+
+    with ProcessExecutor(2) as ex:
+        ex.map(_square, [1, 2])  # workers up
+        started = ex.map(_started_at, slow())
+    assert len(started) == 4
+    assert min(started) < done["t"] - 1.0  # the first item ran while the generator was still producing
+
+
 def _worker_has_fit(_):
     import os
     import sys

@@ -91,8 +91,9 @@ def _setup(pm, n_sensors=10):
 
 
 def _plain(cands):
-    """The candidates between single-part grids (the junction grid 4 facing plate B is a part pair of its own)."""
-    return tuple(c for c in cands if not any("+" in p for p in c.parts))
+    """The candidates between single-part grids (the junction grid 4 facing plate B is a part pair of its own;
+    the whole gap across both part pairs is the ``_gap`` candidate)."""
+    return tuple(c for c in cands if not any("+" in p for p in c.parts) and "_gap" not in c.name)
 
 
 def _contact_pairs(c):
@@ -109,8 +110,13 @@ def test_gap_deck_contact_finds_exactly_the_unjoined_facing_pairs_of_single_part
     path, expected, joined = gap_deck(tmp_path / "gap.bdf", h)
     fe = read_bdf(path)
     every = generate_candidates(fe, families=["contact_spring"])
-    (junction,) = [c for c in every if c not in _plain(every)]
+    (junction,) = [c for c in every if c not in _plain(every) and "_gap" not in c.name]
     assert _contact_pairs(junction) == {(4, 103)} and junction.parts == ("PBAR 3+PSHELL 1", "PSHELL 2")
+    # the junction pair and the plain pairs are one gap: one candidate holds them all, one rate, on z
+    (gap,) = [c for c in every if "_gap" in c.name]
+    assert gap.parts == ("PSHELL 1", "PSHELL 2")
+    assert _contact_pairs(gap) == {(min(a, b), max(a, b)) for a, b in expected} | {(4, 103)}
+    assert {(d[1], d[3]) for d in gap.term.dofs} == {(3, 3)}
     cands = _plain(every)
     assert len(cands) == 1
     c = cands[0]
@@ -129,6 +135,32 @@ def test_gap_deck_contact_finds_exactly_the_unjoined_facing_pairs_of_single_part
     kd = [min(ctx.stiffness_diagonal[fe.grid_index([a])[0], 2], ctx.stiffness_diagonal[fe.grid_index([b])[0], 2])
           for a, b in expected]
     assert c.term.scale == pytest.approx(0.1 * np.median(kd), rel=1e-12)
+
+
+def test_contact_pairs_leave_out_the_overhang_whatever_the_grid_numbering(tmp_path):
+    # plate B (z = 2 mm) covers x = h..4h of plate A (x = 0..3h); plate A's column x = 0 overhangs. Its grids
+    # are numbered below plate B's, and plate B's below the rest of plate A: the overhang grid pairs with
+    # plate B's edge grid only if "each is the other's nearest grid of its part" is checked from one end
+    lines = ["SOL 103", "CEND", "BEGIN BULK", "MAT1,1,2.1+11,,0.3,7850.", "PSHELL,1,1,0.002,1,,1",
+             "PSHELL,2,1,0.0015,1,,1"]
+    h = 0.005  # the overhang grid (5.4 mm from plate B's edge grid) within 1.5 element sizes
+    ga = {(i, j): (1 + j if i == 0 else 31 + 3 * (i - 1) + j) for i in range(4) for j in range(3)}
+    gb = {(i, j): 11 + 3 * i + j for i in range(4) for j in range(3)}
+    for (i, j), g in ga.items():
+        lines.append(f"GRID,{g},,{i * h!r},{j * h!r},0.")
+    for (i, j), g in gb.items():
+        lines.append(f"GRID,{g},,{(i + 1) * h!r},{j * h!r},{GAP!r}")
+    eid = 1
+    for g, pid in ((ga, 1), (gb, 2)):
+        for j in range(2):
+            for i in range(3):
+                lines.append(f"CQUAD4,{eid},{pid},{g[i, j]},{g[i + 1, j]},{g[i + 1, j + 1]},{g[i, j + 1]}")
+                eid += 1
+    path = tmp_path / "overhang.bdf"
+    path.write_text("\n".join(lines + ["ENDDATA"]) + "\n")
+    facing = {(min(ga[i + 1, j], gb[i, j]), max(ga[i + 1, j], gb[i, j])) for i in range(3) for j in range(3)}
+    got = set().union(*(_contact_pairs(c) for c in generate_candidates(read_bdf(path), families=["contact_spring"])))
+    assert got == facing
 
 
 @pytest.mark.parametrize("dx, comps", [(0.0003, {(3, 3)}), (0.001, {(1, 1), (2, 2), (3, 3)})])
