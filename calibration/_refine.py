@@ -231,9 +231,12 @@ class ModalDampingObjective:
         """Plain Eq. 2.23 square deviation over the values (every line alike)."""
         return square_deviation(np.concatenate(self.deviation(p)))
 
-    def _article_terms(self, x):
-        """Per data set (e, de): the log deviations (N_a,) and their derivatives (n_p + n_fit_a, N_a) by p and
-        by the data set's own damping unknowns (the other data sets' damping does not touch its rows)."""
+    def _article_rows(self, x):
+        """Per data set the real array (n_p + n_fit_a + 1, 2 N_a): rows the derivatives of the (weighted)
+        residual by p and by the data set's own damping unknowns (the other data sets' damping does not touch
+        its values), last row the residual; columns the real parts of its values, then the imaginary parts
+        (frequency-major, as :meth:`evaluate` stacks them). Built one unknown at a time on (lines, channels)
+        slices, so no (unknowns x values) complex array is formed."""
         lam, X, zetas, best = self._tracked(x)
         p = x[:self.n_p]
         sur = self.sur
@@ -253,78 +256,87 @@ class ModalDampingObjective:
         out = []
         where = np.empty(m, int)
         where[best] = np.arange(m)  # reference mode -> current index
-        for a, (d, oi, ii, z) in enumerate(zip(self.data, self._out, self._in, zetas)):
+        s = 1.0 / np.sqrt(self.n_values)
+        for a, (d, oi, ii, z, sl) in enumerate(zip(self.data, self._out, self._in, zetas, self._value_slices())):
             w = 2 * np.pi * d.freq_hz
             H, r, q, u, v, om, rigid = self._frf(lam, X, z, d, oi, ii, w)
             with np.errstate(divide="ignore", invalid="ignore"):
                 dc = np.where(rigid[None, :], 0.0, z[None, :] * dlam / np.where(rigid, 1.0, om)[None, :])
             n_f, n_out, n_in = w.size, u.shape[0], v.shape[1]
-            # P_j[o,k,i] = (u G_j)[o,k] v[k,i] + u[o,k] (G_j^T v)[k,i]; S[o,k,i] = u[o,k] v[k,i]
+            mask = None if d.mask is None else d.mask.reshape(n_f, n_out * n_in)
+            # d eps = dH / (H ln 10); the value weight and the 1/sqrt(N) of stacked_residual folded in
+            c = (s / (H * LN10)).reshape(n_f, -1)
+            e = log_deviation(H, d.frf).reshape(n_f, -1)
+            if mask is not None:
+                c, e = c[mask], e[mask]
+            if self._sqrt_w is not None:
+                c, e = c * self._sqrt_w[sl].reshape(c.shape), e * self._sqrt_w[sl].reshape(e.shape)
+            n_v = e.size
+            rows = np.empty((n_p + self.fit[a].size + 1, 2 * n_v))
+
+            def put(i, dre, dim):  # row i from d H = dre + i dim on (lines, channels)
+                if mask is not None:
+                    dre, dim = dre[mask], dim[mask]
+                dre, dim = dre.reshape(c.shape), dim.reshape(c.shape)
+                rows[i, :n_v] = (dre * c.real - dim * c.imag).ravel()
+                rows[i, n_v:] = (dre * c.imag + dim * c.real).ravel()
+
+            # dH_j = r q (u G_j v + u G_j^T v) - r^2 q (dlam_j + i w dc_j) u v   (per channel pair o, i)
             UG = np.einsum("om,jmk->jok", u, G)
             GV = np.einsum("jlk,li->jki", G, v)
-            P = UG[:, :, :, None] * v[None, None, :, :] + u[None, :, :, None] * GV[:, None, :, :]
-            P = P.transpose(2, 0, 1, 3).reshape(m, -1)  # (k, j*o*i)
-            rq = r * q[:, None]
-            T1 = (rq.real @ P) + 1j * (rq.imag @ P)  # (f, j*o*i)
-            T1 = T1.reshape(n_f, n_p, n_out, n_in)
             S = (u[:, :, None] * v[None, :, :]).transpose(1, 0, 2).reshape(m, -1)  # (k, o*i)
-            Q = (r**2 * q[:, None])[:, None, :] * (dlam[None, :, :] + 1j * w[:, None, None] * dc[None, :, :])
-            Q = Q.reshape(n_f * n_p, m)
-            T2 = ((Q.real @ S) + 1j * (Q.imag @ S)).reshape(n_f, n_p, n_out, n_in)
-            dH = (T1 - T2).transpose(1, 0, 2, 3)  # (j, f, o, i)
-            if self.fit[a].size:  # d H / d log zeta_k = -q u_k v_k r_k^2 (i w 2 zeta_k omega_k)
-                dZ = np.zeros((self.fit[a].size, n_f, n_out, n_in), complex)
-                for col, kref in enumerate(self.fit[a]):
-                    k = where[kref]
-                    if not rigid[k]:
-                        g = -(r[:, k] ** 2) * q * (1j * w * 2 * z[k] * om[k])
-                        dZ[col] = g[:, None, None] * (u[:, k][:, None] * v[k][None, :])[None]
-                dH = np.concatenate([dH, dZ], axis=0)
-            e = log_deviation(H, d.frf)
-            de = dH / (H[None] * LN10)
-            if d.mask is not None:
-                e, de = e[d.mask], de[:, d.mask]
-            out.append((e.ravel(), de.reshape(de.shape[0], -1)))
+            rq = r * q[:, None]
+            rq_re, rq_im = np.ascontiguousarray(rq.real), np.ascontiguousarray(rq.imag)
+            r2q = r**2 * q[:, None]
+            for j in range(n_p):
+                Pj = (UG[j][:, :, None] * v[None, :, :] + u[:, :, None] * GV[j][None, :, :]).transpose(1, 0, 2)
+                Pj = Pj.reshape(m, -1)  # (k, o*i)
+                Qj = r2q * (dlam[j][None, :] + 1j * w[:, None] * dc[j][None, :])  # (f, k)
+                put(j, rq_re @ Pj - np.ascontiguousarray(Qj.real) @ S, rq_im @ Pj - np.ascontiguousarray(Qj.imag) @ S)
+            for col, kref in enumerate(self.fit[a]):  # d H / d log zeta_k = -q u_k v_k r_k^2 (i w 2 zeta_k omega_k)
+                k = where[kref]
+                if rigid[k]:
+                    rows[n_p + col] = 0.0
+                    continue
+                g = -(r[:, k] ** 2) * q * (1j * w * 2 * z[k] * om[k])
+                uv = (u[:, k][:, None] * v[k][None, :]).ravel()
+                put(n_p + col, np.outer(g.real, uv), np.outer(g.imag, uv))
+            e = e.ravel()
+            rows[-1, :n_v], rows[-1, n_v:] = e.real * s, e.imag * s
+            out.append(rows)
         return out
 
     def _value_slices(self):
         n = np.cumsum([0] + [d.n_values for d in self.data])
         return [slice(int(a), int(b)) for a, b in zip(n[:-1], n[1:])]
 
+    def _columns(self, a):
+        return np.concatenate([np.arange(self.n_p), self.n_p + np.arange(self._offsets[a], self._offsets[a + 1])])
+
     def evaluate(self, p):
         """(r, J): real residual (2N,) and its exact Jacobian (2N, n_p)."""
         x = self._x(p)
         if self._memo_p is not None and np.array_equal(x, self._memo_p):
             return self._memo
-        n_x, n_p = self.n_unknowns, self.n_p
-        eps_all, deps_all = [], []
-        for a, (e, de) in enumerate(self._article_terms(x)):
-            full = np.zeros((n_x, e.size), complex)  # the other data sets' damping columns are zero here
-            full[:n_p] = de[:n_p]
-            full[n_p + self._offsets[a]:n_p + self._offsets[a + 1]] = de[n_p:]
-            eps_all.append(e)
-            deps_all.append(full)
-        res, J = stacked_residual(np.concatenate(eps_all), np.concatenate(deps_all, axis=1), self._sqrt_w)
+        n = self.n_values
+        res, J = np.empty(2 * n), np.zeros((2 * n, self.n_unknowns))
+        for a, (rows, sl) in enumerate(zip(self._article_rows(x), self._value_slices())):
+            n_v, cols = sl.stop - sl.start, self._columns(a)
+            for part, at in ((slice(0, n_v), sl), (slice(n_v, 2 * n_v), slice(n + sl.start, n + sl.stop))):
+                res[at] = rows[-1, part]
+                J[at, cols] = rows[:-1, part].T
         self._memo_p, self._memo = x.copy(), (res, J)
         return res, J
 
     def blocks(self, x):
-        """The residual and Jacobian in row blocks, one per data set: a list of (cols, f_a, J_a), where
-        ``J_a`` (2 N_a, len(cols)) holds the only non-zero columns ``cols`` of the data set's rows of
-        :meth:`evaluate`'s Jacobian (p and its own damping unknowns) and ``f_a`` its rows of the residual.
-        The same numbers as :meth:`evaluate` (rows grouped by data set, Re before Im within each): the
-        dense Jacobian is n_p + all damping unknowns wide, most of it zeros when several articles each
-        estimate their own damping."""
+        """The residual and Jacobian in row blocks, one per data set: a list of (cols, rows), ``rows`` the
+        (len(cols) + 1, 2 N_a) array ``[J_a f_a]^T``: ``J_a`` the only non-zero columns ``cols`` of the data
+        set's rows of :meth:`evaluate`'s Jacobian (p and its own damping unknowns), ``f_a`` its rows of the
+        residual (Re before Im). The dense Jacobian is n_p + all damping unknowns wide, most of it zeros
+        when several articles each estimate their own damping. (``rows.T`` is Fortran-ordered, as LAPACK
+        takes it.)"""
         x = self._x(x)
-        n_p = self.n_p
-        s = 1.0 / np.sqrt(self.n_values)
-        out = []
-        for a, ((e, de), sl) in enumerate(zip(self._article_terms(x), self._value_slices())):
-            if self._sqrt_w is not None:
-                e, de = e * self._sqrt_w[sl], de * self._sqrt_w[sl][None, :]
-            cols = np.concatenate([np.arange(n_p), n_p + np.arange(self._offsets[a], self._offsets[a + 1])])
-            out.append((cols, np.concatenate([e.real, e.imag]) * s, np.concatenate([de.real, de.imag], axis=1).T * s))
-        return out
+        return [(self._columns(a), rows) for a, rows in enumerate(self._article_rows(x))]
 
     def jacobian(self, p):
         return self.evaluate(p)[1]
@@ -529,10 +541,11 @@ def _compressed_blocks(obj, ridge=None):
         x = np.asarray(x, float)
         if memo.get("x") is None or not np.array_equal(memo["x"], x):
             Js, fs = [], []
-            for cols, f, J in obj.blocks(x):
+            for cols, rows in obj.blocks(x):
                 k = cols.size
+                J, f = rows[:-1].T, rows[-1]
                 if J.shape[0] >= 4 * (k + 1):
-                    R = _tall_r(np.column_stack([J, f]))
+                    R = _tall_r(rows.T)
                     J, f = R[:, :k], R[:, k]
                 Jf = np.zeros((J.shape[0], n_x))
                 Jf[:, cols] = J
@@ -551,7 +564,7 @@ def _compressed_blocks(obj, ridge=None):
 def _hold_weights(obj, x0, hold: float):
     """The ridge weights ``hold * s_max * ||J_j||`` of :func:`refine`'s ``hold`` from the p columns of ``obj``'s
     Jacobian at ``x0`` (``s_max`` the largest singular value of their unit-column form)."""
-    J0 = np.vstack([J[:, :obj.n_p] for _, _, J in obj.blocks(x0)])
+    J0 = np.vstack([rows[:obj.n_p].T for _, rows in obj.blocks(x0)])
     d = np.linalg.norm(J0, axis=0)
     d = np.where(d > 0, d, 1.0)
     s_max = np.linalg.svd(J0 / d, compute_uv=False)[0]

@@ -222,7 +222,8 @@ def test_block_compression_is_the_dense_problem(chain):
     assert np.count_nonzero(J[:, 7:9]) > 0 and np.count_nonzero(J[:, 9:]) > 0
     rows = np.cumsum([0] + [d.n_values for d in data])
     blocks = obj.blocks(x)
-    for a, (cols, f, Jb) in enumerate(blocks):   # the dense rows of set a: [Re(set a); Im(set a)]
+    for a, (cols, rows_a) in enumerate(blocks):   # the dense rows of set a: [Re(set a); Im(set a)]
+        f, Jb = rows_a[-1], rows_a[:-1].T
         sel = np.r_[rows[a]:rows[a + 1], rows[-1] + rows[a]:rows[-1] + rows[a + 1]]
         np.testing.assert_allclose(f, r[sel], rtol=0, atol=1e-15 * np.abs(r).max())
         np.testing.assert_allclose(Jb, J[np.ix_(sel, cols)], rtol=0, atol=1e-13 * np.abs(J).max())
@@ -239,7 +240,7 @@ def test_block_compression_is_the_dense_problem(chain):
     assert block.nfev == dense.nfev
     np.testing.assert_allclose(block.x, dense.x, rtol=0, atol=1e-6)  # measured 1.6e-7 (round-off through 30 steps)
     assert block.cost == pytest.approx(dense.cost, rel=1e-9)
-    assert _compressed_blocks(obj)[1](x0).shape == (sum(c.size + 1 for c, _, _ in blocks), 12)
+    assert _compressed_blocks(obj)[1](x0).shape == (sum(c.size + 1 for c, _ in blocks), 12)
 
 
 def test_tall_r_by_chunks_is_the_qr_triangle():
