@@ -563,6 +563,19 @@ def _compressed_blocks(obj, ridge=None):
     return (lambda x: at(x)["f"]), (lambda x, *_: at(x)["J"])
 
 
+class CompressedObjective:
+    """An objective with :meth:`ModalDampingObjective.blocks` seen through :func:`_compressed_blocks`: its
+    ``residual`` and ``jacobian`` are the compressed problem's (same cost, gradient, Gauss-Newton matrix,
+    singular values), for minimizers that take an objective (``calibration._fit.run_start``)."""
+
+    def __init__(self, obj):
+        self.obj = obj
+        self.residual, self.jacobian = _compressed_blocks(obj)
+
+    def sd(self, x) -> float:
+        return float(np.sum(self.residual(x) ** 2))
+
+
 def _hold_weights(obj, x0, hold: float):
     """The ridge weights ``hold * s_max * ||J_j||`` of :func:`refine`'s ``hold`` from the p columns of ``obj``'s
     Jacobian at ``x0`` (``s_max`` the largest singular value of their unit-column form)."""

@@ -254,3 +254,22 @@ def test_tall_r_by_chunks_is_the_qr_triangle():
     assert R.shape == (9, 9)
     np.testing.assert_allclose(np.abs(R), np.abs(R0), rtol=1e-10, atol=1e-10 * np.abs(R0).max())
     np.testing.assert_allclose(R.T @ R, A.T @ A, rtol=1e-10)
+
+
+def test_cross_validation_recalibration_on_the_compressed_problem(chain):
+    """A raw-line recalibration of the cross-validation (run_start) ends where the dense problem does."""
+    from calibration import reduced_modes
+    from calibration._fit import run_start
+    from calibration._refine import CompressedObjective
+
+    _, sur, _, _, _, raw, _, _ = chain
+    lam, _ = reduced_modes(sur, np.zeros(7))
+    z = [10 ** np.random.default_rng(2).uniform(-3.3, -2.5, lam.size)]
+    obj = ModalDampingObjective(sur, [raw], z, np.zeros(7), 0.0)
+    p0 = P_TRUE * 0.9
+    dense = run_start((obj, p0, LO, HI, 30, 1e-8))
+    comp = run_start((CompressedObjective(obj), p0, LO, HI, 30, 1e-8))
+    assert comp.evaluations == dense.evaluations
+    np.testing.assert_allclose(comp.p, dense.p, rtol=0, atol=1e-7)
+    assert comp.sd == pytest.approx(dense.sd, rel=1e-9) and comp.sd_start == pytest.approx(dense.sd_start, rel=1e-12)
+    assert comp.jacobian_rank == dense.jacobian_rank and comp.condition == pytest.approx(dense.condition, rel=1e-6)
