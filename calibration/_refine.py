@@ -231,11 +231,12 @@ class ModalDampingObjective:
         """Plain Eq. 2.23 square deviation over the values (every line alike)."""
         return square_deviation(np.concatenate(self.deviation(p)))
 
-    def evaluate(self, p):
-        """(r, J): real residual (2N,) and its exact Jacobian (2N, n_p)."""
-        x = self._x(p)
-        if self._memo_p is not None and np.array_equal(x, self._memo_p):
-            return self._memo
+    def _article_rows(self, x):
+        """Per data set the real array (n_p + n_fit_a + 1, 2 N_a): rows the derivatives of the (weighted)
+        residual by p and by the data set's own damping unknowns (the other data sets' damping does not touch
+        its values), last row the residual; columns the real parts of its values, then the imaginary parts
+        (frequency-major, as :meth:`evaluate` stacks them). Built one unknown at a time on (lines, channels)
+        slices, so no (unknowns x values) complex array is formed."""
         lam, X, zetas, best = self._tracked(x)
         p = x[:self.n_p]
         sur = self.sur
@@ -252,47 +253,90 @@ class ModalDampingObjective:
             G = np.where(degenerate[None], 0.0, (A - lam[None, None, :] * Bm) / np.where(degenerate, 1.0, gap)[None])
         idx = np.arange(m)
         G[:, idx, idx] = -0.5 * Bm[:, idx, idx]
-        eps_all, deps_all = [], []
-        n_x = self.n_unknowns
+        out = []
         where = np.empty(m, int)
         where[best] = np.arange(m)  # reference mode -> current index
-        for a, (d, oi, ii, z) in enumerate(zip(self.data, self._out, self._in, zetas)):
+        s = 1.0 / np.sqrt(self.n_values)
+        for a, (d, oi, ii, z, sl) in enumerate(zip(self.data, self._out, self._in, zetas, self._value_slices())):
             w = 2 * np.pi * d.freq_hz
             H, r, q, u, v, om, rigid = self._frf(lam, X, z, d, oi, ii, w)
             with np.errstate(divide="ignore", invalid="ignore"):
                 dc = np.where(rigid[None, :], 0.0, z[None, :] * dlam / np.where(rigid, 1.0, om)[None, :])
             n_f, n_out, n_in = w.size, u.shape[0], v.shape[1]
-            # P_j[o,k,i] = (u G_j)[o,k] v[k,i] + u[o,k] (G_j^T v)[k,i]; S[o,k,i] = u[o,k] v[k,i]
+            mask = None if d.mask is None else d.mask.reshape(n_f, n_out * n_in)
+            # d eps = dH / (H ln 10); the value weight and the 1/sqrt(N) of stacked_residual folded in
+            c = (s / (H * LN10)).reshape(n_f, -1)
+            e = log_deviation(H, d.frf).reshape(n_f, -1)
+            if mask is not None:
+                c, e = c[mask], e[mask]
+            if self._sqrt_w is not None:
+                c, e = c * self._sqrt_w[sl].reshape(c.shape), e * self._sqrt_w[sl].reshape(e.shape)
+            n_v = e.size
+            rows = np.empty((n_p + self.fit[a].size + 1, 2 * n_v))
+
+            def put(i, dre, dim):  # row i from d H = dre + i dim on (lines, channels)
+                if mask is not None:
+                    dre, dim = dre[mask], dim[mask]
+                dre, dim = dre.reshape(c.shape), dim.reshape(c.shape)
+                rows[i, :n_v] = (dre * c.real - dim * c.imag).ravel()
+                rows[i, n_v:] = (dre * c.imag + dim * c.real).ravel()
+
+            # dH_j = r q (u G_j v + u G_j^T v) - r^2 q (dlam_j + i w dc_j) u v   (per channel pair o, i)
             UG = np.einsum("om,jmk->jok", u, G)
             GV = np.einsum("jlk,li->jki", G, v)
-            P = UG[:, :, :, None] * v[None, None, :, :] + u[None, :, :, None] * GV[:, None, :, :]
-            P = P.transpose(2, 0, 1, 3).reshape(m, -1)  # (k, j*o*i)
-            rq = r * q[:, None]
-            T1 = (rq.real @ P) + 1j * (rq.imag @ P)  # (f, j*o*i)
-            T1 = T1.reshape(n_f, n_p, n_out, n_in)
             S = (u[:, :, None] * v[None, :, :]).transpose(1, 0, 2).reshape(m, -1)  # (k, o*i)
-            Q = (r**2 * q[:, None])[:, None, :] * (dlam[None, :, :] + 1j * w[:, None, None] * dc[None, :, :])
-            Q = Q.reshape(n_f * n_p, m)
-            T2 = ((Q.real @ S) + 1j * (Q.imag @ S)).reshape(n_f, n_p, n_out, n_in)
-            dH = (T1 - T2).transpose(1, 0, 2, 3)  # (j, f, o, i)
-            if n_x > n_p:  # d H / d log zeta_k = -q u_k v_k r_k^2 (i w 2 zeta_k omega_k)
-                dZ = np.zeros((n_x - n_p, n_f, n_out, n_in), complex)
-                cols = self._offsets[a] + np.arange(self.fit[a].size)
-                for col, kref in zip(cols, self.fit[a]):
-                    k = where[kref]
-                    if not rigid[k]:
-                        g = -(r[:, k] ** 2) * q * (1j * w * 2 * z[k] * om[k])
-                        dZ[col] = g[:, None, None] * (u[:, k][:, None] * v[k][None, :])[None]
-                dH = np.concatenate([dH, dZ], axis=0)
-            e = log_deviation(H, d.frf)
-            de = dH / (H[None] * LN10)
-            if d.mask is not None:
-                e, de = e[d.mask], de[:, d.mask]
-            eps_all.append(e.ravel())
-            deps_all.append(de.reshape(de.shape[0], -1))
-        res, J = stacked_residual(np.concatenate(eps_all), np.concatenate(deps_all, axis=1), self._sqrt_w)
+            rq = r * q[:, None]
+            rq_re, rq_im = np.ascontiguousarray(rq.real), np.ascontiguousarray(rq.imag)
+            r2q = r**2 * q[:, None]
+            for j in range(n_p):
+                Pj = (UG[j][:, :, None] * v[None, :, :] + u[:, :, None] * GV[j][None, :, :]).transpose(1, 0, 2)
+                Pj = Pj.reshape(m, -1)  # (k, o*i)
+                Qj = r2q * (dlam[j][None, :] + 1j * w[:, None] * dc[j][None, :])  # (f, k)
+                put(j, rq_re @ Pj - np.ascontiguousarray(Qj.real) @ S, rq_im @ Pj - np.ascontiguousarray(Qj.imag) @ S)
+            for col, kref in enumerate(self.fit[a]):  # d H / d log zeta_k = -q u_k v_k r_k^2 (i w 2 zeta_k omega_k)
+                k = where[kref]
+                if rigid[k]:
+                    rows[n_p + col] = 0.0
+                    continue
+                g = -(r[:, k] ** 2) * q * (1j * w * 2 * z[k] * om[k])
+                uv = (u[:, k][:, None] * v[k][None, :]).ravel()
+                put(n_p + col, np.outer(g.real, uv), np.outer(g.imag, uv))
+            e = e.ravel()
+            rows[-1, :n_v], rows[-1, n_v:] = e.real * s, e.imag * s
+            out.append(rows)
+        return out
+
+    def _value_slices(self):
+        n = np.cumsum([0] + [d.n_values for d in self.data])
+        return [slice(int(a), int(b)) for a, b in zip(n[:-1], n[1:])]
+
+    def _columns(self, a):
+        return np.concatenate([np.arange(self.n_p), self.n_p + np.arange(self._offsets[a], self._offsets[a + 1])])
+
+    def evaluate(self, p):
+        """(r, J): real residual (2N,) and its exact Jacobian (2N, n_p)."""
+        x = self._x(p)
+        if self._memo_p is not None and np.array_equal(x, self._memo_p):
+            return self._memo
+        n = self.n_values
+        res, J = np.empty(2 * n), np.zeros((2 * n, self.n_unknowns))
+        for a, (rows, sl) in enumerate(zip(self._article_rows(x), self._value_slices())):
+            n_v, cols = sl.stop - sl.start, self._columns(a)
+            for part, at in ((slice(0, n_v), sl), (slice(n_v, 2 * n_v), slice(n + sl.start, n + sl.stop))):
+                res[at] = rows[-1, part]
+                J[at, cols] = rows[:-1, part].T
         self._memo_p, self._memo = x.copy(), (res, J)
         return res, J
+
+    def blocks(self, x):
+        """The residual and Jacobian in row blocks, one per data set: a list of (cols, rows), ``rows`` the
+        (len(cols) + 1, 2 N_a) array ``[J_a f_a]^T``: ``J_a`` the only non-zero columns ``cols`` of the data
+        set's rows of :meth:`evaluate`'s Jacobian (p and its own damping unknowns), ``f_a`` its rows of the
+        residual (Re before Im). The dense Jacobian is n_p + all damping unknowns wide, most of it zeros
+        when several articles each estimate their own damping. (``rows.T`` is Fortran-ordered, as LAPACK
+        takes it.)"""
+        x = self._x(x)
+        return [(self._columns(a), rows) for a, rows in enumerate(self._article_rows(x))]
 
     def jacobian(self, p):
         return self.evaluate(p)[1]
@@ -310,10 +354,12 @@ class RefineStage:
     evaluations: int
     time_s: float
     message: str
+    cpu_s: float | None = None  # CPU time of the process (wall time misleads on a shared machine)
 
     def to_dict(self) -> dict:
         return {"zeta_floor": self.floor, "p": self.p.tolist(), "sd_start": self.sd_start, "sd": self.sd,
-                "evaluations": self.evaluations, "time_s": self.time_s, "message": self.message}
+                "evaluations": self.evaluations, "time_s": self.time_s, "cpu_s": self.cpu_s,
+                "message": self.message}
 
 
 @dataclass(frozen=True)
@@ -379,26 +425,6 @@ def article_damping(sur: Surrogate, p, modes: IdentifiedModes, mac_min: float = 
         near = np.flatnonzero((fe_hz > sur.rigid_hz) & (fe_hz >= 0.95 * lo) & (fe_hz <= 1.05 * hi))
         paired = sorted(set(paired) | set(near.tolist()))
     return zeta, pairs, np.array(paired, int)
-
-
-def _held(obj, anchor, x0, hold: float):
-    """Residual and Jacobian of ``obj`` with a ridge holding p at ``anchor`` in the directions the data do not see."""
-    n_p, n_x = obj.n_p, obj.n_unknowns
-    J0 = obj.jacobian(x0)[:, :n_p]
-    d = np.linalg.norm(J0, axis=0)
-    d = np.where(d > 0, d, 1.0)
-    s_max = np.linalg.svd(J0 / d, compute_uv=False)[0]
-    w = hold * s_max * d
-    anchor = np.asarray(anchor, float)
-    ridge_J = np.hstack([np.diag(w), np.zeros((n_p, n_x - n_p))])
-
-    def fun(x):
-        return np.concatenate([obj.residual(x), w * (x[:n_p] - anchor)])
-
-    def jac(x):
-        return np.vstack([obj.jacobian(x), ridge_J])
-
-    return fun, jac
 
 
 def carried_damping(old: Surrogate, basis_old, zeta, fit, p_zeta, new: Surrogate, basis_new, p, mass,
@@ -487,6 +513,77 @@ def _compressed(fun, jac):
         return memo
 
     return (lambda x: at(x)["f"]), (lambda x, *_: at(x)["J"])
+
+
+def _tall_r(A, rows: int = 4096):
+    """The triangle R of A = Q R for a tall A, by chunks of ``rows`` (TSQR: the R of the stacked R's of the
+    chunks is A's R up to the signs of its rows, which the least squares does not see); Householder in cache-
+    sized pieces, 2-3x faster than one LAPACK QR of a 100k-row A."""
+    if A.shape[0] <= 2 * rows:
+        return np.linalg.qr(A, mode="r")
+    return np.linalg.qr(np.vstack([np.linalg.qr(A[i:i + rows], mode="r") for i in range(0, A.shape[0], rows)]),
+                        mode="r")
+
+
+def _compressed_blocks(obj, ridge=None):
+    """(fun, jac) of ``obj``'s least squares compressed block by block (:meth:`ModalDampingObjective.blocks`).
+
+    The rows of one data set touch only p and that data set's damping unknowns: each block [J_a f_a] is
+    QR-factorized on its own columns (n_p + n_a + 1 wide instead of all n_p + sum n_a unknowns), and the
+    triangles, placed in their columns, stacked. Sum over the blocks of R_a^T R_a is [J f]^T [J f], so the
+    cost, gradient, Gauss-Newton matrix and column norms are the dense problem's (as :func:`_compressed`),
+    without forming the dense Jacobian, whose damping columns are mostly zeros (outside case 2: 3 articles
+    x 19 damping unknowns, 63 columns of which 25 are non-zero in any row). ``ridge``: (w, anchor) adds the
+    rows w (p - anchor) (the ``hold`` of :func:`refine`; weights from :func:`_hold_weights`).
+    """
+    memo = {}
+    n_x, n_p = obj.n_unknowns, obj.n_p
+
+    def at(x):
+        x = np.asarray(x, float)
+        if memo.get("x") is None or not np.array_equal(memo["x"], x):
+            Js, fs = [], []
+            for cols, rows in obj.blocks(x):
+                k = cols.size
+                J, f = rows[:-1].T, rows[-1]
+                if J.shape[0] >= 4 * (k + 1):
+                    R = _tall_r(rows.T)
+                    J, f = R[:, :k], R[:, k]
+                Jf = np.zeros((J.shape[0], n_x))
+                Jf[:, cols] = J
+                Js.append(Jf)
+                fs.append(f)
+            if ridge is not None:
+                w, anchor = ridge
+                Js.append(np.hstack([np.diag(w), np.zeros((n_p, n_x - n_p))]))
+                fs.append(w * (x[:n_p] - anchor))
+            memo.update(x=x.copy(), f=np.concatenate(fs), J=np.vstack(Js))
+        return memo
+
+    return (lambda x: at(x)["f"]), (lambda x, *_: at(x)["J"])
+
+
+class CompressedObjective:
+    """An objective with :meth:`ModalDampingObjective.blocks` seen through :func:`_compressed_blocks`: its
+    ``residual`` and ``jacobian`` are the compressed problem's (same cost, gradient, Gauss-Newton matrix,
+    singular values), for minimizers that take an objective (``calibration._fit.run_start``)."""
+
+    def __init__(self, obj):
+        self.obj = obj
+        self.residual, self.jacobian = _compressed_blocks(obj)
+
+    def sd(self, x) -> float:
+        return float(np.sum(self.residual(x) ** 2))
+
+
+def _hold_weights(obj, x0, hold: float):
+    """The ridge weights ``hold * s_max * ||J_j||`` of :func:`refine`'s ``hold`` from the p columns of ``obj``'s
+    Jacobian at ``x0`` (``s_max`` the largest singular value of their unit-column form)."""
+    J0 = np.vstack([rows[:obj.n_p].T for _, rows in obj.blocks(x0)])
+    d = np.linalg.norm(J0, axis=0)
+    d = np.where(d > 0, d, 1.0)
+    s_max = np.linalg.svd(J0 / d, compute_uv=False)[0]
+    return hold * s_max * d
 
 
 def refine(
@@ -592,7 +689,7 @@ def refine(
     stages = []
     with blas_threads(1):  # small dense problems: extra BLAS threads only spin
         for fl in floors:
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             zf = fl * zeta0
             if zf > 0:
                 data = [replace(debiased_target(d, ident, chans, zf), weights=log_frequency_weights(d.freq_hz))
@@ -606,10 +703,7 @@ def refine(
             if obj.n_unknowns > obj.n_p:
                 z0, zlo, zhi = obj.damping_start()
                 x0, lo, hi = np.concatenate([p, z0]), np.concatenate([lower, zlo]), np.concatenate([upper, zhi])
-            fun, jac = obj.residual, obj.jacobian
-            if hold:
-                fun, jac = _held(obj, p0, x0, hold)
-            fun, jac = _compressed(fun, jac)
+            fun, jac = _compressed_blocks(obj, (_hold_weights(obj, x0, hold), p0) if hold else None)
             res = least_squares(fun, x0, jac=jac, bounds=(lo, hi), method="trf",
                                 x_scale="jac", xtol=xtol if last else 1e-6, ftol=1e-12 if last else 1e-6,
                                 gtol=1e-12 if last else 1e-6, max_nfev=max_nfev)
@@ -617,7 +711,8 @@ def refine(
             if obj.n_unknowns > obj.n_p:
                 zeta = obj.damping_at(x)
             stages.append(RefineStage(zf, p.copy(), x[:obj.n_p].copy(), sd0, obj.sd(x) if hold else float(2 * res.cost),
-                                      int(res.nfev), time.perf_counter() - t0, str(res.message)))
+                                      int(res.nfev), time.perf_counter() - t0, str(res.message),
+                                      time.process_time() - c0))
             p = x[:obj.n_p].copy()
     plain = ModalDampingObjective(surrogate, [replace(d, weights=None) for d in raw], zeta, p0, 0.0, quantity)
     lam0, _ = reduced_modes(surrogate, p0)

@@ -198,3 +198,78 @@ def test_compressed_least_squares_takes_the_full_problems_steps():
     assert np.allclose(comp.x, full.x, rtol=1e-9, atol=1e-12)
     assert comp.cost == pytest.approx(full.cost, rel=1e-9)
     assert comp.nfev == full.nfev
+
+
+def test_block_compression_is_the_dense_problem(chain):
+    """Two data sets, each estimating its own damping: the per-data-set blocks are the dense Jacobian's
+    non-zero columns, and the block-compressed least squares takes the dense problem's steps."""
+    from scipy.optimize import least_squares
+
+    from calibration import reduced_modes
+    from calibration._refine import _compressed, _compressed_blocks
+
+    _, sur, _, _, _, raw, _, _ = chain
+    rng = np.random.default_rng(5)
+    lam, _ = reduced_modes(sur, np.zeros(7))
+    half = raw.freq_hz.size // 2
+    data = [FitData(raw.freq_hz[s], raw.frf[s], raw.outputs, weights=rng.uniform(0.5, 1.5, raw.freq_hz[s].size))
+            for s in (slice(0, half), slice(half, None))]
+    z = [10 ** rng.uniform(-3.3, -2.5, lam.size) for _ in data]
+    obj = ModalDampingObjective(sur, data, z, np.zeros(7), 0.0, fit_damping=[np.array([6, 8]), np.array([9, 11, 12])])
+    assert obj.n_unknowns == 12
+    x = np.concatenate([P_TRUE * 0.7, obj.damping_start()[0] + 0.1])
+    r, J = obj.evaluate(x)
+    assert np.count_nonzero(J[:, 7:9]) > 0 and np.count_nonzero(J[:, 9:]) > 0
+    rows = np.cumsum([0] + [d.n_values for d in data])
+    blocks = obj.blocks(x)
+    for a, (cols, rows_a) in enumerate(blocks):   # the dense rows of set a: [Re(set a); Im(set a)]
+        f, Jb = rows_a[-1], rows_a[:-1].T
+        sel = np.r_[rows[a]:rows[a + 1], rows[-1] + rows[a]:rows[-1] + rows[a + 1]]
+        np.testing.assert_allclose(f, r[sel], rtol=0, atol=1e-15 * np.abs(r).max())
+        np.testing.assert_allclose(Jb, J[np.ix_(sel, cols)], rtol=0, atol=1e-13 * np.abs(J).max())
+        others = np.setdiff1d(np.arange(12), cols)
+        assert not np.any(J[np.ix_(sel, others)])
+    z0, zlo, zhi = obj.damping_start()
+    lo, hi = np.concatenate([LO, zlo]), np.concatenate([HI, zhi])
+    kw = dict(bounds=(lo, hi), method="trf", x_scale="jac", xtol=1e-10, ftol=1e-12, gtol=1e-12, max_nfev=30)
+    x0 = np.concatenate([P_TRUE * 0.9, z0])
+    f, j = _compressed(obj.residual, obj.jacobian)
+    dense = least_squares(f, x0, jac=j, **kw)
+    f, j = _compressed_blocks(obj)
+    block = least_squares(f, x0, jac=j, **kw)
+    assert block.nfev == dense.nfev
+    np.testing.assert_allclose(block.x, dense.x, rtol=0, atol=1e-6)  # measured 1.6e-7 (round-off through 30 steps)
+    assert block.cost == pytest.approx(dense.cost, rel=1e-9)
+    assert _compressed_blocks(obj)[1](x0).shape == (sum(c.size + 1 for c, _ in blocks), 12)
+
+
+def test_tall_r_by_chunks_is_the_qr_triangle():
+    """_tall_r (QR of the stacked chunk triangles) gives A's R up to row signs: R^T R = A^T A to round-off."""
+    from calibration._refine import _tall_r
+
+    rng = np.random.default_rng(0)
+    A = rng.standard_normal((20000, 9)) * np.logspace(0, 6, 9)   # badly scaled columns
+    R = _tall_r(A, rows=3000)
+    R0 = np.linalg.qr(A, mode="r")
+    assert R.shape == (9, 9)
+    np.testing.assert_allclose(np.abs(R), np.abs(R0), rtol=1e-10, atol=1e-10 * np.abs(R0).max())
+    np.testing.assert_allclose(R.T @ R, A.T @ A, rtol=1e-10)
+
+
+def test_cross_validation_recalibration_on_the_compressed_problem(chain):
+    """A raw-line recalibration of the cross-validation (run_start) ends where the dense problem does."""
+    from calibration import reduced_modes
+    from calibration._fit import run_start
+    from calibration._refine import CompressedObjective
+
+    _, sur, _, _, _, raw, _, _ = chain
+    lam, _ = reduced_modes(sur, np.zeros(7))
+    z = [10 ** np.random.default_rng(2).uniform(-3.3, -2.5, lam.size)]
+    obj = ModalDampingObjective(sur, [raw], z, np.zeros(7), 0.0)
+    p0 = P_TRUE * 0.9
+    dense = run_start((obj, p0, LO, HI, 30, 1e-8))
+    comp = run_start((CompressedObjective(obj), p0, LO, HI, 30, 1e-8))
+    assert comp.evaluations == dense.evaluations
+    np.testing.assert_allclose(comp.p, dense.p, rtol=0, atol=1e-7)
+    assert comp.sd == pytest.approx(dense.sd, rel=1e-9) and comp.sd_start == pytest.approx(dense.sd_start, rel=1e-12)
+    assert comp.jacobian_rank == dense.jacobian_rank and comp.condition == pytest.approx(dense.condition, rel=1e-6)
