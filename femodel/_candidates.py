@@ -1028,13 +1028,36 @@ def contact_spring_family(ctx: CandidateContext):
         _, patch = np.unique(np.column_stack([comp, cell]), axis=0, return_inverse=True)
         patch = patch.ravel()
         order = sorted(range(patch.max() + 1), key=lambda q: int(ctx.grid_ids[pr[patch == q]].min()))
+        offered = set()
         for n, q in enumerate(order):
+            offered.add(frozenset(np.flatnonzero(patch == q).tolist()))
             cand = _contact_candidate(ctx, pr[patch == q], pa, pb, f"contact_{_slug(pa)}_{_slug(pb)}_{n + 1}",
                                       part_of, kd, cos_tol)
             if cand is not None:
                 yield cand
         if len(order) < 2:
             continue
+        # the cells are tiled from the lowest corner, so a contact region of the patch size that straddles a
+        # cell boundary has no candidate of its own (only a cell holding part of it, or the whole stretch):
+        # windows (cubes) of the patch size centred on each pair of a stretch cut into several cells, as the element
+        # clusters' balls; a window equal to a cell or to another window is offered once
+        windows = []
+        tree = cKDTree(mid)
+        for k in np.unique(comp):
+            if np.unique(patch[comp == k]).size < 2:
+                continue
+            for c in np.flatnonzero(comp == k):
+                near = np.array(tree.query_ball_point(mid[c], r=0.5 * o.contact_patch * h * (1 + 1e-9),
+                                                      p=np.inf), int)
+                key = frozenset(near[comp[near] == k].tolist())
+                if len(key) > 1 and key not in offered:
+                    offered.add(key)
+                    windows.append(np.array(sorted(key)))
+        for n, sel in enumerate(windows):
+            cand = _contact_candidate(ctx, pr[sel], pa, pb, f"contact_{_slug(pa)}_{_slug(pb)}_w{n + 1}",
+                                      part_of, kd, cos_tol)
+            if cand is not None:
+                yield cand
         # one physical gap cut into several patches: the union of the patches of one connected stretch, and of
         # every patch of the part pair, as one term (one common rate), so the whole gap can be one effect
         unions = []
