@@ -1174,6 +1174,27 @@ POINT_FAMILIES: dict[str, PointFamily] = {
 }
 
 
+#: Region families: their candidates are alternatives of one region (a contact gap's cells, the windows
+#: straddling their boundaries and the unions of them), so the screening gives the candidates of one region one
+#: nonlinear-check slot and checks the enclosing and overlapping alternatives of the member that takes it with it
+#: (``calibration.screen(regions=...)``, :func:`candidate_regions`). Family -> ``key(candidate)``: the region's
+#: label (hashable) or None (a region of its own). Extended with ``register_family(..., region=key)``.
+REGION_FAMILIES: dict = {
+    "contact_spring": lambda c: c.parts,  # the part pair: its stretches, cells, windows and unions
+}
+
+
+def candidate_regions(candidates) -> list:
+    """Per candidate None or ``(label, places)`` (``calibration.screen``'s ``regions``): for a family of
+    :data:`REGION_FAMILIES`, the label ``(family, key(candidate))`` and its grids as the places it acts on."""
+    out = []
+    for c in candidates:
+        key = REGION_FAMILIES.get(c.family)
+        label = None if key is None else key(c)
+        out.append(None if label is None else ((c.family, label), frozenset(int(g) for g in c.grids)))
+    return out
+
+
 def zoom_candidates(ctx: CandidateContext, screened, best: Candidate, n: int | None = None) -> tuple:
     """The candidates of ``best``'s point family at the grids nearer ``best`` than any grid already screened.
 
@@ -1243,7 +1264,8 @@ def zoom_candidates(ctx: CandidateContext, screened, best: Candidate, n: int | N
 
 
 
-def register_family(name: str, generator, *, replace: bool = False, point: PointFamily | None = None) -> None:
+def register_family(name: str, generator, *, replace: bool = False, point: PointFamily | None = None,
+                    region=None) -> None:
     """Add a candidate family to :data:`CANDIDATE_FAMILIES`.
 
     Parameters
@@ -1261,6 +1283,11 @@ def register_family(name: str, generator, *, replace: bool = False, point: Point
         The family acts at single grids and can be re-created at any grid:
         registered in :data:`POINT_FAMILIES`, the screening zooms it
         (:func:`zoom_candidates`).
+    region : callable, optional
+        ``region(candidate) -> hashable or None``: candidates with one label
+        are alternatives of one region (registered in
+        :data:`REGION_FAMILIES`; the screening checks them together,
+        :func:`candidate_regions`).
 
     Raises
     ------
@@ -1276,11 +1303,17 @@ def register_family(name: str, generator, *, replace: bool = False, point: Point
         raise ParameterError(f"register_family: family {name!r} is already registered (pass replace=True)")
     if point is not None and not isinstance(point, PointFamily):
         raise ParameterError(f"register_family {name!r}: point must be a PointFamily, got {type(point).__name__}")
+    if region is not None and not callable(region):
+        raise ParameterError(f"register_family {name!r}: region must be callable, got {type(region).__name__}")
     CANDIDATE_FAMILIES[name] = generator
     if point is not None:
         POINT_FAMILIES[name] = point
     elif replace:
         POINT_FAMILIES.pop(name, None)
+    if region is not None:
+        REGION_FAMILIES[name] = region
+    elif replace:
+        REGION_FAMILIES.pop(name, None)
 
 
 def generate_candidates(model, *, sensors=(), drives=(), families=None,

@@ -17,6 +17,7 @@ from femodel import (
     ParameterSet,
     Parameter,
     candidate_context,
+    candidate_regions,
     example_frame,
     example_subframe,
     generate_candidates,
@@ -603,3 +604,13 @@ def test_a_contact_straddling_two_cells_has_a_window_of_its_own(tmp_path):
     sets = {c.name: _contact_pairs(c) for c in cands}
     assert [n for n, s in sets.items() if s == closed] == ["contact_PSHELL1_PSHELL2_w4"]
     assert all(len(s) <= 12 for s in sets.values()) and len(sets) == len({frozenset(s) for s in sets.values()})
+    # one region (the part pair): the screening gives it one check slot; around the window: the union of the
+    # stretch (all 12 pairs) and a wider window (10), which the screening checks with it (screen(regions=...))
+    regions = candidate_regions(cands)
+    assert len({r[0] for r in regions}) == 1 and regions[0][0] == ("contact_spring", ("PSHELL 1", "PSHELL 2"))
+    places = {c.name: r[1] for c, r in zip(cands, regions)}
+    assert all(places[c.name] == frozenset(c.grids) for c in cands)
+    w4 = places["contact_PSHELL1_PSHELL2_w4"]
+    around = [n for n, g in places.items() if w4 < g]
+    assert sorted(around) == ["contact_PSHELL1_PSHELL2_join1", "contact_PSHELL1_PSHELL2_w3"]
+    assert all(sets[n] > closed for n in around) and len(sets["contact_PSHELL1_PSHELL2_join1"]) == 12
