@@ -730,9 +730,10 @@ def screen(
         the ``n_check`` slots, as a zoom chain does (its best linear
         member), and when it does, its alternatives that the linear score
         cannot rank against that member are checked with it, outside the
-        budget: every member whose places strictly enclose the best's (the
-        unions around it) and the best member partly overlapping it (neither
-        inside nor around it). Overlapping near-duplicates then cannot
+        budget: of the members whose places strictly enclose the best's, the
+        two largest (the unions around it) and the best linear other, and
+        the best linear member partly overlapping it (neither inside nor
+        around it); at most 4 per region. Overlapping near-duplicates then cannot
         crowd the rest out of the checks, and a union whose linear score
         trails its parts (a whole closed gap: the first-order score of a
         large change errs most) still gets the nonlinear check that ranks
@@ -954,9 +955,10 @@ def _regions(regions, n_first: int, root: dict) -> dict:
 
 
 def _companions(top: list, members: dict, explained) -> list:
-    """The alternatives checked with each region's checked member (:func:`screen`'s ``regions``): the members
-    whose places strictly enclose its places (best linear score first), then the best linear member that
-    partly overlaps it (neither inside nor around it, explained > 0). Not already in ``top``; in order."""
+    """The alternatives checked with each region's checked member (:func:`screen`'s ``regions``): of the members
+    whose places strictly enclose its places the two largest and the best linear other, then the best linear
+    member that partly overlaps it (neither inside nor around it, explained > 0): at most 4. Not already in
+    ``top``; in order, as (companion index, member index)."""
     done, out = set(top), []
     for i in list(top):
         if i not in members:
@@ -964,9 +966,13 @@ def _companions(top: list, members: dict, explained) -> list:
         ks, places = members[i]
         me = places[i]
         around = [k for k in ks if me < places[k]]
+        # the two largest around it (the unions: of its stretch, of the whole part pair) and the best linear
+        # other: a small cell lies inside many windows, and those are checked as the partly overlapping one's
+        big = sorted(around, key=lambda k: (-len(places[k]), -explained[k]))[:2]
+        around = big + sorted((k for k in around if k not in big), key=lambda k: -explained[k])[:1]
         partly = [k for k in ks if places[k] & me and not places[k] <= me and not me < places[k]
                   and explained[k] > 0]
-        for k in sorted(around, key=lambda k: -explained[k]) + sorted(partly, key=lambda k: -explained[k])[:1]:
+        for k in around + sorted(partly, key=lambda k: -explained[k])[:1]:
             if k not in done:
                 done.add(k)
                 out.append((k, i))

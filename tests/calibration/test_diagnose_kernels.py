@@ -669,3 +669,27 @@ def test_a_region_takes_one_check_and_its_enclosing_union_is_checked_with_it(fra
     with pytest.raises(CalibrationError, match="label, places"):
         screen(sur, T, np.zeros(pm.n_params), _truth_data(pm, model, None, 0.0), ZETA, every, pm.lower,
                pm.upper, n_check=0, regions=[("x",)] * len(every))
+
+
+def test_region_companions_are_the_unions_around_the_checked_member_and_one_overlapping():
+    """The rule alone (calibration._diagnose._companions, no fits): a one-pair cell at the end of a stretch of
+    8 pairs lies inside 6 windows of 3 pairs, a 6-pair join and the 8-pair union of the part pair; checked,
+    it takes with it the two largest around it (join, union) and the best linear other (a window), and no
+    member partly overlapping it (there is none). A window checked takes the unions around it and the best
+    linear window partly overlapping it; a member of another region or none takes nothing."""
+    from calibration._diagnose import _companions, _regions
+
+    pairs = {"cell": {0}, "w1": {0, 1, 2}, "w2": {0, 1, 3}, "w3": {0, 2, 3}, "w4": {0, 1, 4}, "w5": {0, 2, 4},
+             "w6": {0, 3, 4}, "w7": {4, 5, 6}, "join": set(range(6)), "all": set(range(8))}
+    names = list(pairs) + ["mass"]
+    regions = [("gap", frozenset(pairs[n])) for n in pairs] + [None]
+    root = {k: k for k in range(len(names))}
+    members = _regions(regions, len(names), root)
+    assert {root[k] for k in range(len(pairs))} == {0} and root[len(pairs)] == len(pairs)
+    lin = np.array([0.30, 0.10, 0.12, 0.08, 0.05, 0.06, 0.07, 0.20, 0.01, 0.0, 0.25])
+    got = [(names[k], names[i]) for k, i in _companions([0, len(pairs)], members, lin)]
+    assert got == [("all", "cell"), ("join", "cell"), ("w2", "cell")]
+    got = [names[k] for k, _ in _companions([names.index("w4")], members, lin)]
+    assert got == ["all", "join", "w7"]  # w7 partly overlaps w4 (pair 4) and scores best of those
+    assert _companions([len(pairs)], members, lin) == []
+    assert _regions(None, len(names), root) == {}
