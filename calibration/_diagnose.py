@@ -638,6 +638,7 @@ def screen(
     groups=None,
     zoom=None,
     zoom_rounds: int = 3,
+    regions=None,
 ) -> Screening:
     """Rank candidate effects by the fraction of the residual they explain beyond the existing parameters.
 
@@ -721,6 +722,22 @@ def screen(
         place, and only its best takes one of the nonlinear checks.
     zoom_rounds : int
         At most this many calls of ``zoom``.
+    regions : sequence, optional
+        Per candidate None or ``(label, places)``: candidates with one label
+        are alternatives of one region (e.g. a contact gap's cells, the
+        windows straddling their boundaries and the unions of them), each
+        acting on the set ``places`` (e.g. its grids). A region takes one of
+        the ``n_check`` slots, as a zoom chain does (its best linear
+        member), and when it does, its alternatives that the linear score
+        cannot rank against that member are checked with it, outside the
+        budget: of the members whose places strictly enclose the best's, the
+        two largest (the unions around it) and the best linear other, and
+        the best linear member partly overlapping it (neither inside nor
+        around it); at most 4 per region. Overlapping near-duplicates then cannot
+        crowd the rest out of the checks, and a union whose linear score
+        trails its parts (a whole closed gap: the first-order score of a
+        large change errs most) still gets the nonlinear check that ranks
+        it. Zoomed candidates are regions of their own.
 
     Returns
     -------
@@ -750,6 +767,15 @@ def screen(
     labels = None if groups is None else list(groups)
     if labels is not None and len(labels) != len(cands):
         raise CalibrationError(f"screen: {len(labels)} group labels for {len(cands)} candidates")
+    n_first = len(cands)
+    if regions is not None:
+        regions = list(regions)
+        if len(regions) != n_first:
+            raise CalibrationError(f"screen: {len(regions)} regions for {n_first} candidates")
+        for k, g in enumerate(regions):
+            if g is not None and not (isinstance(g, (tuple, list)) and len(g) == 2):
+                raise CalibrationError(f"screen: the region of candidate {cands[k].name!r} must be None or "
+                                       f"(label, places), got {g!r}")
     lin, prepared = [], []
     t_fit = t_lin = 0.0
     p_s = p_in
@@ -815,6 +841,8 @@ def screen(
     # a zoom chain (a sampled candidate and every candidate zoomed from it or its descendants) is one place
     # refined: only its best takes a check, so near-duplicates of one region do not crowd the others out
     root = {k: k for k in range(len(cands))}
+    # the alternatives of one region are one place too (see ``regions``): their first member is the root
+    members = _regions(regions, n_first, root)
     pos = {c.name: k for k, c in enumerate(cands)}
     for k, par in parent.items():
         root[k] = root[pos[par]]
@@ -832,47 +860,58 @@ def screen(
                 seen.add(labels[i])
                 chains.add(root[int(i)])
                 top.append(int(i))
+    extra = _companions(top, members, explained)  # [(companion, the checked member it goes with)]
     if top:
         if solve is None:
             solve = shifted_solver(model, sur.p_basis, shift_hz)
         start = lin[0].p  # the nonlinear fits run through the stages from the first stage's baseline
-        jobs = []
 
-        def built():  # each check's extension is built here while the executor runs the checks built before
-            for i in top:
-                jobs.append(_check_job(sur, basis, model, cands[i], stages, quantity, start, c_lin[i], lower, upper,
-                                       max_nfev, solve))
-                yield jobs[-1][0]
+        def run(idx, c0s):
+            jobs = []
 
-        if executor is None:
-            outs = [(run_start(job), jobs[-1][1]) for job in built()]
-        else:
-            tf = time.perf_counter()
-            fits = executor.map(run_start, built())
-            # the pool's wall time beyond the extensions, spread over the checks
-            share = max(time.perf_counter() - tf - sum(t for _, t in jobs), 0.0) / len(jobs)
-            outs = [(o, t + share) for o, (_, t) in zip(fits, jobs)]
-        outs = [list(o) + [0] for o in outs]
-        for _ in range(max(int(continue_checks), 0)):
-            todo = [k for k, (out, _, _) in enumerate(outs) if not out.converged and np.isfinite(out.sd)]
-            if not todo:
-                break
-            # the last stage again from where it stopped (its objective on the candidate's extended surrogate)
-            more = [((jobs[k][0][0][-1],), outs[k][0].p, *jobs[k][0][2:]) for k in todo]
-            tf = time.perf_counter()
-            fits = [run_start(a) for a in more] if executor is None else list(executor.map(run_start, more))
-            share = (time.perf_counter() - tf) / len(todo)
-            for k, o in zip(todo, fits):
-                old = outs[k][0]
-                if o.sd <= old.sd:  # the outcome's own time is added by _checked_fit
-                    outs[k][0], spent = o, old.time_s
-                else:  # keep the better point; the continuation counts as run
-                    outs[k][0], spent = replace(old, converged=o.converged), o.time_s
-                outs[k][1] += spent if executor is None else share
-                outs[k][2] += 1
-        for i, (out, t_ext, n_more) in zip(top, outs):
-            chk = _checked_fit(cands[i], i, out, lin[-1].sd, t_ext)
-            checks.append(replace(chk, explained_linear=float(explained[i]), continued=n_more))
+            def built():  # each check's extension is built here while the executor runs the checks built before
+                for i, c0 in zip(idx, c0s):
+                    jobs.append(_check_job(sur, basis, model, cands[i], stages, quantity, start, c0, lower, upper,
+                                           max_nfev, solve))
+                    yield jobs[-1][0]
+
+            if executor is None:
+                outs = [(run_start(job), jobs[-1][1]) for job in built()]
+            else:
+                tf = time.perf_counter()
+                fits = executor.map(run_start, built())
+                # the pool's wall time beyond the extensions, spread over the checks
+                share = max(time.perf_counter() - tf - sum(t for _, t in jobs), 0.0) / len(jobs)
+                outs = [(o, t + share) for o, (_, t) in zip(fits, jobs)]
+            outs = [list(o) + [0] for o in outs]
+            for _ in range(max(int(continue_checks), 0)):
+                todo = [k for k, (out, _, _) in enumerate(outs) if not out.converged and np.isfinite(out.sd)]
+                if not todo:
+                    break
+                # the last stage again from where it stopped (its objective on the candidate's extended surrogate)
+                more = [((jobs[k][0][0][-1],), outs[k][0].p, *jobs[k][0][2:]) for k in todo]
+                tf = time.perf_counter()
+                fits = [run_start(a) for a in more] if executor is None else list(executor.map(run_start, more))
+                share = (time.perf_counter() - tf) / len(todo)
+                for k, o in zip(todo, fits):
+                    old = outs[k][0]
+                    if o.sd <= old.sd:  # the outcome's own time is added by _checked_fit
+                        outs[k][0], spent = o, old.time_s
+                    else:  # keep the better point; the continuation counts as run
+                        outs[k][0], spent = replace(old, converged=o.converged), o.time_s
+                    outs[k][1] += spent if executor is None else share
+                    outs[k][2] += 1
+            return [replace(_checked_fit(cands[i], i, out, lin[-1].sd, t_ext), explained_linear=float(explained[i]),
+                            continued=n_more) for i, (out, t_ext, n_more) in zip(idx, outs)]
+
+        checks += run(top, [c_lin[i] for i in top])
+        if extra:
+            # a region's alternatives after its checked member, each from the better (lower SD at the start) of
+            # its own linear magnitude and the member's checked change carried over to it (_carried): a union
+            # around a closed part starts at the same stiffness, not at a linear magnitude that may be ~0
+            got = {c.index: c for c in checks}
+            checks += run([k for k, _ in extra],
+                          [(float(c_lin[k]), _carried(cands[i], got[i].c, cands[k])) for k, i in extra])
     t3, c3 = time.perf_counter(), time.process_time()
     checks.sort(key=lambda c: -c.score)
     checked = [c.index for c in checks]
@@ -904,15 +943,79 @@ def screen(
     )
 
 
+def _regions(regions, n_first: int, root: dict) -> dict:
+    """Index -> (the indices of its region, in order; {index: frozenset of its places}) for the candidates of
+    a region (:func:`screen`'s ``regions``); every member's ``root`` set to the region's first member."""
+    if regions is None:
+        return {}
+    by_label: dict = {}
+    for k, g in enumerate(regions[:n_first]):
+        if g is not None:
+            by_label.setdefault(g[0], []).append(k)
+    out = {}
+    for ks in by_label.values():
+        places = {k: frozenset(regions[k][1]) for k in ks}
+        for k in ks:
+            root[k] = ks[0]
+            out[k] = (ks, places)
+    return out
+
+
+def _companions(top: list, members: dict, explained) -> list:
+    """The alternatives checked with each region's checked member (:func:`screen`'s ``regions``): of the members
+    whose places strictly enclose its places the two largest and the best linear other, then the best linear
+    member that partly overlaps it (neither inside nor around it, explained > 0): at most 4. Not already in
+    ``top``; in order, as (companion index, member index)."""
+    done, out = set(top), []
+    for i in list(top):
+        if i not in members:
+            continue
+        ks, places = members[i]
+        me = places[i]
+        around = [k for k in ks if me < places[k]]
+        # the two largest around it (the unions: of its stretch, of the whole part pair) and the best linear
+        # other: a small cell lies inside many windows, and those are checked as the partly overlapping one's
+        big = sorted(around, key=lambda k: (-len(places[k]), -explained[k]))[:2]
+        around = big + sorted((k for k in around if k not in big), key=lambda k: -explained[k])[:1]
+        partly = [k for k in ks if places[k] & me and not places[k] <= me and not me < places[k]
+                  and explained[k] > 0]
+        for k in around + sorted(partly, key=lambda k: -explained[k])[:1]:
+            if k not in done:
+                done.add(k)
+                out.append((k, i))
+    return out
+
+
+def _carried(member: CandidateTerm, c: float, other: CandidateTerm) -> float | None:
+    """The magnitude of ``other`` closest to ``member`` at ``c``: the least-squares c' of c' dA_other ~ c dA_member
+    (A = K where both change it, else M; Frobenius): for nested contact terms with one common rate per pair,
+    c times the share of ``other``'s pairs that ``member`` holds (the same total stiffness on the shared pairs).
+    None when they share no matrix kind or do not overlap."""
+    for a, b in ((member.dK, other.dK), (member.dM, other.dM)):
+        if a is None or b is None:
+            continue
+        a, b = sp.csr_matrix(a), sp.csr_matrix(b)
+        bb = float(b.multiply(b).sum())
+        ab = float(a.multiply(b).sum())
+        if bb > 0 and ab != 0:
+            return float(c) * ab / bb
+        return None
+    return None
+
+
 def _check_job(sur, basis, model, cand, stages, quantity, p0, c0, lower, upper, max_nfev, solve, xtol=1e-8):
     """Extend by one candidate; return (the :func:`run_start` arguments of the [p, c] re-fit from [p0, c0]
-    through the stages, wall time of the extension)."""
+    through the stages, wall time of the extension). ``c0`` may be a tuple of alternative starts (None
+    skipped): the fit starts from the one with the lower SD on the first stage."""
     t0 = time.perf_counter()
     sur_e, _ = extend_with_candidates(sur, basis, model, [cand], solve=solve, with_basis=False)
     objs = [Objective(sur_e, d, z, quantity) for z, d in stages]
     lo = np.r_[lower, cand.lower]
     hi = np.r_[upper, cand.upper]
-    x0 = np.clip(np.r_[p0, c0], lo, hi)
+    starts = [np.clip(np.r_[p0, c], lo, hi) for c in (np.atleast_1d(np.asarray(c0, dtype=object)).tolist())
+              if c is not None and np.isfinite(float(c))]
+    # several starts of c (alternatives): the one with the lower SD on the first stage, where the fit starts
+    x0 = starts[0] if len(starts) == 1 else min(starts, key=lambda x: objs[0].sd(x))
     return (objs, x0, lo, hi, max_nfev, xtol), time.perf_counter() - t0
 
 

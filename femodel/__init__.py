@@ -20,8 +20,8 @@ from femodel._params import Parameter, ParameterError, ParameterSet, read_parame
 from femodel._parametric import ParametricModel, SeriesAffineMatrix, parametric_model
 from femodel._terms import AddedMass, AddedSpring, ElementFactor, ExtendedAffineMatrix
 from femodel._candidates import (CANDIDATE_FAMILIES, COMPOUND_EFFECTS, Candidate, CandidateContext,
-                                 CandidateOptions, POINT_FAMILIES, PointFamily, candidate_context,
-                                 compound_candidates, generate_candidates, zoom_candidates,
+                                 CandidateOptions, POINT_FAMILIES, PointFamily, REGION_FAMILIES,
+                                 candidate_context, candidate_regions, compound_candidates, generate_candidates, zoom_candidates,
                                  register_family)
 from femodel._writeback import fixed_field_card, write_bdf
 from femodel._example import SubframeExample, example_subframe
@@ -39,4 +39,4 @@ __all__ = [
     "FactorizationError", "NotPositiveDefiniteError", "available_backends", "default_backend", "factorize",
     "CANDIDATE_FAMILIES", "COMPOUND_EFFECTS", "Candidate", "CandidateContext", "CandidateOptions",
     "candidate_context", "compound_candidates", "generate_candidates", "register_family", "POINT_FAMILIES",
-    "PointFamily", "zoom_candidates"]
+    "PointFamily", "REGION_FAMILIES", "candidate_regions", "zoom_candidates"]

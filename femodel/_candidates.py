@@ -1054,13 +1054,36 @@ def contact_spring_family(ctx: CandidateContext):
         _, patch = np.unique(np.column_stack([comp, cell]), axis=0, return_inverse=True)
         patch = patch.ravel()
         order = sorted(range(patch.max() + 1), key=lambda q: int(ctx.grid_ids[pr[patch == q]].min()))
+        offered = set()
         for n, q in enumerate(order):
+            offered.add(frozenset(np.flatnonzero(patch == q).tolist()))
             cand = _contact_candidate(ctx, pr[patch == q], pa, pb, f"contact_{_slug(pa)}_{_slug(pb)}_{n + 1}",
                                       part_of, kd, cos_tol)
             if cand is not None:
                 yield cand
         if len(order) < 2:
             continue
+        # the cells are tiled from the lowest corner, so a contact region of the patch size that straddles a
+        # cell boundary has no candidate of its own (only a cell holding part of it, or the whole stretch):
+        # windows (cubes) of the patch size centred on each pair of a stretch cut into several cells, as the element
+        # clusters' balls; a window equal to a cell or to another window is offered once
+        windows = []
+        tree = cKDTree(mid)
+        for k in np.unique(comp):
+            if np.unique(patch[comp == k]).size < 2:
+                continue
+            for c in np.flatnonzero(comp == k):
+                near = np.array(tree.query_ball_point(mid[c], r=0.5 * o.contact_patch * h * (1 + 1e-9),
+                                                      p=np.inf), int)
+                key = frozenset(near[comp[near] == k].tolist())
+                if len(key) > 1 and key not in offered:
+                    offered.add(key)
+                    windows.append(np.array(sorted(key)))
+        for n, sel in enumerate(windows):
+            cand = _contact_candidate(ctx, pr[sel], pa, pb, f"contact_{_slug(pa)}_{_slug(pb)}_w{n + 1}",
+                                      part_of, kd, cos_tol)
+            if cand is not None:
+                yield cand
         # one physical gap cut into several patches: the union of the patches of one connected stretch, and of
         # every patch of the part pair, as one term (one common rate), so the whole gap can be one effect
         unions = []
@@ -1237,6 +1260,27 @@ POINT_FAMILIES: dict[str, PointFamily] = {
 }
 
 
+#: Region families: their candidates are alternatives of one region (a contact gap's cells, the windows
+#: straddling their boundaries and the unions of them), so the screening gives the candidates of one region one
+#: nonlinear-check slot and checks the enclosing and overlapping alternatives of the member that takes it with it
+#: (``calibration.screen(regions=...)``, :func:`candidate_regions`). Family -> ``key(candidate)``: the region's
+#: label (hashable) or None (a region of its own). Extended with ``register_family(..., region=key)``.
+REGION_FAMILIES: dict = {
+    "contact_spring": lambda c: c.parts,  # the part pair: its stretches, cells, windows and unions
+}
+
+
+def candidate_regions(candidates) -> list:
+    """Per candidate None or ``(label, places)`` (``calibration.screen``'s ``regions``): for a family of
+    :data:`REGION_FAMILIES`, the label ``(family, key(candidate))`` and its grids as the places it acts on."""
+    out = []
+    for c in candidates:
+        key = REGION_FAMILIES.get(c.family)
+        label = None if key is None else key(c)
+        out.append(None if label is None else ((c.family, label), frozenset(int(g) for g in c.grids)))
+    return out
+
+
 def zoom_candidates(ctx: CandidateContext, screened, best: Candidate, n: int | None = None) -> tuple:
     """The candidates of ``best``'s point family at the grids nearer ``best`` than any grid already screened.
 
@@ -1306,7 +1350,8 @@ def zoom_candidates(ctx: CandidateContext, screened, best: Candidate, n: int | N
 
 
 
-def register_family(name: str, generator, *, replace: bool = False, point: PointFamily | None = None) -> None:
+def register_family(name: str, generator, *, replace: bool = False, point: PointFamily | None = None,
+                    region=None) -> None:
     """Add a candidate family to :data:`CANDIDATE_FAMILIES`.
 
     Parameters
@@ -1324,6 +1369,11 @@ def register_family(name: str, generator, *, replace: bool = False, point: Point
         The family acts at single grids and can be re-created at any grid:
         registered in :data:`POINT_FAMILIES`, the screening zooms it
         (:func:`zoom_candidates`).
+    region : callable, optional
+        ``region(candidate) -> hashable or None``: candidates with one label
+        are alternatives of one region (registered in
+        :data:`REGION_FAMILIES`; the screening checks them together,
+        :func:`candidate_regions`).
 
     Raises
     ------
@@ -1339,11 +1389,17 @@ def register_family(name: str, generator, *, replace: bool = False, point: Point
         raise ParameterError(f"register_family: family {name!r} is already registered (pass replace=True)")
     if point is not None and not isinstance(point, PointFamily):
         raise ParameterError(f"register_family {name!r}: point must be a PointFamily, got {type(point).__name__}")
+    if region is not None and not callable(region):
+        raise ParameterError(f"register_family {name!r}: region must be callable, got {type(region).__name__}")
     CANDIDATE_FAMILIES[name] = generator
     if point is not None:
         POINT_FAMILIES[name] = point
     elif replace:
         POINT_FAMILIES.pop(name, None)
+    if region is not None:
+        REGION_FAMILIES[name] = region
+    elif replace:
+        REGION_FAMILIES.pop(name, None)
 
 
 def generate_candidates(model, *, sensors=(), drives=(), families=None,

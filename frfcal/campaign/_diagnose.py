@@ -541,6 +541,7 @@ def _nonlinear_modes(gate: ArticleGate) -> list:
 def _screen_member(camp: Campaign, pm, model, load, eq, m, quantity, log, executor=None):
     """Candidates of the deck and set-up, screened on the member's equalized data (with continuation)."""
     from calibration import build_surrogate, screen
+    from femodel import candidate_regions
 
     c, cfg = camp.calibration, camp.diagnosis
     lo, hi = camp.band.low_hz, camp.band.high_hz
@@ -554,7 +555,7 @@ def _screen_member(camp: Campaign, pm, model, load, eq, m, quantity, log, execut
     scr = screen(sur, T, m.p, data, c.zeta0, terms, pm.lower, pm.upper, quantity=quantity, model=model, n_check=cfg.top_n,
                  shift_hz=max(lo / 4.0, hi / 50.0), continuation=cont, max_nfev=cfg.max_evaluations,
                  executor=executor, groups=[cd.family for cd in cands], zoom=zoom,
-                 zoom_rounds=cctx.options.zoom_rounds)
+                 zoom_rounds=cctx.options.zoom_rounds, regions=candidate_regions(cands))
     counts: dict = {}
     for cd in cands:
         counts[cd.family] = counts.get(cd.family, 0) + 1
@@ -924,11 +925,13 @@ def _rescreen(camp, model, m, ctx, fit, accepted, quantity, executor, log):
     recalibration together with the accepted effects: the check's point}).
     """
     from calibration import extended_model, screen
+    from femodel import candidate_regions
 
     cfg, c = camp.diagnosis, camp.calibration
     shift = max(camp.band.low_hz / 4.0, camp.band.high_hz / 50.0)
     by_name = {t.name: t for t in ctx["terms"]}
     family = {cd.name: cd.family for cd in ctx["cands"]}
+    cand = {cd.name: cd for cd in ctx["cands"]}
     done = set(accepted)
     rest = [t for t in ctx["terms"]
             if t.name not in done and not any(_overlap(ctx, t.name, a) for a in accepted)]
@@ -938,7 +941,8 @@ def _rescreen(camp, model, m, ctx, fit, accepted, quantity, executor, log):
     scr = screen(fit.surrogate, fit.basis, fit.x, ctx["data"], c.zeta0, rest, fit.lower, fit.upper,
                  quantity=quantity, model=extended_model(model, [by_name[a] for a in accepted]), n_check=cfg.top_n,
                  shift_hz=shift, continuation=ctx["cont"], max_nfev=cfg.max_evaluations, executor=executor,
-                 groups=[family[t.name] for t in rest], zoom=ctx["zoom"], zoom_rounds=ctx["zoom_rounds"])
+                 groups=[family[t.name] for t in rest], zoom=ctx["zoom"], zoom_rounds=ctx["zoom_rounds"],
+                 regions=candidate_regions([cand[t.name] for t in rest]))
     ctx["screening_now"] = scr  # the ties of a point effect in the next round are this screening's (_tied_places)
     rows = ranked_table(ctx["cands"], scr)
     n_p = fit.surrogate.n_params - len(accepted)

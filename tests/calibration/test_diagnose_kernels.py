@@ -611,3 +611,85 @@ def test_fit_with_warm_from_its_converged_check_ends_where_the_cold_fit_ends(fra
     other = next(c for c in s.checks if c.name != "f13")
     again = fit_with(sur, T, model, [cand], data, ZETA, pm.lower, pm.upper, warm=other, **kw)
     np.testing.assert_array_equal(again.x, cold.x)
+
+
+def test_a_region_takes_one_check_and_its_enclosing_union_is_checked_with_it(frame):
+    """``screen(regions=...)``: the alternatives of one contact gap (cells of two pairs tiled from the end of a
+    stretch of five cradle-rail pairs, windows of two pairs straddling the cells' boundaries, the union of
+    the stretch) take one of the ``n_check`` slots, its best linear member's; with it the union around that
+    member and the best member partly overlapping it are checked outside the budget, the union from the
+    member's checked stiffness carried over (same total on the shared pairs). The linear score cannot rank
+    them: the true window scores below a cell, the true union (a 5 x 2e5 N/m gap) ~0."""
+    pm, model, sur, T, terms, cands = frame
+    fe = pm.assembly.model
+    pairs = sorted(_contact_pairs(fe))[:5]
+    assert [a for a, _ in pairs] == [60, 61, 62, 63, 64]  # one stretch along the cradle's side
+    sets = {"gap_c1": [0, 1], "gap_c2": [2, 3], "gap_c3": [4], "gap_w1": [1, 2], "gap_w2": [3, 4],
+            "gap_join1": [0, 1, 2, 3, 4]}
+
+    def spring(name, idx):
+        return AddedSpring(name, tuple((pairs[i][0], 3, pairs[i][1], 3) for i in idx), 2e5)
+
+    others = [c for c in cands if not c.name.startswith("kc")]
+    gap = _candidates(pm, [spring(n, i) for n, i in sets.items()], P_OLD)
+    every = others + gap
+    places = {n: frozenset(g for i in idx for g in pairs[i]) for n, idx in sets.items()}
+    regions = [(("contact", "cradle-rail"), places[c.name]) if c.name in places else None for c in every]
+    groups = ["gap" if c.name.startswith("gap") else c.name.rstrip("0123456789_") for c in every]
+
+    def run(truth, reg):
+        data = _truth_data(pm, model, spring("truth", sets[truth]), 1.0, sigma=0.005)
+        return screen(sur, T, np.zeros(pm.n_params), data, ZETA, every, pm.lower, pm.upper, model=model,
+                      shift_hz=SHIFT_HZ, n_check=2, groups=groups, regions=reg)
+
+    # a closed window straddling a cell boundary: a cell scores best linearly and takes the region's slot; the
+    # union around it and the window (the best member partly overlapping it) are checked with it
+    s = run("gap_w1", regions)
+    lin = {n: s.explained[s.names.index(n)] for n in sets}
+    assert max(lin, key=lin.get) == "gap_c1" and lin["gap_w1"] < lin["gap_c1"]
+    checked = [c.name for c in s.checks]
+    assert {n for n in checked if n in sets} == {"gap_c1", "gap_join1", "gap_w1"}
+    assert sum(n not in sets for n in checked[:3]) == 0 and s.best == "gap_w1"
+    assert s.check("gap_w1").c == pytest.approx(1.0, rel=0.05) and s.check("gap_w1").explained > 0.99
+    # the region took one slot of the two: the other went to another family's best (a mass here)
+    assert sum(n not in sets for n in checked) >= 2
+    # the whole gap closed: every member scores ~0 linearly (the first-order score of a large change);
+    # the union, checked around the cell from the cell's carried stiffness, is found exactly
+    s = run("gap_join1", regions)
+    assert s.explained[s.names.index("gap_join1")] < 0.01
+    assert s.best == "gap_join1" and s.check("gap_join1").c == pytest.approx(1.0, rel=0.05)
+    assert s.check("gap_join1").explained > 0.99
+    # without the regions the union gets no check (only the family's best, a cell) and the best check is
+    # a cell standing in for the gap, locally stiffer
+    s0 = run("gap_join1", None)
+    assert s0.check("gap_join1") is None and s0.best in sets and s0.check(s0.best).explained < 0.9
+    with pytest.raises(CalibrationError, match="regions for"):
+        screen(sur, T, np.zeros(pm.n_params), _truth_data(pm, model, None, 0.0), ZETA, every, pm.lower,
+               pm.upper, n_check=0, regions=regions[:-1])
+    with pytest.raises(CalibrationError, match="label, places"):
+        screen(sur, T, np.zeros(pm.n_params), _truth_data(pm, model, None, 0.0), ZETA, every, pm.lower,
+               pm.upper, n_check=0, regions=[("x",)] * len(every))
+
+
+def test_region_companions_are_the_unions_around_the_checked_member_and_one_overlapping():
+    """The rule alone (calibration._diagnose._companions, no fits): a one-pair cell at the end of a stretch of
+    8 pairs lies inside 6 windows of 3 pairs, a 6-pair join and the 8-pair union of the part pair; checked,
+    it takes with it the two largest around it (join, union) and the best linear other (a window), and no
+    member partly overlapping it (there is none). A window checked takes the unions around it and the best
+    linear window partly overlapping it; a member of another region or none takes nothing."""
+    from calibration._diagnose import _companions, _regions
+
+    pairs = {"cell": {0}, "w1": {0, 1, 2}, "w2": {0, 1, 3}, "w3": {0, 2, 3}, "w4": {0, 1, 4}, "w5": {0, 2, 4},
+             "w6": {0, 3, 4}, "w7": {4, 5, 6}, "join": set(range(6)), "all": set(range(8))}
+    names = list(pairs) + ["mass"]
+    regions = [("gap", frozenset(pairs[n])) for n in pairs] + [None]
+    root = {k: k for k in range(len(names))}
+    members = _regions(regions, len(names), root)
+    assert {root[k] for k in range(len(pairs))} == {0} and root[len(pairs)] == len(pairs)
+    lin = np.array([0.30, 0.10, 0.12, 0.08, 0.05, 0.06, 0.07, 0.20, 0.01, 0.0, 0.25])
+    got = [(names[k], names[i]) for k, i in _companions([0, len(pairs)], members, lin)]
+    assert got == [("all", "cell"), ("join", "cell"), ("w2", "cell")]
+    got = [names[k] for k, _ in _companions([names.index("w4")], members, lin)]
+    assert got == ["all", "join", "w7"]  # w7 partly overlaps w4 (pair 4) and scores best of those
+    assert _companions([len(pairs)], members, lin) == []
+    assert _regions(None, len(names), root) == {}

@@ -17,6 +17,7 @@ from femodel import (
     ParameterSet,
     Parameter,
     candidate_context,
+    candidate_regions,
     example_frame,
     example_subframe,
     generate_candidates,
@@ -181,15 +182,21 @@ def test_gap_deck_contact_distance_cap_and_patches(tmp_path):
     plain = lambda **kw: _plain(generate_candidates(fe, families=["contact_spring"], **kw))  # noqa: E731
     # patches of at most one element size: the five pairs split, each pair in exactly one patch
     small = plain(options=CandidateOptions(contact_patch=1.0))
-    patches = [c for c in small if not c.name.endswith(("_all", "_join1"))]
+    patches = [c for c in small if not c.name.endswith(("_all", "_join1")) and "_w" not in c.name]
     assert len(patches) > 1
     pairs = [p for c in patches for p in _contact_pairs(c)]
     assert len(pairs) == len(set(pairs)) == len(expected)
     # and the whole gap once more as one term (its patches are one connected stretch): one common rate on
     # every pair, so a gap closed over its whole length is one effect
-    (union,) = [c for c in small if c not in patches]
+    (union,) = [c for c in small if c not in patches and "_w" not in c.name]
     assert union.name.endswith("_join1") and _contact_pairs(union) == set(pairs)
     assert union.term.scale == pytest.approx(plain()[0].term.scale)
+    # windows of the patch size centred on each pair: more than one pair (here, one element size, none),
+    # never a cell again, all distinct
+    windows = [_contact_pairs(c) for c in small if "_w" in c.name]
+    assert all(len(w) > 1 for w in windows)
+    assert len({frozenset(w) for w in windows} | {frozenset(_contact_pairs(c)) for c in patches}) == \
+        len(windows) + len(patches)
     # one-hop exclusion only: the same pairs (none of them shares a neighbour grid across the plates)
     one = plain(options=CandidateOptions(contact_hops=1))
     assert _contact_pairs(one[0]) == _contact_pairs(plain()[0])
@@ -612,3 +619,30 @@ def test_zoom_errors_and_user_point_family(frame_pm, monkeypatch):
     assert "clamp" not in _candidates.POINT_FAMILIES
     with pytest.raises(ParameterError, match="not beside context"):
         generate_candidates(frame_pm, families=["clamp"], context=ctx, options=CandidateOptions())
+
+
+def test_a_contact_straddling_two_cells_has_a_window_of_its_own(tmp_path):
+    # The second outside case (tests/frfcal/outside2_case.py): the rail flange lies 4 mm over the panel on
+    # x = 350-600 mm (12 facing pairs in two rows); its gap closes on x = 450-600 (8 pairs). The cells of
+    # 4 element sizes are tiled from x = 350: 350-550 and 550-600, so before the windows the closed part had
+    # no candidate (the union of all 12 was accepted and left the hold-out SD 11x the floor).
+    from tests.frfcal import outside2_case as oc
+
+    path = tmp_path / "floor.bdf"
+    path.write_text(oc.deck_text(oc.NOMINAL))
+    cands = generate_candidates(read_bdf(path, units="mm-t-s"), families=["contact_spring"])
+    closed = {(oc.rail_grid(1, i, k), oc.panel_grid(i, 3 + k)) for i in range(9, oc.NX + 1) for k in range(2)}
+    closed = {(min(a, b), max(a, b)) for a, b in closed}
+    sets = {c.name: _contact_pairs(c) for c in cands}
+    assert [n for n, s in sets.items() if s == closed] == ["contact_PSHELL1_PSHELL2_w4"]
+    assert all(len(s) <= 12 for s in sets.values()) and len(sets) == len({frozenset(s) for s in sets.values()})
+    # one region (the part pair): the screening gives it one check slot; around the window: the union of the
+    # stretch (all 12 pairs) and a wider window (10), which the screening checks with it (screen(regions=...))
+    regions = candidate_regions(cands)
+    assert len({r[0] for r in regions}) == 1 and regions[0][0] == ("contact_spring", ("PSHELL 1", "PSHELL 2"))
+    places = {c.name: r[1] for c, r in zip(cands, regions)}
+    assert all(places[c.name] == frozenset(c.grids) for c in cands)
+    w4 = places["contact_PSHELL1_PSHELL2_w4"]
+    around = [n for n, g in places.items() if w4 < g]
+    assert sorted(around) == ["contact_PSHELL1_PSHELL2_join1", "contact_PSHELL1_PSHELL2_w3"]
+    assert all(sets[n] > closed for n in around) and len(sets["contact_PSHELL1_PSHELL2_join1"]) == 12

@@ -51,11 +51,7 @@ def _names():
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(3600)
-@pytest.mark.xfail(strict=False, reason=(
-    "the contact windows that made the closed 8 of 12 pairs a candidate (a7569aa) were reverted: on the demo's "
-    "gap they displaced the whole-gap union from the nonlinear checks (a 4-pair window accepted, hold-out 10x "
-    "worse); without them the helper measured the union of all 12 pairs accepted, hold-out 11x the floor"))  # the project's 600 s default stops it: measured > 10 min at load ~3
+@pytest.mark.timeout(3600)  # the project's 600 s default stops it: measured > 10 min at load ~3
 def test_the_whole_chain_on_five_articles(tmp_path):
     """``frfcal run`` on the five articles (about 45 min wall on the 2-core machine at load 10-19; the
     calibrate stage alone 7 min at load ~4, most of it scipy's trust-region SVD of the raw-line Jacobian)."""
