@@ -270,6 +270,9 @@ def test_cross_validation_recalibration_on_the_compressed_problem(chain):
     dense = run_start((obj, p0, LO, HI, 30, 1e-8))
     comp = run_start((CompressedObjective(obj), p0, LO, HI, 30, 1e-8))
     assert comp.evaluations == dense.evaluations
-    np.testing.assert_allclose(comp.p, dense.p, rtol=0, atol=1e-7)
+    # the two paths differ by round-off only; xtol 1e-8 stops a step of ~2e-9, and round-off in the flattest
+    # direction moved the end point by 1.3e-7 on one CI run; 1e-6 (1e-4 % of a parameter) still catches a
+    # different path
+    np.testing.assert_allclose(comp.p, dense.p, rtol=0, atol=1e-6)
     assert comp.sd == pytest.approx(dense.sd, rel=1e-9) and comp.sd_start == pytest.approx(dense.sd_start, rel=1e-12)
     assert comp.jacobian_rank == dense.jacobian_rank and comp.condition == pytest.approx(dense.condition, rel=1e-6)
