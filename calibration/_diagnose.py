@@ -33,9 +33,9 @@ candidate touches: in the reduced modes X at p, with Phi_c = T[rows] X,
 
     A_c = Phi_c^T dK_loc Phi_c,  B_c = Phi_c^T dM_loc Phi_c  (m x m),
 
-and the exact derivative of the modally damped reduced FRF (the formula of
-:func:`calibration.surrogate_frf_jacobian`, damping following the modes) for
-these A_c, B_c. Candidates are processed in chunks whose scratch arrays stay
+and the exact derivative of the modally damped reduced FRF (Nelson's
+expansion of :mod:`calibration._modal_derivative`, as for the parameters,
+damping following the modes) for these A_c, B_c. Candidates are processed in chunks whose scratch arrays stay
 below ``chunk_bytes``.
 
 Nonlinear check
@@ -73,8 +73,8 @@ import scipy.sparse as sp
 
 from calibration._errors import CalibrationError
 from calibration._extend import extended_surrogate
-from calibration._fit import Objective, StartOutcome, check_bounds, run_start, value_weights
-from calibration._metric import LN10
+from calibration._fit import Objective, StartOutcome, check_bounds, run_start
+from calibration._modal_derivative import eigen_derivatives
 from calibration._surrogate import (
     FRFModel,
     Surrogate,
@@ -82,7 +82,6 @@ from calibration._surrogate import (
     _local_terms,
     _shifted,
     modal_omegas,
-    quantity_factor,
     reduced_modes,
 )
 
@@ -146,37 +145,27 @@ class CandidateTerm:
         return int(self.rows.size)
 
 
-def _bytes_per_candidate(m: int, n_f: int, n_out: int, n_in: int, n_res: int) -> int:
-    """Scratch bytes of one candidate in :func:`_candidate_block` (complex W, T3, dH; A, B, R; real J column and its projection)."""
-    return 16 * n_f * n_in * (3 * m + 3 * n_out + 2 * n_out) + 48 * m * m + 32 * n_res
+def _bytes_per_candidate(m: int, n_oi: int, n_res: int) -> int:
+    """Scratch bytes of one candidate in :func:`_candidate_block`: its A, B, G (m x m), its columns of the
+    derivative factor (3m x n_oi per data set), the real and imaginary derivative values and their weighted
+    rows (:func:`calibration._modal_derivative.derivative_rows`) and its column of the stacked Jacobian and
+    of its projection, each of n_res = 2N reals."""
+    return 24 * m * m + 24 * m * n_oi + 40 * n_res
 
 
 class _Modal:
-    """The reduced modal quantities at p that every candidate's derivative shares, per data set."""
+    """The reduced modal quantities at p that every candidate's derivative shares."""
 
     def __init__(self, sur: Surrogate, basis: np.ndarray, p, data, zeta: float, quantity: str):
         self.obj = Objective(sur, data, zeta, quantity)
         lam, X = reduced_modes(sur, p)
-        self.X = X
-        om, rigid = modal_omegas(lam, sur.rigid_hz)
-        self.om = om
-        osum = om[:, None] + om[None, :]
-        both = rigid[:, None] & rigid[None, :]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            self.rho = np.where(both, 0.0, 2 * zeta / osum)
-            self.sig = np.where(both, 0.0, 2 * zeta * om[:, None] * om[None, :] / osum)
-        self.sets = []
-        for d, oi, ii in zip(self.obj.data, self.obj._out, self.obj._in):
-            w = 2 * np.pi * d.freq_hz
-            r = 1.0 / (om[None, :] ** 2 - w[:, None] ** 2 + 1j * w[:, None] * (2 * zeta * om)[None, :])
-            q = quantity_factor(w, quantity)
-            u = sur.outputs[oi] @ X  # (n_out, m)
-            v = X.T @ sur.inputs[:, ii]  # (m, n_in)
-            H = np.einsum("om,fm,mi->foi", u, r * q[:, None], v, optimize=True)
-            self.sets.append((d, w, r, q, u, v, H))
-        self.sqrt_w = value_weights(self.obj.data)
-        self.n_values = self.obj.n_values
+        self.lam, self.X = lam, X
         self.m = X.shape[1]
+        self.zeta = np.full(self.m, float(zeta))
+        self.rigid_hz = sur.rigid_hz
+        self.om, self.rigid = modal_omegas(lam, sur.rigid_hz)
+        self.n_values = self.obj.n_values
+        self.n_oi = sum(d.frf.shape[1] * d.frf.shape[2] for d in self.obj.data)
 
 
 def _modal_matrices(modal: _Modal, basis: np.ndarray, cands) -> tuple[np.ndarray, np.ndarray]:
@@ -195,33 +184,22 @@ def _modal_matrices(modal: _Modal, basis: np.ndarray, cands) -> tuple[np.ndarray
 
 
 def _candidate_block(modal: _Modal, basis: np.ndarray, cands) -> np.ndarray:
-    """Real stacked Jacobian d r / d c of the objective's residual for a chunk of candidates: (2N, n_c)."""
+    """Real stacked Jacobian d r / d c of the objective's residual for a chunk of candidates: (2N, n_c).
+
+    The candidates' magnitudes are derivative directions like the parameters'
+    (:mod:`calibration._modal_derivative`, damping ratios held), built on the
+    objective's line slices and threads (:class:`calibration._modal_derivative.FRFRows`)."""
     A, Bm = _modal_matrices(modal, basis, cands)
-    nc, m = A.shape[0], modal.m
-    R = modal.rho[None] * A + modal.sig[None] * Bm
-    mats = np.concatenate([A, Bm, R], axis=0).reshape(3 * nc * m, m)
-    cols = []
-    for d, w, r, q, u, v, H in modal.sets:
-        n_f, n_in = w.size, v.shape[1]
-        vr = np.ascontiguousarray((r.T[:, :, None] * v[:, None, :]).reshape(m, n_f * n_in))
-        W = (mats @ vr.view(float)).view(complex).reshape(3 * nc, m, n_f, n_in)
-        W *= r.T[None, :, :, None]
-        T3 = (u @ W.reshape(3 * nc, m, -1).view(float)).view(complex)  # (3 nc, n_out, n_f * n_in)
-        del W
-        T3 = T3.reshape(3, nc, -1, n_f, n_in)
-        wf = w[None, None, :, None]
-        dH = (-T3[0] + wf**2 * T3[1] - 1j * wf * T3[2]) * q[None, None, :, None]  # (c, o, f, i)
-        de = dH.transpose(0, 2, 1, 3) / (H[None] * LN10)  # (c, f, o, i)
-        cols.append(de[:, d.mask] if d.mask is not None else de.reshape(nc, -1))
-    de = np.concatenate(cols, axis=1)  # (n_c, N)
-    if modal.sqrt_w is not None:
-        de = de * modal.sqrt_w[None, :]
-    return np.concatenate([de.real, de.imag], axis=1).T / np.sqrt(modal.n_values)
+    D, G = eigen_derivatives(modal.lam, A, Bm, modal.rigid_hz)
+    frows = modal.obj._frows
+    facs = [frows.factors(a, modal.lam, modal.X, modal.zeta, D, G) for a in range(len(modal.obj.data))]
+    per_set = frows.all_rows(lambda a, lines: frows.rows(a, facs[a], lines))
+    n_c = len(cands)
+    return frows.assembled(per_set, [np.arange(n_c)] * len(per_set), n_c)[1]
 
 
 def _chunks(modal: _Modal, n_c: int, chunk_bytes: float) -> int:
-    per = max(_bytes_per_candidate(modal.m, d.freq_hz.size, u.shape[0], v.shape[1], modal.n_values)
-              for d, w, r, q, u, v, H in modal.sets)
+    per = _bytes_per_candidate(modal.m, modal.n_oi, 2 * modal.n_values)
     return int(max(1, min(n_c, chunk_bytes // per)))
 
 

@@ -2,8 +2,8 @@
 
 The residual is the real-stacked log-ratio deviation ``[Re eps; Im eps]/sqrt(N)``
 (so ``sum r^2`` is the square deviation delta of Eq. 2.5) over all data sets,
-with the exact Jacobian ``d eps/dp = (dH^A/dp) / (H^A ln 10)`` from
-:func:`surrogate_frf_jacobian`. Minimization is scipy's trust-region
+with the exact Jacobian ``d eps/dp = (dH^A/dp) / (H^A ln 10)`` (the derivative of
+:func:`surrogate_frf`, :mod:`calibration._modal_derivative`). Minimization is scipy's trust-region
 reflective least-squares (a bounded Levenberg-Marquardt) from the nominal
 point plus Latin-hypercube starts inside the bounds. Each start runs through
 the executor; every outcome is kept.
@@ -18,8 +18,9 @@ import numpy as np
 
 from calibration._errors import CalibrationError
 from calibration._executor import SerialExecutor
-from calibration._metric import LN10, log_deviation, square_deviation
-from calibration._surrogate import Surrogate, reduced_modes, surrogate_frf, surrogate_frf_jacobian
+from calibration._metric import log_deviation, square_deviation
+from calibration._modal_derivative import FRFRows, eigen_derivatives, parameter_derivatives
+from calibration._surrogate import Surrogate, reduced_modes, surrogate_frf
 from calibration._threads import blas_threads
 
 
@@ -225,6 +226,7 @@ class Objective:
         if self.n_values == 0:
             raise CalibrationError("no data values selected for calibration")
         self._sqrt_w = value_weights(self.data)
+        self._frows = FRFRows(surrogate, self.data, self._out, self._in, self._sqrt_w, quantity)
         self._memo_p = None
         self._memo = None
         self._modes_p = None
@@ -258,25 +260,27 @@ class Objective:
         return square_deviation(self._weighted(self.deviation(p)))
 
     def evaluate(self, p):
-        """(r, J): real residual (2N,) and Jacobian (2N, n_p)."""
+        """(r, J): real residual (2N,) and Jacobian (2N, n_p).
+
+        The Jacobian is the exact derivative of the uniformly damped modal sum (c_k = 2 zeta0 omega_k follows
+        each mode), built per data set by line slices on :func:`calibration._threads.data_threads` threads
+        (:class:`calibration._modal_derivative.FRFRows`).
+        """
         p = np.asarray(p, dtype=float)
         if self._memo_p is not None and np.array_equal(p, self._memo_p):
             return self._memo
-        eps, deps = [], []
-        modes = self.modes(p)
-        for d, oi, ii in zip(self.data, self._out, self._in):
-            H, dH = surrogate_frf_jacobian(self.sur, p, d.freq_hz, self.zeta0, self.quantity, outputs=oi,
-                                           modes=modes)
-            H, dH = H[:, :, ii], dH[:, :, :, ii]
-            e = log_deviation(H, d.frf)
-            de = dH / (H[None] * LN10)
-            if d.mask is not None:
-                e, de = e[d.mask], de[:, d.mask]
-            eps.append(e.ravel())
-            deps.append(de.reshape(de.shape[0], -1))
-        r, J = stacked_residual(np.concatenate(eps), np.concatenate(deps, axis=1), self._sqrt_w)
-        self._memo_p, self._memo = p.copy(), (r, J)
-        return r, J
+        rows = self._frows.all_rows(self._build(p))
+        memo = self._frows.assembled(rows, [np.arange(self.sur.n_params)] * len(self.data), self.sur.n_params)
+        self._memo_p, self._memo = p.copy(), memo
+        return memo
+
+    def _build(self, p):
+        """``build(a, lines)``: the rows (n_p + 1, 2 n_v) of data set ``a`` on a line slice at p."""
+        lam, X = self.modes(p)
+        D, G = eigen_derivatives(lam, *parameter_derivatives(self.sur, p, X), self.sur.rigid_hz)
+        zeta = np.full(lam.size, self.zeta0)
+        facs = [self._frows.factors(a, lam, X, zeta, D, G) for a in range(len(self.data))]
+        return lambda a, lines: self._frows.rows(a, facs[a], lines)
 
     def residual(self, p):
         """Real residual (2N,) only: no Jacobian (trial points of the minimizer are often rejected)."""

@@ -33,9 +33,10 @@ A_j = X^T dK_r/dp_j X, B_j = X^T dM_r/dp_j X in the reduced modal
 coordinates, d lambda_k = A_kk - lambda_k B_kk, dc_k = zeta_k d lambda_k /
 omega_k and dX = X G_j (G_lk = (A_lk - lambda_k B_lk) / (lambda_k - lambda_l),
 G_kk = -B_kk / 2; the reduced basis is complete, so the expansion is exact).
-Degenerate pairs (|lambda_k - lambda_l| tiny, e.g. rigid modes) get G_lk = 0:
-inside such a pair the modes only rotate and the FRF does not change when
-they share their damping.
+Degenerate groups (|lambda_k - lambda_l| tiny, the rigid modes) take the limit
+of their divided differences (:mod:`calibration._modal_derivative`, which
+builds these rows for this objective, the equalized one and the diagnosis's
+candidates).
 """
 
 from __future__ import annotations
@@ -49,6 +50,7 @@ from calibration._errors import CalibrationError
 from calibration._fit import FitData, log_frequency_weights, stacked_residual, value_weights
 from calibration._metric import LN10, log_deviation, square_deviation
 from calibration._threads import blas_threads
+from calibration._modal_derivative import FRFRows, complex_rows, eigen_derivatives, parameter_derivatives
 from calibration._surrogate import (
     Surrogate,
     modal_omegas,
@@ -60,6 +62,7 @@ from calibration._damping import IdentifiedModes, mapped_damping
 
 #: Default damping floors of the refinement stages, as multiples of zeta0 (the last, 0, is the raw data).
 DEFAULT_FLOORS = (1.0, 0.3, 0.1, 0.0)
+
 
 
 def debiased_target(raw: FitData, identification, channels, zeta_floor: float) -> FitData:
@@ -154,6 +157,7 @@ class ModalDampingObjective:
             self._in.append(np.array([lookup[n] for n in names]))
         self._sqrt_w = value_weights(self.data)
         self.n_values = sum(d.n_values for d in self.data)
+        self._frows = FRFRows(surrogate, self.data, self._out, self._in, self._sqrt_w, quantity)
         self._memo_p = None
         self._memo = None
 
@@ -231,84 +235,43 @@ class ModalDampingObjective:
         """Plain Eq. 2.23 square deviation over the values (every line alike)."""
         return square_deviation(np.concatenate(self.deviation(p)))
 
+    def _build(self, x):
+        """``build(a, lines)``: the rows of data set ``a`` on a line slice (:meth:`FRFRows.rows`): the derivatives
+        by p, then by the data set's own damping unknowns, then the residual."""
+        lam, X, zetas, best = self._tracked(x)
+        D, G = eigen_derivatives(lam, *parameter_derivatives(self.sur, x[:self.n_p], X), self.sur.rigid_hz)
+        where = np.empty(lam.size, int)
+        where[best] = np.arange(lam.size)  # reference mode -> current index
+        facs = [self._frows.factors(a, lam, X, zetas[a], D, G) for a in range(len(self.data))]
+        fits = [where[i] for i in self.fit]
+
+        def build(a, lines):
+            f, fit = facs[a], fits[a]
+
+            def damping(r, rq, w, c, mask, out):  # d H / d log zeta_k = -q u_k v_k r_k^2 (i w 2 zeta_k omega_k)
+                g = -(rq * r)[:, fit] * (1j * w[:, None] * (2 * f["zeta"][fit] * f["om"][fit]
+                                                            * ~f["rigid"][fit])[None, :])
+                Sf = f["S"][fit][None]
+                complex_rows(g.real[:, :, None] * Sf, g.imag[:, :, None] * Sf, c, mask, out)
+
+            return self._frows.rows(a, f, lines, fit.size, damping)
+
+        return build
+
     def _article_rows(self, x):
         """Per data set the real array (n_p + n_fit_a + 1, 2 N_a): rows the derivatives of the (weighted)
         residual by p and by the data set's own damping unknowns (the other data sets' damping does not touch
         its values), last row the residual; columns the real parts of its values, then the imaginary parts
-        (frequency-major, as :meth:`evaluate` stacks them). Built one unknown at a time on (lines, channels)
-        slices, so no (unknowns x values) complex array is formed."""
-        lam, X, zetas, best = self._tracked(x)
-        p = x[:self.n_p]
-        sur = self.sur
-        dcK = sur.K.coefficient_jacobian(p)
-        dcM = sur.M.coefficient_jacobian(p)
-        A = X.T @ np.tensordot(dcK.T, reduced_term_stack(sur.K), axes=1) @ X  # (n_p, m, m)
-        Bm = X.T @ np.tensordot(dcM.T, reduced_term_stack(sur.M), axes=1) @ X
-        n_p, m = A.shape[0], A.shape[1]
-        dlam = np.einsum("jkk->jk", A) - lam[None, :] * np.einsum("jkk->jk", Bm)
-        gap = lam[None, :] - lam[:, None]  # (l, k): lambda_k - lambda_l
-        scale = np.maximum(np.abs(lam)[None, :], np.abs(lam)[:, None]) + (2 * np.pi * sur.rigid_hz) ** 2
-        degenerate = np.abs(gap) <= 1e-9 * scale
-        with np.errstate(divide="ignore", invalid="ignore"):
-            G = np.where(degenerate[None], 0.0, (A - lam[None, None, :] * Bm) / np.where(degenerate, 1.0, gap)[None])
-        idx = np.arange(m)
-        G[:, idx, idx] = -0.5 * Bm[:, idx, idx]
-        out = []
-        where = np.empty(m, int)
-        where[best] = np.arange(m)  # reference mode -> current index
-        s = 1.0 / np.sqrt(self.n_values)
-        for a, (d, oi, ii, z, sl) in enumerate(zip(self.data, self._out, self._in, zetas, self._value_slices())):
-            w = 2 * np.pi * d.freq_hz
-            H, r, q, u, v, om, rigid = self._frf(lam, X, z, d, oi, ii, w)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                dc = np.where(rigid[None, :], 0.0, z[None, :] * dlam / np.where(rigid, 1.0, om)[None, :])
-            n_f, n_out, n_in = w.size, u.shape[0], v.shape[1]
-            mask = None if d.mask is None else d.mask.reshape(n_f, n_out * n_in)
-            # d eps = dH / (H ln 10); the value weight and the 1/sqrt(N) of stacked_residual folded in
-            c = (s / (H * LN10)).reshape(n_f, -1)
-            e = log_deviation(H, d.frf).reshape(n_f, -1)
-            if mask is not None:
-                c, e = c[mask], e[mask]
-            if self._sqrt_w is not None:
-                c, e = c * self._sqrt_w[sl].reshape(c.shape), e * self._sqrt_w[sl].reshape(e.shape)
-            n_v = e.size
-            rows = np.empty((n_p + self.fit[a].size + 1, 2 * n_v))
+        (frequency-major, as :meth:`evaluate` stacks them). Built by line slices on :func:`data_threads`
+        threads (:class:`FRFRows`), so no (unknowns x values) complex array is formed."""
+        return self._frows.all_rows(self._build(x))
 
-            def put(i, dre, dim):  # row i from d H = dre + i dim on (lines, channels)
-                if mask is not None:
-                    dre, dim = dre[mask], dim[mask]
-                dre, dim = dre.reshape(c.shape), dim.reshape(c.shape)
-                rows[i, :n_v] = (dre * c.real - dim * c.imag).ravel()
-                rows[i, n_v:] = (dre * c.imag + dim * c.real).ravel()
-
-            # dH_j = r q (u G_j v + u G_j^T v) - r^2 q (dlam_j + i w dc_j) u v   (per channel pair o, i)
-            UG = np.einsum("om,jmk->jok", u, G)
-            GV = np.einsum("jlk,li->jki", G, v)
-            S = (u[:, :, None] * v[None, :, :]).transpose(1, 0, 2).reshape(m, -1)  # (k, o*i)
-            rq = r * q[:, None]
-            rq_re, rq_im = np.ascontiguousarray(rq.real), np.ascontiguousarray(rq.imag)
-            r2q = r**2 * q[:, None]
-            for j in range(n_p):
-                Pj = (UG[j][:, :, None] * v[None, :, :] + u[:, :, None] * GV[j][None, :, :]).transpose(1, 0, 2)
-                Pj = Pj.reshape(m, -1)  # (k, o*i)
-                Qj = r2q * (dlam[j][None, :] + 1j * w[:, None] * dc[j][None, :])  # (f, k)
-                put(j, rq_re @ Pj - np.ascontiguousarray(Qj.real) @ S, rq_im @ Pj - np.ascontiguousarray(Qj.imag) @ S)
-            for col, kref in enumerate(self.fit[a]):  # d H / d log zeta_k = -q u_k v_k r_k^2 (i w 2 zeta_k omega_k)
-                k = where[kref]
-                if rigid[k]:
-                    rows[n_p + col] = 0.0
-                    continue
-                g = -(r[:, k] ** 2) * q * (1j * w * 2 * z[k] * om[k])
-                uv = (u[:, k][:, None] * v[k][None, :]).ravel()
-                put(n_p + col, np.outer(g.real, uv), np.outer(g.imag, uv))
-            e = e.ravel()
-            rows[-1, :n_v], rows[-1, n_v:] = e.real * s, e.imag * s
-            out.append(rows)
-        return out
-
-    def _value_slices(self):
-        n = np.cumsum([0] + [d.n_values for d in self.data])
-        return [slice(int(a), int(b)) for a, b in zip(n[:-1], n[1:])]
+    def compressed_blocks(self, x):
+        """:meth:`blocks` with each data set's rows replaced by the triangle R of their QR factorization (same
+        R^T R = [J_a f_a]^T [J_a f_a]: see :func:`_compressed_blocks`), by TSQR over the line slices
+        (:meth:`FRFRows.compressed`): the tall rows never exist in full."""
+        x = self._x(x)
+        return [(self._columns(a), R) for a, R in enumerate(self._frows.compressed(self._build(x)))]
 
     def _columns(self, a):
         return np.concatenate([np.arange(self.n_p), self.n_p + np.arange(self._offsets[a], self._offsets[a + 1])])
@@ -318,15 +281,10 @@ class ModalDampingObjective:
         x = self._x(p)
         if self._memo_p is not None and np.array_equal(x, self._memo_p):
             return self._memo
-        n = self.n_values
-        res, J = np.empty(2 * n), np.zeros((2 * n, self.n_unknowns))
-        for a, (rows, sl) in enumerate(zip(self._article_rows(x), self._value_slices())):
-            n_v, cols = sl.stop - sl.start, self._columns(a)
-            for part, at in ((slice(0, n_v), sl), (slice(n_v, 2 * n_v), slice(n + sl.start, n + sl.stop))):
-                res[at] = rows[-1, part]
-                J[at, cols] = rows[:-1, part].T
-        self._memo_p, self._memo = x.copy(), (res, J)
-        return res, J
+        memo = self._frows.assembled(self._article_rows(x), [self._columns(a) for a in range(len(self.data))],
+                                     self.n_unknowns)
+        self._memo_p, self._memo = x.copy(), memo
+        return memo
 
     def blocks(self, x):
         """The residual and Jacobian in row blocks, one per data set: a list of (cols, rows), ``rows`` the
@@ -515,18 +473,9 @@ def _compressed(fun, jac):
     return (lambda x: at(x)["f"]), (lambda x, *_: at(x)["J"])
 
 
-def _tall_r(A, rows: int = 4096):
-    """The triangle R of A = Q R for a tall A, by chunks of ``rows`` (TSQR: the R of the stacked R's of the
-    chunks is A's R up to the signs of its rows, which the least squares does not see); Householder in cache-
-    sized pieces, 2-3x faster than one LAPACK QR of a 100k-row A."""
-    if A.shape[0] <= 2 * rows:
-        return np.linalg.qr(A, mode="r")
-    return np.linalg.qr(np.vstack([np.linalg.qr(A[i:i + rows], mode="r") for i in range(0, A.shape[0], rows)]),
-                        mode="r")
-
-
 def _compressed_blocks(obj, ridge=None):
-    """(fun, jac) of ``obj``'s least squares compressed block by block (:meth:`ModalDampingObjective.blocks`).
+    """(fun, jac) of ``obj``'s least squares compressed block by block
+    (:meth:`ModalDampingObjective.compressed_blocks`).
 
     The rows of one data set touch only p and that data set's damping unknowns: each block [J_a f_a] is
     QR-factorized on its own columns (n_p + n_a + 1 wide instead of all n_p + sum n_a unknowns), and the
@@ -543,12 +492,9 @@ def _compressed_blocks(obj, ridge=None):
         x = np.asarray(x, float)
         if memo.get("x") is None or not np.array_equal(memo["x"], x):
             Js, fs = [], []
-            for cols, rows in obj.blocks(x):
+            for cols, R in obj.compressed_blocks(x):
                 k = cols.size
-                J, f = rows[:-1].T, rows[-1]
-                if J.shape[0] >= 4 * (k + 1):
-                    R = _tall_r(rows.T)
-                    J, f = R[:, :k], R[:, k]
+                J, f = R[:, :k], R[:, k]
                 Jf = np.zeros((J.shape[0], n_x))
                 Jf[:, cols] = J
                 Js.append(Jf)

@@ -26,17 +26,11 @@ with q = -w^2 (accelerance), i w (mobility) or 1 (receptance). Rigid modes
 (omega_k below ``rigid_hz``) get c_k = 0, as Eq. 2.14 gives for omega_k = 0.
 
 Jacobian: we differentiate this H(p) exactly, *including* the change of the
-damping matrix V(p) through the modes (c_k follows omega_k). With
-A_j = X^T dK_r/dp_j X, B_j = X^T dM_r/dp_j X and r_k = 1/(lambda_k - w^2 + i w c_k),
-the Daleckii-Krein divided-difference form of the eigenvector and eigenvalue
-derivatives collapses to (no division by eigenvalue gaps, so repeated and
-rigid modes are safe)
-
-    dH/dp_j = q C X diag(r) [ -(A_j - w^2 B_j) - i w (rho o A_j + sig o B_j) ] diag(r) X^T B
-
-with rho_kl = 2 zeta/(omega_k + omega_l), sig_kl = 2 zeta omega_k omega_l/(omega_k + omega_l)
-(both 0 between two rigid modes). Uniform zeta only (calibration uses the
-equalized zeta0); FRFs with per-mode damping (validation) need no Jacobian.
+damping matrix V(p) through the modes (c_k follows omega_k, the damping ratio
+held), by Nelson's expansion of the eigenvector derivatives in the reduced
+modes (exact, the reduced basis being complete): see
+:mod:`calibration._modal_derivative`, which the calibration objectives, the
+raw-line refinement and the diagnosis's candidate derivatives share.
 """
 
 from __future__ import annotations
@@ -1010,70 +1004,29 @@ def surrogate_frf_jacobian(
 
     Notes
     -----
-    Only the non-zero blocks are formed: a parameter that moves no stiffness
-    term (a density, a lumped mass) has A_j = 0, one that moves no mass term
-    (a modulus, a spring) B_j = 0. The three kinds of blocks (A_j, B_j and
-    R_j = rho o A_j + sig o B_j) go through one real product with the
-    interleaved complex right factor, in one preallocated stack.
+    Nelson's expansion in the reduced modes (:mod:`calibration._modal_derivative`):
+    per line one row of 3m values times one real (3m, n_p n_out n_in) matrix,
+    n_out / m of the cost of the divided-difference form it replaced, and the
+    same derivative (checked against central differences in the tests).
     """
+    from calibration._modal_derivative import (
+        damping_factor, derivative_factor, eigen_derivatives, line_factor, pair_products, parameter_derivatives)
+
     p = np.asarray(p, dtype=float)
     lam, X = reduced_modes(sur, p) if modes is None else modes
     w = 2 * np.pi * np.asarray(freq_hz, dtype=float)
     om, rigid = modal_omegas(lam, sur.rigid_hz)
-    c = 2 * zeta0 * om
-    lam_c = om**2
-    r = 1.0 / (lam_c[None, :] - w[:, None] ** 2 + 1j * w[:, None] * c[None, :])  # (n_f, m)
-    q = quantity_factor(w, quantity)
     Co = sur.outputs if outputs is None else sur.outputs[np.asarray(outputs)]
     u = Co @ X  # (n_out, m)
     v = X.T @ sur.inputs  # (m, n_in)
-    H = np.einsum("om,fm,mi->foi", u, r * q[:, None], v, optimize=True)
-
-    # A_j, B_j in modal coordinates, from the projected terms and coefficient derivatives
-    dcK = sur.K.coefficient_jacobian(p)  # (n_terms, n_p)
-    dcM = sur.M.coefficient_jacobian(p)
-    n_p, m = dcK.shape[1], X.shape[1]
-    jk = np.flatnonzero(np.any(dcK != 0, axis=0))  # parameters that move K
-    jm = np.flatnonzero(np.any(dcM != 0, axis=0))  # ... and M
-    jr = np.union1d(jk, jm)
-    nk, nm, nr = jk.size, jm.size, jr.size
-    mats = np.empty((nk + nm + nr, m, m))
-    A, Bm, R = mats[:nk], mats[nk:nk + nm], mats[nk + nm:]
-    for out, dc, stack, js in ((A, dcK, sur.K, jk), (Bm, dcM, sur.M, jm)):
-        if js.size:
-            np.matmul(X.T, np.tensordot(dc[:, js].T, reduced_term_stack(stack), axes=1) @ X, out=out)
-    osum = om[:, None] + om[None, :]
-    both_rigid = rigid[:, None] & rigid[None, :]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        rho = np.where(both_rigid, 0.0, 2 * zeta0 / osum)
-        sig = np.where(both_rigid, 0.0, 2 * zeta0 * om[:, None] * om[None, :] / osum)
-    ik, im = np.searchsorted(jk, jr), np.searchsorted(jm, jr)
-    for i, j in enumerate(jr):
-        has_k = ik[i] < nk and jk[min(ik[i], nk - 1)] == j
-        has_m = im[i] < nm and jm[min(im[i], nm - 1)] == j
-        if has_k:
-            np.multiply(rho, A[ik[i]], out=R[i])
-            if has_m:
-                R[i] += sig * Bm[im[i]]
-        else:
-            np.multiply(sig, Bm[im[i]], out=R[i])
-    n_f, n_in = w.size, v.shape[1]
-    # right factor diag(r) X^T B for every frequency: (m, n_f * n_in), complex C-contiguous
-    vr = np.ascontiguousarray((r.T[:, :, None] * v[:, None, :]).reshape(m, n_f * n_in))
-    nb = mats.shape[0]
-    # real operator times complex block as ONE real product on the interleaved (re, im) view
-    W = (mats.reshape(nb * m, m) @ vr.view(float)).view(complex).reshape(nb, m, n_f, n_in)
-    # left factor C X diag(r): scale W by r over (k, f), then contract k with the real C X
-    W *= r.T[None, :, :, None]
-    T3 = (u @ W.reshape(nb, m, -1).view(float)).view(complex)  # (nb, n_out, n_f * n_in)
-    T3 = T3.reshape(nb, -1, n_f, n_in)  # (block, o, f, i)
-    wf = w[None, None, :, None]
-    dH = np.zeros((n_p,) + T3.shape[1:], dtype=complex)  # (j, o, f, i)
-    dH[jk] = -T3[:nk]
-    dH[jm] += wf**2 * T3[nk:nk + nm]
-    dH[jr] -= 1j * wf * T3[nk + nm:]
-    dH *= q[None, None, :, None]
-    dH = dH.transpose(0, 2, 1, 3)  # (j, f, o, i)
+    n_f, n_out, n_in = w.size, u.shape[0], v.shape[1]
+    D, G = eigen_derivatives(lam, *parameter_derivatives(sur, p, X), sur.rigid_hz)
+    S = pair_products(u, v)
+    R = derivative_factor(u, v, G, D, damping_factor(np.full(lam.size, zeta0), om, rigid))
+    _, rq, L = line_factor(w, np.where(rigid, 0.0, om**2), np.where(rigid, 0.0, 2 * zeta0 * om), quantity)
+    H = (rq @ S).reshape(n_f, n_out, n_in)
+    dH = np.ascontiguousarray(L.real) @ R + 1j * (np.ascontiguousarray(L.imag) @ R)  # (f, j o i)
+    dH = dH.reshape(n_f, -1, n_out, n_in).transpose(1, 0, 2, 3)  # (j, f, o, i)
     return H, dH
 
 

@@ -243,17 +243,43 @@ def test_block_compression_is_the_dense_problem(chain):
     assert _compressed_blocks(obj)[1](x0).shape == (sum(c.size + 1 for c, _ in blocks), 12)
 
 
-def test_tall_r_by_chunks_is_the_qr_triangle():
-    """_tall_r (QR of the stacked chunk triangles) gives A's R up to row signs: R^T R = A^T A to round-off."""
-    from calibration._refine import _tall_r
+def test_rows_by_line_slices_and_threads_are_the_whole_rows(chain, monkeypatch):
+    """The raw-line rows built by line slices (the threads' unit of work) equal the rows built in one piece,
+    masked pairs and line weights included; the slices' TSQR triangle R has R^T R = [J f]^T [J f]; and the
+    masked Jacobian is still the derivative of the residual."""
+    import calibration._modal_derivative as rows_module
+    from calibration import reduced_modes
 
-    rng = np.random.default_rng(0)
-    A = rng.standard_normal((20000, 9)) * np.logspace(0, 6, 9)   # badly scaled columns
-    R = _tall_r(A, rows=3000)
-    R0 = np.linalg.qr(A, mode="r")
-    assert R.shape == (9, 9)
-    np.testing.assert_allclose(np.abs(R), np.abs(R0), rtol=1e-10, atol=1e-10 * np.abs(R0).max())
-    np.testing.assert_allclose(R.T @ R, A.T @ A, rtol=1e-10)
+    _, sur, _, _, _, raw, _, _ = chain
+    rng = np.random.default_rng(11)
+    lam, _ = reduced_modes(sur, np.zeros(7))
+    mask = rng.uniform(size=raw.frf.shape) > 0.2  # a fifth of the values left out, unevenly per line
+    data = [FitData(raw.freq_hz, raw.frf, raw.outputs, weights=rng.uniform(0.5, 1.5, raw.freq_hz.size), mask=mask),
+            FitData(raw.freq_hz[::2], raw.frf[::2], raw.outputs)]
+    z = [10 ** rng.uniform(-3.3, -2.5, lam.size) for _ in data]
+
+    def rows(chunk, threads):
+        monkeypatch.setattr(rows_module, "CHUNK_VALUES", chunk)
+        monkeypatch.setenv("FRFCAL_THREADS", str(threads))
+        obj = ModalDampingObjective(sur, data, z, np.zeros(7), 0.0, fit_damping=[np.array([6, 8]), np.array([9])])
+        x = np.concatenate([P_TRUE * 0.7, obj.damping_start()[0] + 0.1])
+        return obj, x, obj.blocks(x), obj.compressed_blocks(x)
+
+    obj, x, whole, _ = rows(10**9, 1)
+    assert [len(obj._frows.line_chunks(a)) for a in range(2)] == [1, 1]
+    for chunk, threads in ((37, 1), (37, 2), (500, 2)):
+        sliced_obj, _, sliced, comp = rows(chunk, threads)
+        assert len(sliced_obj._frows.line_chunks(0)) > 1
+        for (cols, a), (cols_s, b), (cols_c, R) in zip(whole, sliced, comp):
+            assert np.array_equal(cols, cols_s) and np.array_equal(cols, cols_c)
+            np.testing.assert_allclose(b, a, rtol=0, atol=1e-14 * np.abs(a).max())
+            assert R.shape == (cols.size + 1, cols.size + 1)
+            G = a @ a.T
+            np.testing.assert_allclose(R.T @ R, G, rtol=0, atol=1e-12 * np.abs(G).max())
+    J = obj.jacobian(x)
+    h = 1e-5
+    Jfd = np.stack([(obj.residual(x + h * e) - obj.residual(x - h * e)) / (2 * h) for e in np.eye(x.size)], 1)
+    assert np.abs(J - Jfd).max() < 1e-3 * np.abs(Jfd).max()
 
 
 def test_cross_validation_recalibration_on_the_compressed_problem(chain):
@@ -269,10 +295,11 @@ def test_cross_validation_recalibration_on_the_compressed_problem(chain):
     p0 = P_TRUE * 0.9
     dense = run_start((obj, p0, LO, HI, 30, 1e-8))
     comp = run_start((CompressedObjective(obj), p0, LO, HI, 30, 1e-8))
-    assert comp.evaluations == dense.evaluations
-    # the two paths differ by round-off only; xtol 1e-8 stops a step of ~2e-9, and round-off in the flattest
-    # direction moved the end point by 1.3e-7 on one CI run; 1e-6 (1e-4 % of a parameter) still catches a
-    # different path
+    # the two problems differ by round-off only, which the trust region's accept/reject decisions can amplify
+    # into a few more or fewer steps (18 vs 21 seen); the end point is the same: xtol 1e-8 stops a step of
+    # ~2e-9, and round-off in the flattest direction moved it by 1.3e-7 on one CI run; 1e-6 (1e-4 % of a
+    # parameter) still catches a different optimum
+    assert abs(comp.evaluations - dense.evaluations) <= 0.25 * dense.evaluations
     np.testing.assert_allclose(comp.p, dense.p, rtol=0, atol=1e-6)
     assert comp.sd == pytest.approx(dense.sd, rel=1e-9) and comp.sd_start == pytest.approx(dense.sd_start, rel=1e-12)
     assert comp.jacobian_rank == dense.jacobian_rank and comp.condition == pytest.approx(dense.condition, rel=1e-6)
