@@ -94,11 +94,7 @@ def _objective(sur, data, zeta0, quantity, damping):
 def _realization(args):
     sur, fit, test, p_start, lower, upper, zeta0, quantity, max_nfev, damping = args
     with single_thread():
-        obj = _objective(sur, fit, zeta0, quantity, damping)
-        if damping is not None:  # the raw-line model: its least squares compressed per article (same steps)
-            from calibration._refine import CompressedObjective
-
-            obj = CompressedObjective(obj)
+        obj = _objective(sur, fit, zeta0, quantity, damping)  # run_start solves it compressed (same steps)
         out = run_start((obj, p_start, lower, upper, max_nfev, 1e-8))
         sd_test = _objective(sur, test, zeta0, quantity, damping).sd(out.p)
     return out.p, out.sd, sd_test

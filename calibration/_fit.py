@@ -274,6 +274,21 @@ class Objective:
         self._memo_p, self._memo = p.copy(), memo
         return memo
 
+    @property
+    def n_p(self) -> int:
+        return self.sur.n_params
+
+    @property
+    def n_unknowns(self) -> int:
+        return self.sur.n_params
+
+    def compressed_blocks(self, p):
+        """Per data set (columns, R): the triangle of the QR factorization of its rows [J_a f_a] (TSQR over
+        line slices, :meth:`calibration._modal_derivative.FRFRows.compressed`); see :func:`_compressed_blocks`."""
+        p = np.asarray(p, dtype=float)
+        cols = np.arange(self.sur.n_params)
+        return [(cols, R) for R in self._frows.compressed(self._build(p))]
+
     def _build(self, p):
         """``build(a, lines)``: the rows (n_p + 1, 2 n_v) of data set ``a`` on a line slice at p."""
         lam, X = self.modes(p)
@@ -291,6 +306,56 @@ class Objective:
 
     def jacobian(self, p):
         return self.evaluate(p)[1]
+
+
+def _compressed_blocks(obj, ridge=None):
+    """(fun, jac) of ``obj``'s least squares compressed block by block (``obj.compressed_blocks``:
+    :meth:`Objective.compressed_blocks`, :meth:`calibration._refine.ModalDampingObjective.compressed_blocks`).
+
+    The rows of one data set touch only p and that data set's damping unknowns: each block [J_a f_a] is
+    QR-factorized on its own columns (n_p + n_a + 1 wide instead of all n_p + sum n_a unknowns), and the
+    triangles, placed in their columns, stacked. Sum over the blocks of R_a^T R_a is [J f]^T [J f], so the
+    cost, gradient, Gauss-Newton matrix and column norms are the dense problem's (as
+    :func:`calibration._refine._compressed`),
+    without forming the dense Jacobian, whose damping columns are mostly zeros (outside case 2: 3 articles
+    x 19 damping unknowns, 63 columns of which 25 are non-zero in any row). ``ridge``: (w, anchor) adds the
+    rows w (p - anchor) (the ``hold`` of :func:`refine`; weights from :func:`_hold_weights`).
+    """
+    memo = {}
+    n_x, n_p = obj.n_unknowns, obj.n_p
+
+    def at(x):
+        x = np.asarray(x, float)
+        if memo.get("x") is None or not np.array_equal(memo["x"], x):
+            Js, fs = [], []
+            for cols, R in obj.compressed_blocks(x):
+                k = cols.size
+                J, f = R[:, :k], R[:, k]
+                Jf = np.zeros((J.shape[0], n_x))
+                Jf[:, cols] = J
+                Js.append(Jf)
+                fs.append(f)
+            if ridge is not None:
+                w, anchor = ridge
+                Js.append(np.hstack([np.diag(w), np.zeros((n_p, n_x - n_p))]))
+                fs.append(w * (x[:n_p] - anchor))
+            memo.update(x=x.copy(), f=np.concatenate(fs), J=np.vstack(Js))
+        return memo
+
+    return (lambda x: at(x)["f"]), (lambda x, *_: at(x)["J"])
+
+
+class CompressedObjective:
+    """An objective with ``compressed_blocks`` seen through :func:`_compressed_blocks`: its ``residual`` and
+    ``jacobian`` are the compressed problem's (same cost, gradient, Gauss-Newton matrix, singular values),
+    for minimizers that take an objective (:func:`run_start` wraps every such objective in it)."""
+
+    def __init__(self, obj):
+        self.obj = obj
+        self.residual, self.jacobian = _compressed_blocks(obj)
+
+    def sd(self, x) -> float:
+        return float(np.sum(self.residual(x) ** 2))
 
 
 @dataclass(frozen=True)
@@ -419,6 +484,10 @@ def _run_start(args) -> StartOutcome:
     objs, x0, lower, upper, max_nfev, xtol = args
     if not isinstance(objs, (list, tuple)):  # one objective (Objective or any with residual/jacobian)
         objs = [objs]
+    # a tall problem is solved in its compressed form (same steps, cost, singular values): the solver's SVD at
+    # every iteration is then (n+1) x n, not (values x n), and the dense Jacobian is never formed
+    objs = [CompressedObjective(o) if hasattr(o, "compressed_blocks") and o.n_values >= 4 * (o.n_unknowns + 1)
+            else o for o in objs]
     t0 = time.perf_counter()
     x0 = np.clip(np.asarray(x0, float), lower, upper)
     x = x0

@@ -47,7 +47,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from calibration._errors import CalibrationError
-from calibration._fit import FitData, log_frequency_weights, stacked_residual, value_weights
+from calibration._fit import (  # noqa: F401  (CompressedObjective, _compressed_blocks: importable from here too)
+    CompressedObjective, FitData, _compressed_blocks, log_frequency_weights, stacked_residual, value_weights)
 from calibration._metric import LN10, log_deviation, square_deviation
 from calibration._threads import blas_threads
 from calibration._modal_derivative import FRFRows, complex_rows, eigen_derivatives, parameter_derivatives
@@ -471,55 +472,6 @@ def _compressed(fun, jac):
         return memo
 
     return (lambda x: at(x)["f"]), (lambda x, *_: at(x)["J"])
-
-
-def _compressed_blocks(obj, ridge=None):
-    """(fun, jac) of ``obj``'s least squares compressed block by block
-    (:meth:`ModalDampingObjective.compressed_blocks`).
-
-    The rows of one data set touch only p and that data set's damping unknowns: each block [J_a f_a] is
-    QR-factorized on its own columns (n_p + n_a + 1 wide instead of all n_p + sum n_a unknowns), and the
-    triangles, placed in their columns, stacked. Sum over the blocks of R_a^T R_a is [J f]^T [J f], so the
-    cost, gradient, Gauss-Newton matrix and column norms are the dense problem's (as :func:`_compressed`),
-    without forming the dense Jacobian, whose damping columns are mostly zeros (outside case 2: 3 articles
-    x 19 damping unknowns, 63 columns of which 25 are non-zero in any row). ``ridge``: (w, anchor) adds the
-    rows w (p - anchor) (the ``hold`` of :func:`refine`; weights from :func:`_hold_weights`).
-    """
-    memo = {}
-    n_x, n_p = obj.n_unknowns, obj.n_p
-
-    def at(x):
-        x = np.asarray(x, float)
-        if memo.get("x") is None or not np.array_equal(memo["x"], x):
-            Js, fs = [], []
-            for cols, R in obj.compressed_blocks(x):
-                k = cols.size
-                J, f = R[:, :k], R[:, k]
-                Jf = np.zeros((J.shape[0], n_x))
-                Jf[:, cols] = J
-                Js.append(Jf)
-                fs.append(f)
-            if ridge is not None:
-                w, anchor = ridge
-                Js.append(np.hstack([np.diag(w), np.zeros((n_p, n_x - n_p))]))
-                fs.append(w * (x[:n_p] - anchor))
-            memo.update(x=x.copy(), f=np.concatenate(fs), J=np.vstack(Js))
-        return memo
-
-    return (lambda x: at(x)["f"]), (lambda x, *_: at(x)["J"])
-
-
-class CompressedObjective:
-    """An objective with :meth:`ModalDampingObjective.blocks` seen through :func:`_compressed_blocks`: its
-    ``residual`` and ``jacobian`` are the compressed problem's (same cost, gradient, Gauss-Newton matrix,
-    singular values), for minimizers that take an objective (``calibration._fit.run_start``)."""
-
-    def __init__(self, obj):
-        self.obj = obj
-        self.residual, self.jacobian = _compressed_blocks(obj)
-
-    def sd(self, x) -> float:
-        return float(np.sum(self.residual(x) ** 2))
 
 
 def _hold_weights(obj, x0, hold: float):

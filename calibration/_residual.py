@@ -423,7 +423,7 @@ def mode_residuals(sur: Surrogate, p, modes: IdentifiedModes, article: str = "",
         return ()
     M = mac(sur.outputs[rows] @ X[:, idx], modes.shapes[:, tk])
     out = []
-    for i, j, v in pair_modes(M, mac_min):
+    for i, j, v in pair_modes(M, mac_min, fe_hz[idx], modes.frequency_hz[tk]):
         k = tk[j]
         ft, fm, z = float(modes.frequency_hz[k]), float(fe_hz[idx[i]]), float(max(modes.damping[k], 1e-6))
         bw = 2 * z * ft

@@ -148,6 +148,11 @@ def test_mac_and_pairing():
     assert np.allclose(np.diag(M[:, [1, 3, 0, 2]]), 1.0)
     assert pair_modes(M, 0.9) == [(0, 1, pytest.approx(1.0)), (1, 3, pytest.approx(1.0)),
                                   (2, 0, pytest.approx(1.0)), (3, 2, pytest.approx(1.0))]
+    # with frequencies: a shape match 1.6x away in frequency is no pair (a few sensors make such MACs)
+    fa = np.array([20.0, 40.0, 60.0, 80.0])
+    fb = np.array([62.0, 21.0, 130.0, 41.0])  # b3 is a3's shape at 1.6x its frequency
+    assert pair_modes(M, 0.9, fa, fb) == [(0, 1, pytest.approx(1.0)), (1, 3, pytest.approx(1.0)),
+                                          (2, 0, pytest.approx(1.0))]
 
 
 def test_articles_group_by_similarity():

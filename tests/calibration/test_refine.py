@@ -283,7 +283,8 @@ def test_rows_by_line_slices_and_threads_are_the_whole_rows(chain, monkeypatch):
 
 
 def test_cross_validation_recalibration_on_the_compressed_problem(chain):
-    """A raw-line recalibration of the cross-validation (run_start) ends where the dense problem does."""
+    """A raw-line recalibration of the cross-validation (run_start, which compresses a tall objective) ends
+    where the dense problem does."""
     from calibration import reduced_modes
     from calibration._fit import run_start
     from calibration._refine import CompressedObjective
@@ -293,8 +294,13 @@ def test_cross_validation_recalibration_on_the_compressed_problem(chain):
     z = [10 ** np.random.default_rng(2).uniform(-3.3, -2.5, lam.size)]
     obj = ModalDampingObjective(sur, [raw], z, np.zeros(7), 0.0)
     p0 = P_TRUE * 0.9
-    dense = run_start((obj, p0, LO, HI, 30, 1e-8))
-    comp = run_start((CompressedObjective(obj), p0, LO, HI, 30, 1e-8))
+
+    class Dense:  # the objective without compressed_blocks: run_start solves it as it is
+        residual, jacobian, sd = obj.residual, obj.jacobian, obj.sd
+
+    dense = run_start((Dense(), p0, LO, HI, 30, 1e-8))
+    comp = run_start((obj, p0, LO, HI, 30, 1e-8))  # compressed by run_start itself
+    assert CompressedObjective(obj).jacobian(p0).shape == (8, 7)
     # the two problems differ by round-off only, which the trust region's accept/reject decisions can amplify
     # into a few more or fewer steps (18 vs 21 seen); the end point is the same: xtol 1e-8 stops a step of
     # ~2e-9, and round-off in the flattest direction moved it by 1.3e-7 on one CI run; 1e-6 (1e-4 % of a
@@ -303,3 +309,25 @@ def test_cross_validation_recalibration_on_the_compressed_problem(chain):
     np.testing.assert_allclose(comp.p, dense.p, rtol=0, atol=1e-6)
     assert comp.sd == pytest.approx(dense.sd, rel=1e-9) and comp.sd_start == pytest.approx(dense.sd_start, rel=1e-12)
     assert comp.jacobian_rank == dense.jacobian_rank and comp.condition == pytest.approx(dense.condition, rel=1e-6)
+
+
+def test_equalized_objective_compressed_is_its_normal_equations(chain):
+    """Objective.compressed_blocks (what run_start hands the solver for a tall problem): per data set a
+    triangle with R^T R = [J f]^T [J f] of that set's rows of the dense Jacobian and residual."""
+    from calibration import Objective
+
+    _, sur, _, _, _, raw, _, _ = chain
+    rng = np.random.default_rng(4)
+    mask = rng.uniform(size=raw.frf.shape) > 0.1
+    data = [FitData(raw.freq_hz, raw.frf, raw.outputs, weights=rng.uniform(0.5, 1.5, raw.freq_hz.size), mask=mask),
+            FitData(raw.freq_hz[1::3], raw.frf[1::3], raw.outputs)]
+    obj = Objective(sur, data, 0.01)
+    p = P_TRUE * 0.8
+    r, J = obj.evaluate(p)
+    n = obj.n_values
+    starts = np.cumsum([0] + [d.n_values for d in data])
+    for a, (cols, R) in enumerate(obj.compressed_blocks(p)):
+        sel = np.r_[starts[a]:starts[a + 1], n + starts[a]:n + starts[a + 1]]
+        Jf = np.column_stack([J[sel], r[sel]])
+        np.testing.assert_allclose(R.T @ R, Jf.T @ Jf, rtol=0, atol=1e-12 * np.abs(Jf.T @ Jf).max())
+        assert np.array_equal(cols, np.arange(7))
