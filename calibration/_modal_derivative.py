@@ -54,8 +54,10 @@ def parameter_derivatives(sur: Surrogate, p, X: np.ndarray) -> tuple[np.ndarray,
     for stack, dc in ((sur.K, sur.K.coefficient_jacobian(p)), (sur.M, sur.M.coefficient_jacobian(p))):
         D = np.zeros((dc.shape[1], m, m))
         moves = np.flatnonzero(np.any(dc != 0, axis=0))  # a density moves no stiffness term, a modulus no mass
-        if moves.size:
-            D[moves] = X.T @ np.tensordot(dc[:, moves].T, reduced_term_stack(stack), axes=1) @ X
+        terms = reduced_term_stack(stack)
+        parts = [c for c in np.array_split(moves, min(data_threads(), moves.size)) if c.size] if moves.size else []
+        for c, Dc in zip(parts, thread_map(lambda c: X.T @ np.tensordot(dc[:, c].T, terms, axes=1) @ X, parts)):
+            D[c] = Dc
         out.append(D)
     return out[0], out[1]
 
@@ -71,16 +73,26 @@ def eigen_derivatives(lam: np.ndarray, A: np.ndarray, B: np.ndarray, rigid_hz: f
     A and B are symmetrized first: their rigid-mode entries are round-off, and only their symmetric
     part cancels in the pairs' sums.
     """
-    A = 0.5 * (A + A.transpose(0, 2, 1))
-    B = 0.5 * (B + B.transpose(0, 2, 1))
     om, rigid = modal_omegas(lam, rigid_hz)
     gap = lam[None, :] - lam[:, None]  # (l, k): lambda_k - lambda_l
     scale = np.maximum(np.abs(lam)[None, :], np.abs(lam)[:, None]) + (2 * np.pi * rigid_hz) ** 2
     group = (np.abs(gap) <= 1e-9 * scale) | (rigid[:, None] & rigid[None, :])  # diagonal included
-    At = A - lam[None, None, :] * B  # (A_lk - lambda_k B_lk)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        G = np.where(group[None], -0.5 * B, At / np.where(group, 1.0, gap)[None])
-    D = np.where((group & ~rigid[:, None] & ~rigid[None, :])[None], At, 0.0)
+    with np.errstate(divide="ignore"):
+        inv = np.where(group, 0.0, 1.0 / np.where(group, 1.0, gap))
+    in_d = group & ~rigid[:, None] & ~rigid[None, :]
+    n = A.shape[0]
+    G = np.empty_like(A)
+    D = np.zeros_like(A)
+    for j in range(n):  # one parameter at a time: (m, m) temporaries stay in cache
+        a = A[j] + A[j].T  # 2 x the symmetric part
+        b = B[j] + B[j].T if np.any(B[j]) else None
+        if b is not None:
+            a -= lam[None, :] * b  # 2 (A_lk - lambda_k B_lk)
+        a *= 0.5
+        np.multiply(a, inv, out=G[j])
+        if b is not None:
+            G[j][group] = -0.25 * b[group]
+        D[j][in_d] = a[in_d]
     return D, G
 
 

@@ -523,7 +523,7 @@ def _refined(camp: Campaign, model, arts, cyc, band, lower, upper, log, label):
         sur, basis = build_surrogate(model, ref.p, band, c.basis_factor, enrich=c.enrich, previous_basis=basis,
                                      rebasis=c.rebasis, previous_layout=basis_layout(sur))
         carry = {}
-        if c.basis_tol and old_basis is not None:  # start where the last raw stage ended
+        if old_basis is not None:  # start where the last raw stage ended (its damping, carried to the new modes)
             zeta, fit = carried_damping(old_sur, old_basis, ref.zeta, ref.fit_modes, ref.p_zeta, sur, basis,
                                         ref.p, assembled(model, ref.p)[1])
             carry = dict(zeta=zeta, fit_modes=fit)
