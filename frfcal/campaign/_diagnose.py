@@ -691,9 +691,12 @@ def _accept_member(camp, load, pm, model, articles, m, check, rows, ctx, quantit
                 continue  # the same effect, or an element subset sharing elements with an accepted one
             names = [a["name"] for a in accepted] + new
             p0, c0 = starts.get(r["name"], (m.p, [a["c"] for a in accepted] + list(r.get("member_c", [r["c"]]))))
+            # a single candidate the screening re-fitted (same data, stages and extension) goes on from its
+            # converged check: only the final stage runs, to fit_with's tolerance
+            warm = ctx["screening"].check(r["name"]) if not accepted and "members" not in r else None
             fit = fit_with(sur, T, model, [by_name[n] for n in names], data, c.zeta0, pm.lower, pm.upper,
                            p0=p0, c0=c0, continuation=cont, quantity=quantity, shift_hz=shift,
-                           max_nfev=cfg.max_evaluations)
+                           max_nfev=cfg.max_evaluations, warm=warm)
             ha, _ = _holdout(camp, articles, m, fit.surrogate, fit.x, quantity)
             trial = {"names": names, "c": fit.c.tolist(), "sd_equalized": fit.sd, "holdout_before": base["holdout"],
                      "holdout_after": ha}
@@ -765,7 +768,8 @@ def _accept_member(camp, load, pm, model, articles, m, check, rows, ctx, quantit
                  "crossvalidation_rse_before": float(cv_b.rse), "floor_holdout": floor,
                  "holdout_floor_ratio": (h_ref if h_ref is not None else base["holdout"]) / floor
                  if floor > 0 else None,
-                 "n_independent_residuals": n_res, "residual": check_after.to_dict()}
+                 "n_independent_residuals": n_res, "residual": check_after.to_dict(),
+                 "p_refined": dict(zip(pm.names, np.asarray(x_ref[:pm.n_params], float).tolist()))}
         n_p = pm.n_params
         for j, a in enumerate(accepted):  # the refined magnitudes (raw lines, estimated damping) are reported
             cd = ctx["cands"][[cd.name for cd in ctx["cands"]].index(a["name"])]
