@@ -8,21 +8,36 @@ from concurrent.futures import ThreadPoolExecutor
 _POOL: ThreadPoolExecutor | None = None
 
 
+_CONTROLLER: tuple | None = None  # (key, threadpoolctl.ThreadpoolController)
+#: Modules that load a BLAS of their own (a sparse backend on the system BLAS): the controller is made again
+#: when one of them has been imported since it was made.
+_BLAS_MODULES = ("sksparse.cholmod", "cholespy", "pypardiso")
+
+
 def blas_threads(n: int):
     """Context limiting BLAS to ``n`` threads (no-op without threadpoolctl).
+
+    The libraries are found once per process (``threadpoolctl.ThreadpoolController``; finding them takes
+    ~5 ms, the limit itself microseconds) and again after a sparse backend with its own BLAS was imported.
 
     Parameters
     ----------
     n : int
         Maximum number of BLAS threads inside the context.
     """
+    global _CONTROLLER
     try:
-        from threadpoolctl import threadpool_limits
+        from threadpoolctl import ThreadpoolController
     except ImportError:
         import contextlib
 
         return contextlib.nullcontext()
-    return threadpool_limits(limits=n, user_api="blas")
+    import sys
+
+    key = tuple(m in sys.modules for m in _BLAS_MODULES)
+    if _CONTROLLER is None or _CONTROLLER[0] != key:
+        _CONTROLLER = (key, ThreadpoolController())
+    return _CONTROLLER[1].limit(limits=n, user_api="blas")
 
 
 def data_threads() -> int:
