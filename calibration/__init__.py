@@ -103,8 +103,8 @@ from calibration._surrogate import (
     modal_frf,
     reduced_modes,
     surrogate_frf,
-    surrogate_frf_jacobian,
 )
+from calibration._modal_derivative import surrogate_frf_jacobian
 
 __all__ = [
     "AntiResonance",

@@ -981,55 +981,6 @@ def surrogate_frf(
     return modal_frf(lam, Co @ X, X.T @ sur.inputs, freq_hz, zeta, quantity, sur.rigid_hz)
 
 
-def surrogate_frf_jacobian(
-    sur: Surrogate,
-    p,
-    freq_hz,
-    zeta0: float = 0.01,
-    quantity: str = "accelerance",
-    outputs=None,
-    modes=None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """FRF and its exact derivative with respect to p (uniform damping zeta0).
-
-    Parameters
-    ----------
-    modes : (lam, X), optional
-        :func:`reduced_modes` at p when the caller has them already (no second eigensolution).
-
-    Returns
-    -------
-    H : (n_f, n_out, n_in) complex
-    dH : (n_p, n_f, n_out, n_in) complex, dH/dp_j
-
-    Notes
-    -----
-    Nelson's expansion in the reduced modes (:mod:`calibration._modal_derivative`):
-    per line one row of 3m values times one real (3m, n_p n_out n_in) matrix,
-    n_out / m of the cost of the divided-difference form it replaced, and the
-    same derivative (checked against central differences in the tests).
-    """
-    from calibration._modal_derivative import (
-        damping_factor, derivative_factor, eigen_derivatives, line_factor, pair_products, parameter_derivatives)
-
-    p = np.asarray(p, dtype=float)
-    lam, X = reduced_modes(sur, p) if modes is None else modes
-    w = 2 * np.pi * np.asarray(freq_hz, dtype=float)
-    om, rigid = modal_omegas(lam, sur.rigid_hz)
-    Co = sur.outputs if outputs is None else sur.outputs[np.asarray(outputs)]
-    u = Co @ X  # (n_out, m)
-    v = X.T @ sur.inputs  # (m, n_in)
-    n_f, n_out, n_in = w.size, u.shape[0], v.shape[1]
-    D, G = eigen_derivatives(lam, *parameter_derivatives(sur, p, X), sur.rigid_hz)
-    S = pair_products(u, v)
-    R = derivative_factor(u, v, G, D, damping_factor(np.full(lam.size, zeta0), om, rigid))
-    _, rq, L = line_factor(w, np.where(rigid, 0.0, om**2), np.where(rigid, 0.0, 2 * zeta0 * om), quantity)
-    H = (rq @ S).reshape(n_f, n_out, n_in)
-    dH = np.ascontiguousarray(L.real) @ R + 1j * (np.ascontiguousarray(L.imag) @ R)  # (f, j o i)
-    dH = dH.reshape(n_f, -1, n_out, n_in).transpose(1, 0, 2, 3)  # (j, f, o, i)
-    return H, dH
-
-
 def full_order_frf(model: FRFModel, p, freq_hz, zeta=0.01, quantity="accelerance") -> np.ndarray:
     """Reference FRF of the full model with Eq. 2.14 damping from *all* its modes (dense; small models only)."""
     n = model.K.shape[0]
