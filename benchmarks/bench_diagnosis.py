@@ -38,7 +38,10 @@ before the timed stages (its time is in the untimed table).
 Then (untimed) the hold-out SD with the truth damping of the calibrated deck
 and of the deck extended by the accepted candidate at its fitted magnitude
 (``SynthCampaign.model_sd``, full-order modes) beside the floor
-(``SynthCampaign.floor_sd``).
+(``SynthCampaign.floor_sd``); and, as the diagnose stage ends (``--no-refine``
+without), the chosen effect refined on the raw lines with estimated damping
+and re-basis cycles on the extended deck: its size and the deck's hold-out
+SD with truth damping at the refined point, the campaign's final answer.
 
     python benchmarks/bench_diagnosis.py [--dof 200000] [--effect contact_spring] [--candidates-per-family 500]
                                          [--seed 11] [--target debiased|equalized]
@@ -199,6 +202,8 @@ def main(argv=None) -> int:
     ap.add_argument("--no-zoom", dest="zoom", action="store_false",
                     help="no zoom of the point families (CandidateOptions.zoom_rounds = 0)")
     ap.add_argument("--no-model-sd", action="store_true", help="skip the full-order hold-out SD with truth damping")
+    ap.add_argument("--no-refine", dest="refine", action="store_false",
+                    help="skip the raw-line refinement of the chosen effect (untimed; needs the model SD)")
     ap.add_argument("--no-warm", dest="warm", action="store_false",
                     help="fit_with of a single candidate from (p_baseline, c) through the continuation stages, "
                          "not from its converged nonlinear check (fit_with's warm)")
@@ -391,7 +396,7 @@ def _diagnose(args, ex, sc, effects, camp, model, articles, eq, cal, pool, senso
                "value_total": physical(cand.term, c_est) * (n_where if not hasattr(cand.term, "elements") else 1),
                "truth_value_each": [e.value for e in effects], "truth_total": truth_total,
                "unit": cand.term.unit or "factor"}
-    sd_model = {}
+    sd_model, refined = {}, None
     if not args.no_model_sd:
         t = time.perf_counter()
         sd_model["calibrated deck (raw-line refined p)"] = sc.model_sd(p_cal, 0, hold_ch, BAND)
@@ -402,6 +407,21 @@ def _diagnose(args, ex, sc, effects, camp, model, articles, eq, cal, pool, senso
             fit = fits[(n,)]
             sd_model[f"deck + {n}"] = sc.model_sd(fit.p, 0, hold_ch, BAND, terms=[term],
                                                   values=[physical(term, fit.c[0])])
+            if args.refine:
+                # the diagnose stage's final answer: the accepted set refined on the raw lines (damping
+                # estimated, re-basis cycles on the extended deck), the "after" the campaign reports
+                from frfcal.campaign._diagnose import _refined
+
+                t1 = time.perf_counter()
+                ref, h_ref, x_ref, _ = _refined(camp, pm, model, articles, m, fit, [term], quantity,
+                                                lambda msg: print("  " + msg, flush=True))
+                prep["raw-line refinement of the chosen effect (as the diagnose stage)"] = time.perf_counter() - t1
+                c_ref = float(x_ref[pm.n_params])
+                refined = {"candidate": n, "c": c_ref, "value_each": physical(term, c_ref),
+                           "holdout_sd_estimated_damping": h_ref,
+                           "sd_raw": None if ref is None else float(ref.sd_raw)}
+                sd_model[f"deck + {n}, refined on the raw lines (the campaign's answer)"] = sc.model_sd(
+                    x_ref[:pm.n_params], 0, hold_ch, BAND, terms=[term], values=[physical(term, c_ref)])
         sd_model["truth (deck + true effect at p_true)"] = sc.model_sd(
             sc.p_true[0], 0, hold_ch, BAND, terms=[e.term for e in effects], values=[e.value for e in effects])
         prep["full-order hold-out SD with truth damping"] = time.perf_counter() - t
@@ -435,6 +455,10 @@ def _diagnose(args, ex, sc, effects, camp, model, articles, eq, cal, pool, senso
     if mag:
         print(f"magnitude: estimated {mag['value_total']:.4g} {mag['unit']} ({mag['n_where']} place(s) x "
               f"{mag['value_each']:.4g}), true {mag['truth_total']:.4g}")
+    if refined:
+        print(f"refined on the raw lines (the campaign's answer): {refined['candidate']} at {refined['value_each']:.4g}"
+              f" per place, raw-line SD {refined['sd_raw']}, hold-out SD {refined['holdout_sd_estimated_damping']}"
+              " (estimated damping)")
     print()
     print(f"{'acceptance trial':<52}{'c':>18}{'hold-out SD':>13}{'/floor':>8}{'CV test':>11}  verdict")
     print(f"{'before (existing parameters re-fitted)':<52}{'':>18}{h_before:>13.4g}{h_before / floor:>8.2f}"
@@ -466,7 +490,7 @@ def _diagnose(args, ex, sc, effects, camp, model, articles, eq, cal, pool, senso
                         "c_linear": float(s.c_linear[i])} for i in s.order[:20]],
         "true_rank": true_rank, "true_matching": true_names, "true_best": true_best, "magnitude": mag,
         "holdout_sd_before": h_before, "cv_test_before": list(map(float, cv_before)), "floor_holdout": floor,
-        "n_independent": int(n_ind), "trials": trials, "holdout_sd_truth_damping": sd_model,
+        "n_independent": int(n_ind), "trials": trials, "holdout_sd_truth_damping": sd_model, "refined": refined,
     }
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(out, indent=1, default=float))
