@@ -81,7 +81,6 @@ from calibration._surrogate import (
     _factor,
     _local_terms,
     _shifted,
-    modal_omegas,
     reduced_modes,
 )
 
@@ -163,7 +162,6 @@ class _Modal:
         self.m = X.shape[1]
         self.zeta = np.full(self.m, float(zeta))
         self.rigid_hz = sur.rigid_hz
-        self.om, self.rigid = modal_omegas(lam, sur.rigid_hz)
         self.n_values = self.obj.n_values
         self.n_oi = sum(d.frf.shape[1] * d.frf.shape[2] for d in self.obj.data)
 

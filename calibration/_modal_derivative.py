@@ -135,6 +135,19 @@ def line_factor(w: np.ndarray, lam_c: np.ndarray, c_k: np.ndarray, quantity: str
     return r, rq, np.concatenate([rq, r2q, (1j * w)[:, None] * r2q], axis=1)
 
 
+def modal_factors(sur: Surrogate, lam, X, zeta, D, G, outputs=None, inputs=None) -> dict:
+    """The line-independent factors at the modes (lam, X) with damping ``zeta`` (m,) for the derivative
+    directions (D, G) of :func:`eigen_derivatives` (damping ratios held), on the surrogate's ``outputs`` and
+    ``inputs`` (index arrays; default all): om, rigid, zeta, S (:func:`pair_products`), R
+    (:func:`derivative_factor`) and the modal sum's lam_c, c_k (0 for rigid modes) for :func:`line_factor`."""
+    om, rigid = modal_omegas(lam, sur.rigid_hz)
+    u = (sur.outputs if outputs is None else sur.outputs[np.asarray(outputs)]) @ X
+    v = X.T @ (sur.inputs if inputs is None else sur.inputs[:, np.asarray(inputs)])
+    return dict(om=om, rigid=rigid, zeta=zeta, S=pair_products(u, v),
+                R=derivative_factor(u, v, G, D, damping_factor(zeta, om, rigid)),
+                lam_c=np.where(rigid, 0.0, om**2), c_k=np.where(rigid, 0.0, 2 * zeta * om))
+
+
 def derivative_rows(L: np.ndarray, R: np.ndarray, c: np.ndarray, mask, out: np.ndarray | None = None) -> np.ndarray:
     """Real rows (n, 2 n_v) of the derivatives of the residual: [Re(dH c), Im(dH c)] over the compared values.
 
@@ -205,15 +218,8 @@ class FRFRows:
         return [slice(int(i), int(j)) for i, j in zip(edges[:-1], edges[1:]) if j > i]
 
     def factors(self, a: int, lam, X, zeta, D, G) -> dict:
-        """Data set ``a``'s line-independent factors at the modes (lam, X) with damping ``zeta`` (m,) for the
-        derivative directions (D, G) of :func:`eigen_derivatives` (damping ratios held)."""
-        om, rigid = modal_omegas(lam, self.sur.rigid_hz)
-        u = self.sur.outputs[self.outputs[a]] @ X
-        v = X.T @ self.sur.inputs[:, self.inputs[a]]
-        S = pair_products(u, v)
-        R = derivative_factor(u, v, G, D, damping_factor(zeta, om, rigid))
-        return dict(om=om, rigid=rigid, zeta=zeta, S=S, R=R, lam_c=np.where(rigid, 0.0, om**2),
-                    c_k=np.where(rigid, 0.0, 2 * zeta * om))
+        """Data set ``a``'s :func:`modal_factors`."""
+        return modal_factors(self.sur, lam, X, zeta, D, G, self.outputs[a], self.inputs[a])
 
     def rows(self, a: int, f: dict, lines: slice, extra_rows: int = 0, extra=None) -> np.ndarray:
         """Rows of data set ``a`` on ``lines``: (n + extra_rows + 1, 2 n_v); the n derivative rows of ``f["R"]``,
@@ -249,13 +255,16 @@ class FRFRows:
         out[-1, :n_v], out[-1, n_v:] = e.real * s, e.imag * s
         return out
 
+    def _per_slice(self, fn) -> list:
+        """Per data set, the list of ``fn(a, lines)`` over its line slices, run on the data threads."""
+        tasks = [(a, sl) for a in range(len(self.data)) for sl in self.line_chunks(a)]
+        parts = thread_map(lambda t: fn(*t), tasks)
+        return [[r for (b, _), r in zip(tasks, parts) if b == a] for a in range(len(self.data))]
+
     def all_rows(self, build) -> list:
         """Per data set, ``build(a, lines)`` over its line slices (threads), joined: Re parts, then Im parts."""
-        tasks = [(a, sl) for a in range(len(self.data)) for sl in self.line_chunks(a)]
-        parts = thread_map(lambda t: build(*t), tasks)
         out = []
-        for a in range(len(self.data)):
-            mine = [r for (b, _), r in zip(tasks, parts) if b == a]
+        for mine in self._per_slice(build):
             halves = [r.shape[1] // 2 for r in mine]
             out.append(np.concatenate([r[:, :h] for r, h in zip(mine, halves)]
                                       + [r[:, h:] for r, h in zip(mine, halves)], axis=1))
@@ -265,16 +274,14 @@ class FRFRows:
         """Per data set the triangle R (k+1, k+1) of the QR factorization of its rows' transpose
         ``[J_a f_a]`` (R^T R = [J_a f_a]^T [J_a f_a]; the rows themselves if fewer): each line slice's rows
         built and factorized on its thread, the slices' triangles factorized together (TSQR)."""
-        tasks = [(a, sl) for a in range(len(self.data)) for sl in self.line_chunks(a)]
 
-        def leaf(t):
-            rows = build(*t)
+        def leaf(a, lines):
+            rows = build(a, lines)
             return np.linalg.qr(rows.T, mode="r") if rows.shape[1] > rows.shape[0] else rows.T
 
-        parts = thread_map(leaf, tasks)
         out = []
-        for a in range(len(self.data)):
-            R = np.vstack([r for (b, _), r in zip(tasks, parts) if b == a])
+        for mine in self._per_slice(leaf):
+            R = np.vstack(mine)
             out.append(np.linalg.qr(R, mode="r") if R.shape[0] > R.shape[1] else R)
         return out
 
@@ -321,16 +328,12 @@ def surrogate_frf_jacobian(
     p = np.asarray(p, dtype=float)
     lam, X = reduced_modes(sur, p) if modes is None else modes
     w = 2 * np.pi * np.asarray(freq_hz, dtype=float)
-    om, rigid = modal_omegas(lam, sur.rigid_hz)
-    Co = sur.outputs if outputs is None else sur.outputs[np.asarray(outputs)]
-    u = Co @ X  # (n_out, m)
-    v = X.T @ sur.inputs  # (m, n_in)
-    n_f, n_out, n_in = w.size, u.shape[0], v.shape[1]
     D, G = eigen_derivatives(lam, *parameter_derivatives(sur, p, X), sur.rigid_hz)
-    S = pair_products(u, v)
-    R = derivative_factor(u, v, G, D, damping_factor(np.full(lam.size, zeta0), om, rigid))
-    _, rq, L = line_factor(w, np.where(rigid, 0.0, om**2), np.where(rigid, 0.0, 2 * zeta0 * om), quantity)
-    H = (rq @ S).reshape(n_f, n_out, n_in)
-    dH = np.ascontiguousarray(L.real) @ R + 1j * (np.ascontiguousarray(L.imag) @ R)  # (f, j o i)
+    f = modal_factors(sur, lam, X, np.full(lam.size, zeta0), D, G, outputs)
+    _, rq, L = line_factor(w, f["lam_c"], f["c_k"], quantity)
+    n_f, n_in = w.size, sur.inputs.shape[1]
+    n_out = f["S"].shape[1] // n_in
+    H = (rq @ f["S"]).reshape(n_f, n_out, n_in)
+    dH = np.ascontiguousarray(L.real) @ f["R"] + 1j * (np.ascontiguousarray(L.imag) @ f["R"])  # (f, j o i)
     dH = dH.reshape(n_f, -1, n_out, n_in).transpose(1, 0, 2, 3)  # (j, f, o, i)
     return H, dH

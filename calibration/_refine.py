@@ -47,23 +47,20 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from calibration._errors import CalibrationError
-from calibration._fit import (  # noqa: F401  (CompressedObjective, _compressed_blocks: importable from here too)
-    CompressedObjective, FitData, _compressed_blocks, log_frequency_weights, stacked_residual, value_weights)
-from calibration._metric import LN10, log_deviation, square_deviation
+from calibration._fit import FitData, _compressed_blocks, log_frequency_weights, stacked_residual, value_weights
+from calibration._metric import log_deviation, square_deviation
 from calibration._threads import blas_threads
 from calibration._modal_derivative import FRFRows, complex_rows, eigen_derivatives, parameter_derivatives
 from calibration._surrogate import (
     Surrogate,
     modal_omegas,
     quantity_factor,
-    reduced_term_stack,
     reduced_modes,
 )
 from calibration._damping import IdentifiedModes, mapped_damping
 
 #: Default damping floors of the refinement stages, as multiples of zeta0 (the last, 0, is the raw data).
 DEFAULT_FLOORS = (1.0, 0.3, 0.1, 0.0)
-
 
 
 def debiased_target(raw: FitData, identification, channels, zeta_floor: float) -> FitData:

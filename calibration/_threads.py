@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 from concurrent.futures import ThreadPoolExecutor
 
-_POOL: ThreadPoolExecutor | None = None
+_POOL: tuple | None = None  # (threads, ThreadPoolExecutor)
 
 
 _CONTROLLER: tuple | None = None  # (key, threadpoolctl.ThreadpoolController)
@@ -75,9 +75,9 @@ def thread_map(fn, items, threads: int | None = None) -> list:
     n = min(data_threads() if threads is None else threads, len(items))
     if n <= 1:
         return [fn(x) for x in items]
-    if _POOL is None or _POOL._max_workers != n:
+    if _POOL is None or _POOL[0] != n:
         if _POOL is not None:
-            _POOL.shutdown(wait=False)
-        _POOL = ThreadPoolExecutor(max_workers=n, thread_name_prefix="frfcal-data")
+            _POOL[1].shutdown(wait=False)
+        _POOL = (n, ThreadPoolExecutor(max_workers=n, thread_name_prefix="frfcal-data"))
     with blas_threads(1):
-        return list(_POOL.map(fn, items))
+        return list(_POOL[1].map(fn, items))

@@ -39,7 +39,6 @@ from calibration import (
     scatter_sd,
 )
 from calibration._damping import mapped_damping
-from calibration._metric import LN10
 from frfcal.campaign._schema import Campaign
 from frfcal.campaign._stages import Article, floor_std_error, floors_of, identified_modes, pair_mask
 

@@ -206,7 +206,8 @@ def test_block_compression_is_the_dense_problem(chain):
     from scipy.optimize import least_squares
 
     from calibration import reduced_modes
-    from calibration._refine import _compressed, _compressed_blocks
+    from calibration._fit import _compressed_blocks
+    from calibration._refine import _compressed
 
     _, sur, _, _, _, raw, _, _ = chain
     rng = np.random.default_rng(5)
@@ -287,7 +288,7 @@ def test_cross_validation_recalibration_on_the_compressed_problem(chain):
     where the dense problem does."""
     from calibration import reduced_modes
     from calibration._fit import run_start
-    from calibration._refine import CompressedObjective
+    from calibration._fit import CompressedObjective
 
     _, sur, _, _, _, raw, _, _ = chain
     lam, _ = reduced_modes(sur, np.zeros(7))
