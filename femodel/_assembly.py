@@ -382,13 +382,7 @@ def assemble(model: FEModel) -> Assembly:
     col = _Collector(len(gset))
     cd_axes = _cd_transform(model)
     wt = float(model.wtmass)
-    _add_bars(model, col, cd_axes, wt)
-    _add_rods(model, col, cd_axes, wt)
-    _add_springs(model, col)
-    _add_bushes(model, col, cd_axes)
-    _add_conm2(model, col, cd_axes, wt)
-    _add_shells(model, col, cd_axes, wt)
-    _add_solids(model, col, cd_axes, wt)
+    add_elements(model, col, cd_axes, wt)
     t1 = time.perf_counter()
     terms = col.terms()
     t2 = time.perf_counter()
@@ -416,6 +410,19 @@ def assemble(model: FEModel) -> Assembly:
 
 
 # ---------------------------------------------------------------- element families
+def add_elements(model, col, cd_axes, wt) -> None:
+    """Every element family's K and M terms into ``col`` (the order fixes the order of the terms)."""
+    _add_bars(model, col, cd_axes, wt)
+    _add_rods(model, col, cd_axes, wt)
+    _add_springs(model, col)
+    _add_bushes(model, col, cd_axes)
+    _add_conm2(model, col, cd_axes, wt)
+    _add_shells(model, col, cd_axes, wt)
+    _add_solids(model, col, cd_axes, wt)
+    _add_conm1(model, col, cd_axes, wt)
+    _add_scalar_masses(model, col, wt)
+
+
 def _add_bars(model, col, cd_axes, wt):
     from femodel._elements_line import beam_matrices
 
@@ -526,6 +533,56 @@ def _add_springs(model, col):
             else:
                 fac, lab = [(("CELAS2", int(tab.ids[i]), "K"), 1)], f"CELAS2 {int(tab.ids[i])}"
             col.add_dofs("K", fac, lab, ke, np.array([dofs]), np.array([k[i]]))
+
+
+def _scalar_pairs(model, tab, card) -> tuple[np.ndarray, np.ndarray]:
+    """g-set DOF (n, 2) and the unit element matrices (n, 2, 2) of scalar elements (CELAS, CMASS) joining
+    two components in CD, or one to ground (its DOF repeated, the matrix's other entries zero)."""
+    g = np.asarray(tab["nodes"], np.int64)
+    c = tab["components"].astype(np.int64)
+    n = len(tab)
+    dofs = np.zeros((n, 2), np.int64)
+    ke = np.zeros((n, 2, 2))
+    for j in range(2):
+        held = g[:, j] != 0
+        if np.any(held):
+            gi = model.grid_index(g[held, j], what=f"{card} grid")
+            dofs[held, j] = 6 * gi + c[held, j] - 1
+    both = (g[:, 0] != 0) & (g[:, 1] != 0)
+    ke[both] = [[1.0, -1.0], [-1.0, 1.0]]
+    only = ~both
+    first = g[:, 0] != 0
+    dofs[only & ~first, 0] = dofs[only & ~first, 1]
+    dofs[only, 1] = dofs[only, 0]
+    ke[only, 0, 0] = 1.0
+    return dofs, ke
+
+
+def _add_scalar_masses(model, col, wt):
+    for card in ("CMASS1", "CMASS2"):
+        tab = model.elements.get(card)
+        if tab is None or len(tab) == 0:
+            continue
+        dofs, me = _scalar_pairs(model, tab, card)
+        m = tab["m"]
+        for i in range(len(tab)):
+            if card == "CMASS1":
+                pid = int(tab["pid"][i])
+                fac, lab = [(("PMASS", pid, "M"), 1)], f"CMASS1 PMASS {pid}"
+            else:
+                fac, lab = [(("CMASS2", int(tab.ids[i]), "M"), 1)], f"CMASS2 {int(tab.ids[i])}"
+            col.add_dofs("M", fac, lab, me[i : i + 1], dofs[i : i + 1], np.array([wt * m[i]]))
+
+
+def _add_conm1(model, col, cd_axes, wt):
+    tab = model.elements.get("CONM1")
+    if tab is None or len(tab) == 0:
+        return
+    nodes = model.grid_index(tab["nodes"][:, 0], what="CONM1 grid")[:, None]
+    m6 = to_cd(tab["mass6"], nodes, cd_axes, 6)
+    pat = BlockPattern(nodes, model.n_grids)
+    for i, eid in enumerate(tab.ids.tolist()):
+        col.add("M", [], f"CONM1 {eid}", m6[i : i + 1], pat.subset(slice(i, i + 1)), [wt])
 
 
 def _add_bushes(model, col, cd_axes):

@@ -24,13 +24,7 @@ def _element_terms(model) -> tuple:
     col = A._Collector(6 * model.n_grids)
     cd_axes = A._cd_transform(model)
     wt = float(model.wtmass)
-    A._add_bars(model, col, cd_axes, wt)
-    A._add_rods(model, col, cd_axes, wt)
-    A._add_springs(model, col)
-    A._add_bushes(model, col, cd_axes)
-    A._add_conm2(model, col, cd_axes, wt)
-    A._add_shells(model, col, cd_axes, wt)
-    A._add_solids(model, col, cd_axes, wt)
+    A.add_elements(model, col, cd_axes, wt)
     return col.terms()
 
 
@@ -159,6 +153,21 @@ def _nominal_from_model(params: ParameterSet, fe, source) -> list[np.ndarray]:
             elif card == "CELAS2":
                 tab, r = table(fe.elements, "CELAS2", prm, key)
                 v = tab["k"][r]
+            elif card == "CMASS2":
+                tab, r = table(fe.elements, "CMASS2", prm, key)
+                v = tab["m"][r] * wt
+            elif card == "PMASS":
+                table(fe.properties, "PMASS", prm, key)
+                el = fe.elements.get("CMASS1")
+                ms = np.array([]) if el is None else el["m"][el["pid"] == cid]
+                if ms.size == 0:
+                    raise ParameterError(f"{where}parameter {prm.name!r}: PMASS {cid} is used by no CMASS1")
+                if not np.allclose(ms, ms[0], rtol=1e-12, atol=0.0):
+                    raise ParameterError(
+                        f"{where}parameter {prm.name!r}: PMASS {cid} masses join translational and rotational "
+                        "components; its SI value is ambiguous"
+                    )
+                v = ms[0] * wt
             elif card == "PELAS":
                 table(fe.properties, "PELAS", prm, key)
                 el = fe.elements.get("CELAS1")

@@ -66,7 +66,13 @@ SUPPORTED_FIELDS: dict[tuple[str, str], str] = {
     ("PBUSH", "K6"): "rot_spring",
     ("PELAS", "K"): "spring",
     ("CELAS2", "K"): "spring",
+    ("PMASS", "M"): "scalar_mass",
+    ("CMASS2", "M"): "scalar_mass",
 }
+
+#: Kinds whose unit follows the components the scalar element joins (translational, rotational).
+COMPONENT_KINDS: dict[str, tuple[str, str]] = {"spring": ("trans_spring", "rot_spring"),
+                                               "scalar_mass": ("mass", "rot_mass")}
 
 #: Relative tolerance between a declared value (``nominal``; an absolute bound against its normalized
 #: twin) and the deck: about 4 significant digits. Unit mistakes (factors of 10^3) and wrong deck
@@ -86,6 +92,7 @@ UNITS: dict[str, dict[str, float]] = {
     "mass": {"kg": 1.0, "g": 1e-3, "t": 1e3, "lbf*s^2/in": _SLINCH},
     "trans_spring": {"N/m": 1.0, "N/mm": 1e3, "kN/m": 1e3, "kN/mm": 1e6, "lbf/in": _LBF_N / _INCH_M},
     "rot_spring": {"N*m/rad": 1.0, "N*mm/rad": 1e-3, "kN*m/rad": 1e3, "lbf*in/rad": _LBF_N * _INCH_M},
+    "rot_mass": {"kg*m^2": 1.0, "kg*mm^2": 1e-6, "t*mm^2": 1e-3, "lbf*s^2*in": _SLINCH * _INCH_M**2},
 }
 
 _NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_.\-]*$")
@@ -103,9 +110,10 @@ def _unit_label(text: str) -> str:
 
 
 def unit_factor(kind: str, unit: str) -> float | None:
-    """SI value of one ``unit`` of a physical ``kind`` (``"spring"``: either spring kind), or None."""
+    """SI value of one ``unit`` of a physical ``kind`` (``"spring"``, ``"scalar_mass"``: either of its
+    :data:`COMPONENT_KINDS`), or None."""
     label = _unit_label(unit)
-    kinds = ("trans_spring", "rot_spring") if kind == "spring" else (kind,)
+    kinds = COMPONENT_KINDS.get(kind, (kind,))
     for k in kinds:
         if label in UNITS[k]:
             return UNITS[k][label]
@@ -113,10 +121,11 @@ def unit_factor(kind: str, unit: str) -> float | None:
 
 
 def _unit_kind(kind: str, unit: str) -> str:
-    """The spring kind a spring unit names (``kind`` itself otherwise)."""
-    if kind != "spring":
+    """The spring (scalar mass) kind a spring (scalar mass) unit names (``kind`` itself otherwise)."""
+    if kind not in COMPONENT_KINDS:
         return kind
-    return "trans_spring" if _unit_label(unit) in UNITS["trans_spring"] else "rot_spring"
+    trans, rot = COMPONENT_KINDS[kind]
+    return trans if _unit_label(unit) in UNITS[trans] else rot
 
 
 @dataclass(frozen=True)
@@ -286,7 +295,7 @@ def _parameter_from_table(tab: dict, k: int, source, deck=None) -> Parameter:
     unit = tab.get("unit", "").strip()
     kind = SUPPORTED_FIELDS[(card, fld)]
     if unit and unit_factor(kind, unit) is None:
-        kinds = ("trans_spring", "rot_spring") if kind == "spring" else (kind,)
+        kinds = COMPONENT_KINDS.get(kind, (kind,))
         known = sorted(u for k in kinds for u in UNITS[k])
         _fail(source, f"{label}: unit {unit!r} is not a unit of {card} {fld} (known: {', '.join(known)})")
     nominal = _number(tab, "nominal", label, source)
@@ -466,7 +475,9 @@ def _container(model, card: str) -> dict:
         return model.materials
     if card in ("PSHELL", "PBUSH", "PELAS"):
         return model.properties
-    if card == "CONM2":
+    if card == "PMASS":
+        return model.properties_mass
+    if card in ("CONM2", "CMASS2"):
         return model.masses
     if card == "CELAS2":
         return model.elements
@@ -490,7 +501,7 @@ def get_deck_value(obj, fld: str) -> float | None:
         return obj.e if fld == "E" else obj.rho
     if t == "PSHELL":
         return obj.t
-    if t == "CONM2":
+    if t in ("CONM2", "CMASS2", "PMASS"):
         return obj.mass
     if t == "PBUSH":
         i = int(fld[1]) - 1
@@ -512,7 +523,7 @@ def set_deck_value(obj, fld: str, value: float) -> None:
             obj.rho = value
     elif t == "PSHELL":
         obj.t = value
-    elif t == "CONM2":
+    elif t in ("CONM2", "CMASS2", "PMASS"):
         obj.mass = value
     elif t == "PBUSH":
         obj.Ki[int(fld[1]) - 1] = value
@@ -523,24 +534,31 @@ def set_deck_value(obj, fld: str, value: float) -> None:
 
 
 def _spring_kind(model, key, source) -> str:
-    """Translational or rotational, from the components a PELAS/CELAS2 spring connects."""
-    card, cid, _ = key
+    """Translational or rotational, from the components a PELAS/CELAS2 spring (PMASS/CMASS2 scalar mass)
+    connects: ``trans_spring``/``rot_spring`` (``mass``/``rot_mass``)."""
+    card, cid, fld = key
     if card == "CELAS2":
         elems = [model.elements[cid]]
+    elif card == "CMASS2":
+        elems = [model.masses[cid]]
+    elif card == "PMASS":
+        elems = [e for e in model.masses.values() if e.type == "CMASS1" and e.pid == cid]
     else:
         elems = [e for e in model.elements.values() if e.type == "CELAS1" and e.pid == cid]
+    trans, rot = COMPONENT_KINDS[SUPPORTED_FIELDS[(card, fld)]]
     comps = set()
     for e in elems:
         for c in (e.c1, e.c2):
             if c not in (None, 0):
                 comps.add(int(c))
     if not comps:
-        return "trans_spring"
+        return trans
     if comps <= {1, 2, 3}:
-        return "trans_spring"
+        return trans
     if comps <= {4, 5, 6}:
-        return "rot_spring"
-    _fail(source, f"{card} {cid} K: springs connect both translational and rotational components {sorted(comps)}; "
+        return rot
+    what = "springs connect" if trans == "trans_spring" else "scalar masses join"
+    _fail(source, f"{card} {cid} {fld}: {what} both translational and rotational components {sorted(comps)}; "
           "its unit is ambiguous")
     return ""  # pragma: no cover
 
@@ -551,7 +569,7 @@ def si_factor(model, key, units: str, source=None) -> float:
         _fail(source, f"units must be one of {sorted(UNIT_SYSTEMS)}, got {units!r}")
     L, Mu = UNIT_SYSTEMS[units]
     kind = SUPPORTED_FIELDS[(key[0], key[2])]
-    if kind == "spring":
+    if kind in COMPONENT_KINDS:
         kind = _spring_kind(model, key, source)
     wtmass = 1.0
     if "WTMASS" in model.params:
@@ -561,6 +579,7 @@ def si_factor(model, key, units: str, source=None) -> float:
         "density": Mu / L**3 * wtmass,
         "length": L,
         "mass": Mu * wtmass,
+        "rot_mass": Mu * L**2 * wtmass,
         "trans_spring": Mu,
         "rot_spring": Mu * L**2,
     }[kind]
@@ -576,7 +595,7 @@ def _deck_value(label: str, unit: str, key, model, units: str, source) -> tuple[
     if not unit:
         return raw, raw
     kind = SUPPORTED_FIELDS[(key[0], key[2])]
-    actual = _spring_kind(model, key, source) if kind == "spring" else kind
+    actual = _spring_kind(model, key, source) if kind in COMPONENT_KINDS else kind
     if _unit_kind(kind, unit) != actual:
         _fail(source, f"{label}: unit {unit!r} is a {_unit_kind(kind, unit).replace('_', ' ')} unit, but "
                       f"{key[0]} {key[1]} {key[2]} is a {actual.replace('_', ' ')}")

@@ -1,4 +1,4 @@
-"""Element cards (bars and beams, rods, springs, bushings, shells, solids, CONM2, RBE2/RBE3) as SI tables."""
+"""Element cards (bars and beams, rods, springs, bushings, shells, solids, CONM1/CONM2, CMASS1/CMASS2, RBE2/RBE3) as SI tables."""
 
 from __future__ import annotations
 
@@ -30,7 +30,8 @@ def read_elements(bdf, grids: GridSet, props: dict[str, Table], us: UnitSystem,
     -------
     elements : dict str -> Table
         Tables in the order assembly has always seen them: CBAR, CBEAM, CROD,
-        CONROD, CELAS1, CELAS2, CBUSH, CQUAD4, CTRIA3, solids, CONM2.
+        CONROD, CELAS1, CELAS2, CBUSH, CQUAD4, CTRIA3, solids, CONM2, then
+        CONM1, CMASS1, CMASS2.
     dropped : dict str -> int
         "CQUAD4 with PCOMPG"-style keys and counts of the dropped elements.
 
@@ -64,6 +65,9 @@ def read_elements(bdf, grids: GridSet, props: dict[str, Table], us: UnitSystem,
     elements.update(_shell_elements(by_type, grids, L))
     elements.update(_solid_elements(by_type, grids))
     elements.update(_mass_elements(bdf, grids, us))
+    pmass = props.get("PMASS")
+    pmass_m = {} if pmass is None else dict(zip(pmass.ids.tolist(), pmass["m_deck"].tolist()))
+    elements.update(_scalar_mass_elements(bdf, grids, pmass_m, us))
     return elements, dropped
 
 
@@ -338,11 +342,12 @@ def _solid_elements(by_type: dict, grids: GridSet) -> dict[str, Table]:
 
 
 def _mass_elements(bdf, grids: GridSet, us: UnitSystem) -> dict[str, Table]:
-    """CONM2: mass (kg), offset (m) and inertia about the offset point (kg m^2), in basic."""
+    """CONM2: mass (kg), offset (m) and inertia about the offset point (kg m^2), in basic;
+    CONM1: the 6 x 6 mass matrix "mass6" in basic at the grid (SI)."""
     L = us.length_m
     elements = {}
-    if bdf.masses:
-        rows = [(eid, m) for eid, m in sorted(bdf.masses.items()) if m.type == "CONM2"]
+    rows = [(eid, m) for eid, m in sorted(bdf.masses.items()) if m.type == "CONM2"]
+    if rows:
         n = len(rows)
         grid = np.zeros(n, np.int64)
         mass = np.zeros(n)
@@ -371,7 +376,78 @@ def _mass_elements(bdf, grids: GridSet, us: UnitSystem) -> dict[str, Table]:
             np.array([r[0] for r in rows], np.int64),
             {"pid": np.full(n, -1, np.int64), "nodes": grid[:, None], "mass": mass, "offset": off, "inertia": inertia},
         )
+    rows = [(eid, m) for eid, m in sorted(bdf.masses.items()) if m.type == "CONM1"]
+    if rows:
+        # the 6 x 6 matrix in the CID system (default basic) at the grid; to basic, SI by block:
+        # translation mass, translation-rotation mass x length, rotation mass x length^2
+        unit = np.full((6, 6), us.mass_kg * L)
+        unit[:3, :3] = us.mass_kg
+        unit[3:, 3:] = us.mass_kg * L**2
+        n = len(rows)
+        grid = np.zeros(n, np.int64)
+        m6 = np.zeros((n, 6, 6))
+        for i, (eid, m) in enumerate(rows):
+            grids.require("CONM1", eid, [m.nid])
+            grid[i] = int(m.nid)
+            mm = np.asarray(m.mass_matrix, float)
+            if mm.shape != (6, 6) or not np.all(np.isfinite(mm)):
+                raise ModelError(f"{grids.where}: CONM1 {eid}: mass matrix is not a finite 6 x 6 matrix")
+            mm = np.tril(mm) + np.tril(mm, -1).T  # Mij are the lower triangle (i >= j)
+            cid = int(m.cid or 0)
+            if cid not in grids.coords and cid != 0:
+                raise ModelError(f"{grids.where}: CONM1 {eid} references undefined coordinate system {cid}")
+            R = np.eye(3) if cid == 0 else grids.coords[cid].local_axes(grids.position(grid[i])[None])[0]
+            Rb = np.zeros((6, 6))
+            Rb[:3, :3] = Rb[3:, 3:] = R
+            m6[i] = Rb @ (mm * unit) @ Rb.T
+            if np.any(np.linalg.eigvalsh(m6[i]) < -1e-9 * max(1.0, float(np.abs(m6[i]).max()))):
+                raise ModelError(f"{grids.where}: CONM1 {eid}: mass matrix is not positive semi-definite")
+        elements["CONM1"] = Table("CONM1", np.array([r[0] for r in rows], np.int64),
+                                  {"pid": np.full(n, -1, np.int64), "nodes": grid[:, None], "mass6": m6})
 
+    return elements
+
+
+def _scalar_mass_elements(bdf, grids: GridSet, pmass_m: dict, us: UnitSystem) -> dict[str, Table]:
+    """CMASS1/CMASS2: scalar mass "m" in SI for the pair of components it joins (kg, kg m^2 or kg m).
+
+    As CELAS1/CELAS2: components in the grid's displacement system (CD); a
+    blank second grid is a mass to ground (only the first DOF's diagonal).
+    """
+    L = us.length_m
+    elements = {}
+    for card in ("CMASS1", "CMASS2"):
+        rows = [(eid, e) for eid, e in sorted(bdf.masses.items()) if e.type == card]
+        if not rows:
+            continue
+        n = len(rows)
+        nodes = np.zeros((n, 2), np.int64)
+        c12 = np.zeros((n, 2), np.int8)
+        m = np.zeros(n)
+        pid = np.full(n, -1, np.int64)
+        for i, (eid, e) in enumerate(rows):
+            g = [0 if x is None else int(x) for x in e.nodes]
+            if not any(g):
+                raise ModelError(f"{grids.where}: {card} {eid} names no grid")
+            grids.require(card, eid, [x for x in g if x])
+            c = [int(e.c1 or 0), int(e.c2 or 0)]
+            for j in range(2):
+                if g[j] and not 1 <= c[j] <= 6:
+                    raise ModelError(f"{grids.where}: {card} {eid}: component C{j + 1}={c[j]} must be 1..6 for a GRID")
+            nodes[i] = g
+            c12[i] = c
+            if card == "CMASS1":
+                pid[i] = int(e.pid)
+                if pid[i] not in pmass_m:
+                    raise ModelError(f"{grids.where}: CMASS1 {eid} references undefined PMASS {pid[i]}")
+                md = pmass_m[pid[i]]
+            else:
+                md = field_float(e.mass, 0.0)
+            rot = [cc >= 4 for cc, gg in zip(c, g) if gg]
+            fac = us.mass_kg * (L**2 if all(rot) else 1.0 if not any(rot) else L)
+            m[i] = md * fac
+        elements[card] = Table(card, np.array([r[0] for r in rows], np.int64),
+                               {"pid": pid, "nodes": nodes, "components": c12, "m": m})
     return elements
 
 

@@ -1,4 +1,4 @@
-"""MAT1/MAT8 materials and PBAR/PBARL/PBEAM/PBEAML/PROD/PSHELL/PCOMP/PSOLID/PELAS/PBUSH properties as SI tables."""
+"""MAT1/MAT8 materials and PBAR/PBARL/PBEAM/PBEAML/PROD/PSHELL/PCOMP/PSOLID/PELAS/PMASS/PBUSH properties as SI tables."""
 
 from __future__ import annotations
 
@@ -166,6 +166,11 @@ def read_properties(bdf, mats: dict[str, Table], us: UnitSystem, where: str) -> 
             np.array([r[0] for r in rows], np.int64),
             {"k_deck": np.array([field_float(r[1].k, 0.0) for r in rows]), "ge": np.array([field_float(r[1].ge, 0.0) for r in rows])},
         )
+    if getattr(bdf, "properties_mass", None):
+        rows = sorted((pid, p) for pid, p in bdf.properties_mass.items() if p.type == "PMASS")
+        if rows:  # the scalar mass of CMASS1, in deck units (the components it joins fix its SI unit)
+            props["PMASS"] = Table("PMASS", np.array([r[0] for r in rows], np.int64),
+                                   {"m_deck": np.array([field_float(r[1].mass, 0.0) for r in rows])})
     if "PBUSH" in props_by_type:
         rows = props_by_type["PBUSH"]
         kk = np.zeros((len(rows), 6))

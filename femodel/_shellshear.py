@@ -172,10 +172,8 @@ def _shell_shear_series(assembly, params: ParameterSet, prepared: list):
       coefficient of :class:`SeriesAffineMatrix`, elements grouped by equal
       (rows, ratio) per direction.
 
-    ``prepared`` is :func:`_shell_shear_elements` of the assembly's model (formed here when None).
+    ``prepared`` is :func:`_shell_shear_elements` of the assembly's model.
     """
-    if prepared is None:
-        prepared = _shell_shear_elements(assembly.model, params, key_index)
     n_par = len(params)
     amap = _selection_map(assembly.T)
     series, errors = [], []

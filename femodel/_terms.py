@@ -344,7 +344,7 @@ class ElementFactor:
             sel = np.isin(tab.ids, wanted)
             if not np.any(sel):
                 continue
-            if card in ("CONM2", "CELAS1", "CELAS2", "CBUSH", "CONROD"):
+            if card in ("CONM1", "CONM2", "CMASS1", "CMASS2", "CELAS1", "CELAS2", "CBUSH", "CONROD"):
                 raise ParameterError(f"ElementFactor {self.name!r}: {card} {tab.ids[sel][:5].tolist()} have no "
                                      "property card with a MAT1 to copy (use the card's own field parameter)")
             found |= np.isin(wanted, tab.ids[sel])

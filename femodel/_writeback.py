@@ -37,6 +37,23 @@ def _read_deck(path: Path, save_file_structure: bool = False):
     log.setLevel(logging.ERROR)
     if not path.is_file():
         raise FileNotFoundError(f"Nastran deck not found: {path}")
+    from femodel._reader import _deck_kind
+
+    if _deck_kind(path) == "bulk-with-begin":
+        # BEGIN BULK without executive/case control: pyNastran wants both or neither (as read_bdf does,
+        # fed without the line; its INCLUDEs are then flattened into the written deck)
+        import io
+
+        text = "".join(line for line in open(path, errors="replace") if not line.strip().upper().startswith("BEGIN"))
+        bdf = BDF(debug=None, log=log)
+        bdf.include_dir = str(path.parent)
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                bdf.read_bdf(io.StringIO(text), xref=False, validate=False, punch=True)
+        except (SyntaxError, RuntimeError, ValueError, KeyError, IndexError, TypeError, AssertionError) as exc:
+            raise ParameterError(f"{path}: pyNastran could not parse the deck: {exc}") from None
+        return bdf
     last = None
     for punch in (False, True):
         bdf = BDF(debug=None, log=log)
@@ -447,7 +464,8 @@ def write_bdf(model_path, out_path, values, *, parameters: ParameterSet | None =
 
     extra = []
     for (card, cid), obj in sorted(modified.items()):
-        container = {"MAT1": bdf.materials, "CONM2": bdf.masses, "CELAS2": bdf.elements}.get(card, bdf.properties)
+        container = {"MAT1": bdf.materials, "CONM2": bdf.masses, "CMASS2": bdf.masses, "PMASS": bdf.properties_mass,
+                     "CELAS2": bdf.elements}.get(card, bdf.properties)
         del container[cid]
         comment = obj.comment or ""
         fields = list(obj.repr_fields())
