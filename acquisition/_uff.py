@@ -89,6 +89,18 @@ def _code_dir(code: int) -> tuple[float, float, float]:
     return tuple(d)
 
 
+#: UFF58 function type codes (the record's ``func_type``) and their names.
+FUNCTION_TYPES = {0: "general", 1: "time response", 2: "auto spectrum", 3: "cross spectrum",
+                  4: "frequency response function", 5: "transmissibility", 6: "coherence",
+                  7: "auto correlation", 8: "cross correlation", 9: "power spectral density",
+                  10: "energy spectral density", 11: "probability density function", 12: "spectrum",
+                  13: "cumulative frequency distribution", 14: "peaks valley", 15: "stress/cycles",
+                  16: "strain/cycles", 17: "orbit", 18: "mode indicator function", 19: "force pattern",
+                  20: "partial power", 21: "partial coherence", 22: "eigenvalue", 23: "eigenvector",
+                  24: "shock response spectrum", 25: "finite impulse response filter", 26: "multiple coherence",
+                  27: "order function"}
+
+
 def _header_lines(rec: dict) -> list[str]:
     return [
         "%-80s" % rec["id1"][:80],
@@ -334,11 +346,15 @@ def import_uff(path, out, *, article: str | None = None, overwrite: bool = False
     Run
         The run file read back: ``frf`` is (n_freq, n_out, n_in) in SI.
 
+    Records of another function type (coherence, spectra, ...) beside the
+    FRFs are left out and listed in the run's ``plan["skipped_records"]``
+    (function type name and code -> record numbers).
+
     Raises
     ------
     UffError
         Naming the file and the records at fault: no FRF records, records of
-        another function type or quantity, unknown or mixed units, a record on
+        another quantity, unknown or mixed units, a record on
         another abscissa, a direction that is not a translation (+-1..3, or an
         exact vector), a (response, reference) pair given twice or missing, one
         response or reference named differently in two records.
@@ -356,6 +372,7 @@ def import_uff(path, out, *, article: str | None = None, overwrite: bool = False
     if not path.exists():
         raise UffError(f"{path}: file not found")
     records = _read_records(path)
+    plan = {"source": "uff58", "file": str(path)}
     if not records:
         raise UffError(f"{path}: no UFF58 records")
     # records without unit labels are in the file's unit system (dataset 164), when it has one
@@ -374,10 +391,11 @@ def import_uff(path, out, *, article: str | None = None, overwrite: bool = False
         raise UffError(f"{path}: no UFF58 frequency response function records (function type 4); "
                        f"function types found: {sorted(ftypes)}")
     if len(ftypes) > 1:
-        other = {t: ns for t, ns in ftypes.items() if t != 4}
-        raise UffError(f"{path}: mixed UFF58 function types: FRF (4) and "
-                       + "; ".join(f"type {t} in records {_listing(ns)}" for t, ns in sorted(other.items()))
-                       + "; write the FRFs to a file of their own")
+        # an analyzer's export often holds the coherences, auto- and cross-spectra beside the FRFs: the FRFs
+        # are imported, the others are listed in the plan (and by the command) as left out
+        plan["skipped_records"] = {f"{FUNCTION_TYPES.get(t, 'function type ' + str(t))} ({t})": ns
+                                   for t, ns in sorted(ftypes.items()) if t != 4}
+        records = [(n, s) for n, s in records if int(s.get("func_type", 0)) == 4]
 
     n0, s0 = records[0]
     f = np.asarray(s0["x"], dtype=float)
@@ -497,7 +515,6 @@ def import_uff(path, out, *, article: str | None = None, overwrite: bool = False
     if article is None:
         id1 = str(s0.get("id1", ""))
         article = id1.split("article=", 1)[1].strip() if "article=" in id1 else path.stem
-    plan = {"source": "uff58", "file": str(path)}
     bad = ~np.isfinite(f) | (f < 0)
     if bad.any():
         raise UffError(f"{path}: the abscissa has {int(bad.sum())} negative or non-finite frequencies "

@@ -272,7 +272,8 @@ def import_stage(camp: Campaign, outdir: Path, log=print) -> RunFiles:
         info = uff_to_run(camp.resolve(e.uff), out, article=e.article, overwrite=True)
         log(f"import: {e.uff} -> {out}: {info['n_lines']} lines, {len(info['sensors'])} x {len(info['drives'])}, "
             f"article {info['article']!r}"
-            + (f" (left out {len(info['dropped_hz'])} line(s) at 0 Hz)" if info["dropped_hz"] else ""))
+            + (f" (left out {len(info['dropped_hz'])} line(s) at 0 Hz)" if info["dropped_hz"] else "")
+            + "".join(f" (left out {len(ns)} {what} record(s))" for what, ns in info["skipped_records"].items()))
         paths.append(out)
         arts.append(e.article)
     return RunFiles(tuple(paths), tuple(arts))

@@ -35,7 +35,8 @@ def uff_to_run(uff, out, *, article=None, overwrite=False) -> dict:
             "sensors": [c.name for c in r.sensors], "drives": [c.name for c in r.drives],
             "sensor_grids": [c.grid for c in r.sensors], "drive_grids": [c.grid for c in r.drives],
             "band_hz": [float(r.frequency_hz.min()), float(r.frequency_hz.max())],
-            "dropped_hz": list(r.plan.get("dropped_hz", []))}
+            "dropped_hz": list(r.plan.get("dropped_hz", [])),
+            "skipped_records": {k: list(v) for k, v in r.plan.get("skipped_records", {}).items()}}
 
 
 def run(args) -> int:
@@ -50,6 +51,9 @@ def run(args) -> int:
         lo, hi = full["band_hz"]
         print(f"{args.out}: {info['n_lines']} lines {lo:.3f}-{hi:.3f} Hz, "
               f"{len(info['sensors'])} x {len(info['drives'])} {info['quantity']}, article {info['article']!r}")
+        for what, ns in info["skipped_records"].items():
+            print(f"left out {len(ns)} record(s) of {what}: not FRFs (records {', '.join(map(str, ns[:6]))}"
+                  f"{', ...' if len(ns) > 6 else ''})")
         if info["dropped_hz"]:
             print(f"left out {len(info['dropped_hz'])} line(s) at 0 Hz (the analyzer's DC line: no FRF line)")
         print("references: " + ", ".join(info["drives"]))
