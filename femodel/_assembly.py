@@ -440,12 +440,28 @@ def _add_bars(model, col, cd_axes, wt):
         mids = prop["mid"][pr]
         E, G, _, rho, follows = _mat(model, mids, card)
         nodes = model.grid_index(tab["nodes"].ravel(), what=f"{card} grid").reshape(-1, 2)
+        # a PBAR without shear factors: its terms carry the section fields A, I1, I2, J as factors too
+        # (exact monomials of them; the parametric model uses them when a parameter names one)
+        sectioned = (prop["card"][pr] == "PBAR") & ~_shear_flexible(prop["k1"][pr]) & ~_shear_flexible(prop["k2"][pr])
         out = beam_matrices(
             model.xyz[nodes[:, 0]], model.xyz[nodes[:, 1]], tab["v"], tab["wa"], tab["wb"],
             prop["A"][pr], prop["I1"][pr], prop["I2"][pr], prop["J"][pr], E, G, prop["k1"][pr], prop["k2"][pr],
             coupled=model.coupmass, torsion_inertia=(card == "CBEAM"), ids=tab.ids, what=card,
             pins=tab.fields.get("pins"),
         )
+        parts = None
+        if np.any(sectioned):
+            s = np.flatnonzero(sectioned)
+            sub = beam_matrices(
+                model.xyz[nodes[s, 0]], model.xyz[nodes[s, 1]], tab["v"][s], tab["wa"][s], tab["wb"][s],
+                prop["A"][pr][s], prop["I1"][pr][s], prop["I2"][pr][s], prop["J"][pr][s], E[s], G[s],
+                prop["k1"][pr][s], prop["k2"][pr][s], coupled=model.coupmass, torsion_inertia=(card == "CBEAM"),
+                ids=tab.ids[s], what=card, pins=None if tab.fields.get("pins") is None else tab["pins"][s],
+                section_parts=True,
+            )
+            parts = np.zeros((3,) + out["stiffness_E"].shape)
+            parts[:, s] = sub["stiffness_E_parts"]
+            parts = [to_cd(parts[k], nodes, cd_axes, 6) for k in range(3)]
         pat = BlockPattern(nodes, model.n_grids)
         kE = to_cd(out["stiffness_E"], nodes, cd_axes, 6)
         kG = to_cd(out["stiffness_G"], nodes, cd_axes, 6)
@@ -459,13 +475,32 @@ def _add_bars(model, col, cd_axes, wt):
             sel = pids == pid
             mid = int(mids[sel][0])
             lab = f"{card} {pcard[sel][0]} {int(pid)}"
-            col.add("K", [(("MAT1", mid, "E"), 1)], lab + " axial+bending", kE[sel], pat.subset(sel), E[sel])
-            col.add("K", [_g_factor(mid, bool(follows[sel][0]))], lab + " torsion", kG[sel], pat.subset(sel), G[sel])
-            col.add("M", [(("MAT1", mid, "RHO"), 1)], lab + " mass", mu[sel], pat.subset(sel), wt * rho[sel] * A[sel])
+            if sectioned[sel][0]:  # one PBAR: every element of the pid is sectioned or none
+                sec = prop["A"][pr], prop["I1"][pr], prop["I2"][pr]
+                for k, fld in enumerate(("A", "I1", "I2")):
+                    col.add("K", [(("MAT1", mid, "E"), 1), (("PBAR", int(pid), fld), 1)],
+                            lab + (" axial", " bending 1", " bending 2")[k], parts[k][sel], pat.subset(sel),
+                            E[sel] * sec[k][sel])
+                col.add("K", [_g_factor(mid, bool(follows[sel][0])), (("PBAR", int(pid), "J"), 1)], lab + " torsion",
+                        kG[sel], pat.subset(sel), G[sel])
+                col.add("M", [(("MAT1", mid, "RHO"), 1), (("PBAR", int(pid), "A"), 1)], lab + " mass", mu[sel],
+                        pat.subset(sel), wt * rho[sel] * A[sel])
+            else:
+                col.add("K", [(("MAT1", mid, "E"), 1)], lab + " axial+bending", kE[sel], pat.subset(sel), E[sel])
+                col.add("K", [_g_factor(mid, bool(follows[sel][0]))], lab + " torsion", kG[sel], pat.subset(sel),
+                        G[sel])
+                col.add("M", [(("MAT1", mid, "RHO"), 1)], lab + " mass", mu[sel], pat.subset(sel),
+                        wt * rho[sel] * A[sel])
             if mt is not None:
                 col.add("M", [(("MAT1", mid, "RHO"), 1)], lab + " torsional inertia", mt[sel], pat.subset(sel), wt * rho[sel])
             if np.any(nsm[sel] != 0):
                 col.add("M", [], lab + " NSM", mu[sel], pat.subset(sel), wt * nsm[sel])
+
+
+def _shear_flexible(k) -> np.ndarray:
+    """Sections with a shear factor K1/K2 (Timoshenko: phi > 0), as :func:`beam_matrices` reads them."""
+    k = np.asarray(k, float)
+    return np.isfinite(k) & (k > 0)
 
 
 def _add_rods(model, col, cd_axes, wt):

@@ -153,6 +153,17 @@ def _nominal_from_model(params: ParameterSet, fe, source) -> list[np.ndarray]:
             elif card == "CELAS2":
                 tab, r = table(fe.elements, "CELAS2", prm, key)
                 v = tab["k"][r]
+            elif card == "PBAR":
+                tab, r = table(fe.properties, "PBAR", prm, key)
+                if tab["card"][r] != "PBAR":
+                    raise ParameterError(f"{where}parameter {prm.name!r}: property {cid} is a {tab['card'][r]}; "
+                                         f"{fld} is a parameter of PBAR sections only (a {tab['card'][r]} section's "
+                                         "A, I and J are not monomials of its fields)")
+                if np.isfinite(tab["k1"][r]) and tab["k1"][r] > 0 or np.isfinite(tab["k2"][r]) and tab["k2"][r] > 0:
+                    raise ParameterError(f"{where}parameter {prm.name!r}: PBAR {cid} has shear factors K1/K2: its "
+                                         f"bending stiffness is not a monomial of {fld} (Timoshenko); leave K1, K2 "
+                                         "blank (Nastran's default, no shear flexibility) to calibrate its section")
+                v = tab[fld][r]
             elif card == "CMASS2":
                 tab, r = table(fe.elements, "CMASS2", prm, key)
                 v = tab["m"][r] * wt

@@ -68,6 +68,10 @@ SUPPORTED_FIELDS: dict[tuple[str, str], str] = {
     ("CELAS2", "K"): "spring",
     ("PMASS", "M"): "scalar_mass",
     ("CMASS2", "M"): "scalar_mass",
+    ("PBAR", "A"): "area",
+    ("PBAR", "I1"): "area_moment",
+    ("PBAR", "I2"): "area_moment",
+    ("PBAR", "J"): "area_moment",
 }
 
 #: Kinds whose unit follows the components the scalar element joins (translational, rotational).
@@ -89,6 +93,8 @@ UNITS: dict[str, dict[str, float]] = {
     "density": {"kg/m^3": 1.0, "g/cm^3": 1e3, "t/m^3": 1e3, "kg/mm^3": 1e9, "t/mm^3": 1e12,
                 "lbf*s^2/in^4": _SLINCH / _INCH_M**3},
     "length": {"m": 1.0, "cm": 1e-2, "mm": 1e-3, "in": _INCH_M},
+    "area": {"m^2": 1.0, "cm^2": 1e-4, "mm^2": 1e-6, "in^2": _INCH_M**2},
+    "area_moment": {"m^4": 1.0, "cm^4": 1e-8, "mm^4": 1e-12, "in^4": _INCH_M**4},
     "mass": {"kg": 1.0, "g": 1e-3, "t": 1e3, "lbf*s^2/in": _SLINCH},
     "trans_spring": {"N/m": 1.0, "N/mm": 1e3, "kN/m": 1e3, "kN/mm": 1e6, "lbf/in": _LBF_N / _INCH_M},
     "rot_spring": {"N*m/rad": 1.0, "N*mm/rad": 1e-3, "kN*m/rad": 1e3, "lbf*in/rad": _LBF_N * _INCH_M},
@@ -473,7 +479,7 @@ def read_parameters(path) -> ParameterSet:
 def _container(model, card: str) -> dict:
     if card == "MAT1":
         return model.materials
-    if card in ("PSHELL", "PBUSH", "PELAS"):
+    if card in ("PSHELL", "PBUSH", "PELAS", "PBAR"):
         return model.properties
     if card == "PMASS":
         return model.properties_mass
@@ -503,6 +509,8 @@ def get_deck_value(obj, fld: str) -> float | None:
         return obj.t
     if t in ("CONM2", "CMASS2", "PMASS"):
         return obj.mass
+    if t == "PBAR":
+        return {"A": obj.A, "I1": obj.i1, "I2": obj.i2, "J": obj.j}[fld]
     if t == "PBUSH":
         i = int(fld[1]) - 1
         return obj.Ki[i] if len(obj.Ki) > i else None
@@ -525,6 +533,8 @@ def set_deck_value(obj, fld: str, value: float) -> None:
         obj.t = value
     elif t in ("CONM2", "CMASS2", "PMASS"):
         obj.mass = value
+    elif t == "PBAR":
+        setattr(obj, {"A": "A", "I1": "i1", "I2": "i2", "J": "j"}[fld], value)
     elif t == "PBUSH":
         obj.Ki[int(fld[1]) - 1] = value
     elif t in ("PELAS", "CELAS2"):
@@ -578,6 +588,8 @@ def si_factor(model, key, units: str, source=None) -> float:
         "stress": Mu / L,
         "density": Mu / L**3 * wtmass,
         "length": L,
+        "area": L**2,
+        "area_moment": L**4,
         "mass": Mu * wtmass,
         "rot_mass": Mu * L**2 * wtmass,
         "trans_spring": Mu,

@@ -1,0 +1,114 @@
+"""PBAR A, I1, I2, J as calibration parameters of CBAR frames.
+
+A CBAR's stiffness is E A (axial), E I1 and E I2 (the two bending planes)
+and G J (torsion) times fixed matrices when the section has no shear factors
+(Nastran's default), with pin flags condensed block by block; its mass is
+rho A. The parametric model must therefore equal, to round-off, the
+assembly of the deck written back at any p (the same check as every other
+parameter kind), with offsets, pins, both mass formulations and mm-t-s.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from femodel import assemble, parametric_model, read_bdf
+from femodel._params import ParameterError, parameters_from_dict
+
+# a free-free planar-ish frame: four CBARs of two PBARs, one with end offsets, one with a pin, a CONM2
+FRAME = """SOL 103
+CEND
+BEGIN BULK
+{coupmass}GRID,1,,0.,0.,0.
+GRID,2,,500.,0.,0.
+GRID,3,,500.,300.,0.
+GRID,4,,0.,300.,40.
+GRID,5,,250.,150.,20.
+MAT1,1,210000.,,0.3,7.85-9
+MAT1,2,70000.,26000.,0.33,2.7-9
+PBAR,10,1,120.,2400.,1500.,3000.,0.
+PBAR,11,2,80.,900.,1100.,1600.,0.1-6
+{pbarl}CBAR,100,10,1,2,0.,0.,1.
+CBAR,101,10,2,3,0.,0.,1.,,
+,,,0.,0.,5.,0.,0.,5.
+CBAR,102,11,3,4,0.,0.,1.,,
+,,56,
+CBAR,103,11,4,1,0.,0.,1.
+CBAR,104,10,1,5,0.,0.,1.
+CONM2,200,5,,0.002
+ENDDATA
+"""
+
+
+def _frame(tmp_path, coupmass=False, pbarl=""):
+    path = tmp_path / "frame.bdf"
+    path.write_text(FRAME.format(coupmass="PARAM,COUPMASS,1\n" if coupmass else "", pbarl=pbarl))
+    return path
+
+
+def _params(path, extra=()):
+    return parameters_from_dict({"model": {"bdf": str(path), "units": "mm-t-s"}, "parameter": [
+        {"name": "A10", "card": "PBAR", "id": 10, "field": "A", "lower": -0.5, "upper": 0.5,
+         "nominal": 1.2e-4, "unit": "m^2"},
+        {"name": "I1_10", "card": "PBAR", "id": 10, "field": "I1", "lower": -0.5, "upper": 0.5,
+         "nominal": 2400.0, "unit": "mm^4"},
+        {"name": "I2_10", "card": "PBAR", "id": 10, "field": "I2", "lower": -0.5, "upper": 0.5},
+        {"name": "J10", "card": "PBAR", "id": 10, "field": "J", "lower": -0.5, "upper": 0.5},
+        {"name": "I1_11", "card": "PBAR", "id": 11, "field": "I1", "lower": -0.5, "upper": 0.5},
+        {"name": "A11", "card": "PBAR", "id": 11, "field": "A", "lower": -0.5, "upper": 0.5},
+        {"name": "E1", "card": "MAT1", "id": 1, "field": "E", "lower": -0.3, "upper": 0.3},
+        *extra]})
+
+
+def _rel(a, b) -> float:
+    return float(abs(a - b).max() / abs(b).max())
+
+
+@pytest.mark.parametrize("coupmass", [False, True], ids=["lumped", "coupled"])
+def test_pbar_section_parameters_equal_the_written_back_deck(tmp_path, coupmass):
+    path = _frame(tmp_path, coupmass)
+    pm = parametric_model(_params(path))
+    asm0 = assemble(read_bdf(path, units="mm-t-s"))
+    assert _rel(pm.stiffness(np.zeros(7)), asm0.stiffness()) < 1e-14
+    p = np.array([0.3, -0.2, 0.15, -0.4, 0.25, -0.1, 0.05])
+    out = pm.write_bdf(tmp_path / "p.bdf", p)
+    asm = assemble(read_bdf(out, units="mm-t-s"))
+    assert _rel(pm.stiffness(p), asm.stiffness()) < 1e-13
+    assert _rel(pm.mass(p), asm.mass()) < 1e-13
+    prop = read_bdf(out, units="mm-t-s").properties["PBAR"]
+    r10, r11 = prop.rows([10])[0], prop.rows([11])[0]
+    assert prop["A"][r10] == pytest.approx(1.3 * 120e-6, rel=1e-12)
+    assert prop["I1"][r10] == pytest.approx(0.8 * 2400e-12, rel=1e-12)
+    assert prop["J"][r10] == pytest.approx(0.6 * 3000e-12, rel=1e-12)
+    assert prop["I1"][r11] == pytest.approx(1.25 * 900e-12, rel=1e-12)
+    # the derivative in I1 of PBAR 10 is what doubling I1 on the card adds (a hand-edited deck, not the
+    # write-back), and the mass does not depend on it
+    doubled = tmp_path / "doubled.bdf"
+    doubled.write_text(path.read_text().replace("PBAR,10,1,120.,2400.,", "PBAR,10,1,120.,4800.,"))
+    added = assemble(read_bdf(doubled, units="mm-t-s")).stiffness() - asm0.stiffness()
+    assert _rel(pm.dK(np.zeros(7), 1), added) < 1e-12
+    assert abs(pm.dM(np.zeros(7), 1)).max() == 0.0
+
+
+def test_section_parameters_of_shear_flexible_or_pbarl_sections_are_refused(tmp_path):
+    path = tmp_path / "k.bdf"
+    path.write_text(FRAME.format(coupmass="", pbarl="").replace(
+        "PBAR,10,1,120.,2400.,1500.,3000.,0.", "PBAR,10,1,120.,2400.,1500.,3000.,0.\n,,,,,,,,\n,0.83,0.83"))
+    with pytest.raises(ParameterError, match=r"PBAR 10 has shear factors K1/K2: its bending stiffness is not a "
+                                             r"monomial of A"):
+        parametric_model(_params(path))
+    pbarl = "PBARL,12,1,,BAR\n,10.,12.\n"
+    path = _frame(tmp_path, pbarl=pbarl)
+    path.write_text(path.read_text().replace("CBAR,104,10,", "CBAR,104,12,"))
+    with pytest.raises(ParameterError, match=r"property 12 is a PBARL; I1 is a parameter of PBAR sections only"):
+        parametric_model(_params(path, [{"name": "I12", "card": "PBAR", "id": 12, "field": "I1", "lower": -0.5,
+                                         "upper": 0.5}]))
+
+
+def test_section_units_are_checked(tmp_path):
+    path = _frame(tmp_path)
+    with pytest.raises(ParameterError, match=r"nominal = 2400.0 mm\^2 .*|unit 'mm\^2' is not a unit of PBAR I1"):
+        parameters_from_dict({"model": {"bdf": str(path), "units": "mm-t-s"}, "parameter": [
+            {"name": "I", "card": "PBAR", "id": 10, "field": "I1", "lower": -0.5, "upper": 0.5, "nominal": 2400.0,
+             "unit": "mm^2"}]})
