@@ -140,6 +140,46 @@ def _index(lookup, names, what, path):
     return [lookup[n] for n in names]
 
 
+def _same_point(a, b) -> bool:
+    return int(a.grid) == int(b.grid) and np.allclose(np.asarray(a.direction, float), np.asarray(b.direction, float),
+                                                       atol=1e-6)
+
+
+def _by_point(channels, names, first: dict, what: str, path, log) -> list:
+    """Indices of ``names`` among a run's ``channels``: by name, else by the point (grid and direction) the
+    name has in the campaign's first run.
+
+    Run files imported per article often name one point differently (a UFF entity name that carries the
+    transducer's serial number: ``PCB-1234 (101+Z)`` in one file, ``PCB-5678 (101+Z)`` in the next): the
+    campaign's names are the first run's, and another run's channel at the same grid and direction is that
+    channel (logged). A name found in the run at another point is used as named, with a warning.
+    """
+    lookup = {c.name: i for i, c in enumerate(channels)}
+    out, missing = [], []
+    for n in names:
+        ref = first.get(n)
+        if n in lookup:
+            if ref is not None and not _same_point(channels[lookup[n]], ref):
+                c = channels[lookup[n]]
+                log(f"{Path(path).name}: warning: {what[:-1]} {n!r} is at grid {c.grid}, direction "
+                    f"{tuple(c.direction)} here but at grid {ref.grid}, direction {tuple(ref.direction)} in the "
+                    "first run; the model uses the first run's point")
+            out.append(lookup[n])
+            continue
+        hits = [] if ref is None else [i for i, c in enumerate(channels) if _same_point(c, ref)]
+        if len(hits) == 1:
+            log(f"{Path(path).name}: {what[:-1]} {n!r} is {channels[hits[0]].name!r} here (same grid {ref.grid}, "
+                f"direction {tuple(ref.direction)})")
+            out.append(hits[0])
+        else:
+            missing.append(n if ref is None else f"{n} (grid {ref.grid}, direction {tuple(ref.direction)}: "
+                                                 f"{len(hits)} channels there)")
+    if missing:
+        raise CalibrationError(f"{path}: {what} {missing} are not {what} of the run, by name or by point "
+                               f"(has {sorted(lookup)})")
+    return out
+
+
 def load_stage(camp: Campaign, log=print) -> LoadResult:
     """Read every run file once: select channels, drives and band, find pairs without signal.
 
@@ -156,12 +196,18 @@ def load_stage(camp: Campaign, log=print) -> LoadResult:
     names = list(ch.calibrate) + list(ch.holdout)
     lo, hi = camp.band.low_hz, camp.band.high_hz
     out, geometry = [], None
+    first_sensors, first_drives, drive_names = {}, {}, None
     for entry in camp.run:
         path = camp.resolve(entry.path)
         run = read_run(path)
-        rows = _index({s.name: i for i, s in enumerate(run.sensors)}, names, "sensors", path)
-        dl = {d.name: i for i, d in enumerate(run.drives)}
-        cols = list(range(len(run.drives))) if not ch.drives else _index(dl, ch.drives, "drives", path)
+        rows = _by_point(run.sensors, names, first_sensors, "sensors", path, log)
+        wanted = list(ch.drives) if ch.drives else drive_names
+        cols = list(range(len(run.drives))) if wanted is None else _by_point(run.drives, wanted, first_drives,
+                                                                             "drives", path, log)
+        if not first_sensors:
+            first_sensors = {n: run.sensors[r] for n, r in zip(names, rows)}
+            first_drives = {run.drives[c].name: run.drives[c] for c in cols}
+            drive_names = [run.drives[c].name for c in cols] if len(cols) == len(run.drives) else None
         f = np.asarray(run.frequency_hz, float)
         valid = np.asarray(run.valid, bool)
         inband = (f >= lo) & (f <= hi)
@@ -182,7 +228,7 @@ def load_stage(camp: Campaign, log=print) -> LoadResult:
             raise CalibrationError(
                 f"{path}: {bad.sum()} valid line(s) hold NaN/inf (first at {f[sel][bad][0]:.3f} Hz): flag them invalid"
             )
-        drives = tuple(run.drives[c].name for c in cols)
+        drives = tuple(list(first_drives)[k] for k in range(len(cols)))  # the first run's names
         sig = signal_pairs(f[sel], H, se)
         for line in sig.describe(names, drives):
             log(f"{path.name}: {line}: left out of calibration and validation")
@@ -192,7 +238,9 @@ def load_stage(camp: Campaign, log=print) -> LoadResult:
         if camp.identification.use_stored and "identification" in (run.analyses or ()):
             cand = Identification.from_arrays(*read_analysis(path, "identification"))
             if cand.model.n_out == len(run.sensors) and cand.model.n_in == len(run.drives):
-                stored, stored_channels = cand, tuple(s.name for s in run.sensors)
+                # its rows in the campaign's names where a channel was matched by point
+                alias = {run.sensors[r].name: n for n, r in zip(names, rows)}
+                stored, stored_channels = cand, tuple(alias.get(s.name, s.name) for s in run.sensors)
         if geometry is None:
             spec = {s.name: s for s in run.sensors}
             geometry = (tuple(Transducer(n, int(spec[n].grid), tuple(spec[n].direction)) for n in names),

@@ -165,3 +165,57 @@ def test_stages_compose_and_keep_the_final_basis(staged):
     Mr = m.basis.T @ (model.M.at(m.surrogate.p_basis) @ m.basis)
     np.testing.assert_allclose(Mr, np.eye(m.surrogate.size), atol=1e-8)
     np.testing.assert_allclose(m.p, [r["p"] for r in first["members"][0]["parameters"]], rtol=0.02, atol=2e-3)
+
+
+def _renamed_copy(src, dst, rename, move=None):
+    """``src`` as a new run file whose sensors/drives carry other names (``rename``: old -> new), and
+    optionally a sensor moved to another grid (``move``: (name, grid))."""
+    from acquisition.runfile import ChannelSpec, LineQuality, create_run, read_run
+
+    run = read_run(src)
+
+    def spec(c, role):
+        grid = move[1] if move and c.name == move[0] else c.grid
+        return ChannelSpec(name=rename.get(c.name, c.name), role=role, quantity=c.quantity, unit=c.unit, grid=grid,
+                           direction=tuple(c.direction))
+
+    sensors = [spec(c, "response") for c in run.sensors]
+    drives = [spec(c, "force") for c in run.drives]
+    with create_run(dst, article="SF2", sensors=sensors, drives=drives, overwrite=True) as w:
+        for k, fk in enumerate(run.frequency_hz):
+            q = LineQuality(force_n=np.ones(len(drives)), std_error=np.asarray(run.std_error)[k],
+                            thd=np.zeros(len(sensors) + len(drives)), flags=int(np.asarray(run.flags)[k]))
+            w.append_line(float(fk), np.asarray(run.frf)[k], q)
+    return dst
+
+
+def test_runs_naming_one_point_differently_are_matched_by_grid_and_direction(staged, tmp_path):
+    """Per-article files often name a point after the transducer's serial number: another run's channel at
+    the first run's grid and direction is that channel (logged); a name at no such point is refused."""
+    from frfcal.campaign import load_stage
+
+    camp, _ = staged
+    first = camp.resolve(camp.run[0].path)
+    rename = {"acc2": "PCB-5678 (acc2)", "acc9": "PCB-9999 (acc9)", "force": "shaker SN12"}
+    second = _renamed_copy(first, tmp_path / "run2.h5", rename)
+    two = camp.model_copy(update={"run": [camp.run[0], camp.run[0].model_copy(update={"path": second})]})
+    lines = []
+    load = load_stage(two, lines.append)
+    a, b = load.articles
+    assert a.channels == b.channels == tuple(camp.channels.calibrate) + tuple(camp.channels.holdout)
+    assert a.drives == b.drives == ("force",)
+    np.testing.assert_array_equal(a.frf, b.frf)
+    assert any("sensor 'acc2' is 'PCB-5678 (acc2)' here" in ln for ln in lines), lines
+    assert any("drive 'force' is 'shaker SN12' here" in ln for ln in lines), lines
+    # the renamed channel at another point: neither its name nor its point is in the run
+    moved = _renamed_copy(first, tmp_path / "run3.h5", rename, move=("acc2", 10**9))
+    bad = camp.model_copy(update={"run": [camp.run[0], camp.run[0].model_copy(update={"path": moved})]})
+    with pytest.raises(CalibrationError, match=r"run3.h5: sensors \['acc2 \(grid \d+, direction .*: 0 channels "
+                                               r"there\)'\] are not sensors of the run, by name or by point"):
+        load_stage(bad, lines.append)
+    # the same name at another point: used as named, with a warning (the model has the first run's point)
+    shifted = _renamed_copy(first, tmp_path / "run4.h5", {}, move=("acc2", 10**9))
+    odd = camp.model_copy(update={"run": [camp.run[0], camp.run[0].model_copy(update={"path": shifted})]})
+    lines.clear()
+    load_stage(odd, lines.append)
+    assert any("warning: sensor 'acc2' is at grid 1000000000" in ln for ln in lines), lines
