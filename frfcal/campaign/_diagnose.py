@@ -770,10 +770,20 @@ def _accept_member(camp, load, pm, model, articles, m, check, rows, ctx, quantit
                  "n_independent_residuals": n_res, "residual": check_after.to_dict(),
                  "p_refined": dict(zip(pm.names, np.asarray(x_ref[:pm.n_params], float).tolist()))}
         n_p = pm.n_params
+        idf = None
+        if ref is not None:  # what the raw lines tell of the refined sizes (the calibrate stage's identifiability)
+            idf = effect_identifiability(camp, arts, sur_ref, x_ref, ref, fit_acc.lower, fit_acc.upper,
+                                         list(pm.names) + [a["name"] for a in accepted], quantity)
         for j, a in enumerate(accepted):  # the refined magnitudes (raw lines, estimated damping) are reported
             cd = ctx["cands"][[cd.name for cd in ctx["cands"]].index(a["name"])]
             a["c_equalized"], a["c"] = a["c"], float(x_ref[n_p + j])
             a["value"], a["unit"], a["size"] = _physical(cd.term, a["c"])
+            if idf is not None:
+                a.update(_size_uncertainty(idf, n_p + j, a["c"]))
+                log(f"[{m.label}] {a['name']}: refined size {a['size']}, "
+                    + (f"standard deviation from the noise {a['size_std_percent']:.3g} % (model error not "
+                       "included)" if a["size_std_percent"] is not None else "standard deviation not resolved")
+                    + ("" if a["size_identifiable"] else f": {a['size_identifiability']}"))
         # an effect accepted on the screening's target may be refined on the raw lines to a size the data do not
         # see (a spring at 1e-37 N/m): dropped, and reported as such
         sizes = refined_sizes(camp, arts, sur_ref, x_ref, damping, n_p, accepted, n_res, quantity)
@@ -1006,6 +1016,42 @@ def _refined(camp, pm, model, articles, m, fit, extended_terms, quantity, log):
     return ref, h, ref.p, sur
 
 
+def effect_identifiability(camp, arts, sur, x, ref, lower, upper, names, quantity):
+    """:func:`calibration.identifiability` of the extended model at its refined point ``x``, from the raw-line
+    objective the refinement ``ref`` ended on (its estimated damping, each article's lines), as the calibrate
+    stage reports the parameters'."""
+    from calibration import ModalDampingObjective, identifiability
+
+    from frfcal.campaign._stages import raw_data
+
+    raw = [raw_data(a, camp.channels.calibrate) for a in arts]
+    obj = ModalDampingObjective(sur, raw, ref.zeta, ref.p_zeta, 0.0, quantity)
+    stride = raw[0].frf.shape[1] * raw[0].frf.shape[2]
+    return identifiability(obj.jacobian(x), obj.residual(x), x, lower, upper, names, stride=stride)
+
+
+def _size_uncertainty(idf, k: int, c: float) -> dict:
+    """An accepted effect's size as the data resolve it: its standard deviation relative to the size (%,
+    None when unresolved), identifiable or not and why, its largest correlation and with what."""
+    std = float(idf.std[k])
+    corr = np.asarray(idf.correlation[k], float).copy()
+    corr[k] = np.nan
+    j = int(np.nanargmax(np.abs(corr))) if np.any(np.isfinite(corr)) else None
+    return {"size_std_percent": 100.0 * std / abs(c) if np.isfinite(std) and c else None,
+            "size_identifiable": bool(idf.identifiable[k]),
+            "size_identifiability": idf.reasons[k] or "identifiable",
+            "size_max_correlation": None if j is None else {"with": idf.names[j], "value": float(corr[j])}}
+
+
+def _size_words(a: dict) -> str:
+    """" (+-12 %)" or " (size not identifiable: ...)" after an accepted effect's size, "" without an estimate."""
+    if "size_identifiable" not in a:
+        return ""
+    if not a["size_identifiable"]:
+        return f" (size not identifiable from these channels: {a['size_identifiability']})"
+    return f" (+-{a['size_std_percent']:.2g} % from the noise, 1 s.d.)" if a["size_std_percent"] is not None else ""
+
+
 def _holdout_at(camp, arts, sur, x, quantity, damping, channels) -> float:
     """SD of (sur, x) on the raw lines of ``channels`` with ``damping`` ((zeta per article, p_ref) as the
     refinement estimated it, or None: the identified damping mapped by MAC); the floor's standard errors as
@@ -1149,7 +1195,8 @@ def diagnose_stage(camp: Campaign, load, pm, model, articles, eq, cal, val, xval
                             fit[1])
                 frfs_after = fit[2]
                 fits.append((m, acc, fit[0], extended[0], fit[3]))
-                reason = "accepted: " + "; ".join(f"{a['description']}: {a['size']}" for a in acc) + negl
+                reason = "accepted: " + "; ".join(f"{a['description']}: {a['size']}{_size_words(a)}"
+                                                  for a in acc) + negl
             elif dropped:
                 verdict = "no effect accepted"
                 reason = (f"the residual is significant ({check.ratio:.3g} x the floor) and no nonlinearity is "

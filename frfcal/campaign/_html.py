@@ -157,6 +157,16 @@ def _plain(x) -> str:
     return str(x)
 
 
+def _sd_cell(a: dict) -> str:
+    """An accepted effect's size uncertainty: "12" (% of the size, 1 s.d.), "not identifiable: ...", or ""."""
+    if "size_identifiable" not in a:
+        return ""
+    if not a["size_identifiable"]:
+        return "not identifiable: " + str(a.get("size_identifiability", ""))
+    v = a.get("size_std_percent")
+    return "" if v is None else f"{v:.2g}"
+
+
 def _table(header, rows, bad_rows=()) -> str:
     """An HTML table; numbers right-aligned and formatted to 4 significant digits."""
     out = ["<table><thead><tr>" + "".join(f"<th>{_esc(h)}</th>" for h in header) + "</tr></thead><tbody>"]
@@ -533,8 +543,9 @@ def _diagnosis_member(camp, m) -> str:
               ("accepted: " if t["decision"]["accepted"] else "not accepted: ") + str(t["decision"].get("reason", ""))
               if "decision" in t else "not decided (a better combination was taken)") for t in m.trials]))
     if m.accepted:
-        out.append("<h4>Accepted</h4>" + _table(("family", "name", "size", "description"),
-                                                [(a["family"], a["name"], a["size"], a["description"])
+        out.append("<h4>Accepted</h4>" + _table(("family", "name", "size", "s.d. % (noise)", "description"),
+                                                [(a["family"], a["name"], a["size"],
+                                                  _sd_cell(a), a["description"])
                                                  for a in m.accepted]))
         bdf = camp.resolve(camp.output.dir) / f"extended_{m.label}.bdf"
         if bdf.exists():

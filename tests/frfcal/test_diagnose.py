@@ -260,6 +260,11 @@ def test_the_unmodelled_mass_is_accepted_and_brings_the_holdout_to_the_floor(lum
     (a,) = m["accepted"]  # one effect, nothing more accepted after it
     assert a["family"] == "lumped_mass" and a["unit"] == "kg"
     assert a["value"] == pytest.approx(eff.value, rel=0.2)
+    # what the raw lines resolve of it: identifiable, a noise standard deviation of 0.068 % (its error, 0.36 %,
+    # is mostly not noise: the s.d. is a lower bound, and is said to come from the noise)
+    assert a["size_identifiable"] and 0 < a["size_std_percent"] < 1.0
+    assert a["size_max_correlation"]["with"] in pm.names
+    assert f"{a['size']} (+-{a['size_std_percent']:.2g} % from the noise, 1 s.d.)" in m["reason"]
     dec = a["decision"]
     assert dec["accepted"] and dec["holdout_ratio"] < dec["penalty_ratio"]
     assert dec["cv_improvement"] > dec["cv_scatter"]
