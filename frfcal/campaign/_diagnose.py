@@ -1043,7 +1043,7 @@ def _size_uncertainty(idf, k: int, c: float) -> dict:
             "size_max_correlation": None if j is None else {"with": idf.names[j], "value": float(corr[j])}}
 
 
-def _size_words(a: dict) -> str:
+def size_words(a: dict) -> str:
     """" (+-12 %)" or " (size not identifiable: ...)" after an accepted effect's size, "" without an estimate."""
     if "size_identifiable" not in a:
         return ""
@@ -1195,7 +1195,7 @@ def diagnose_stage(camp: Campaign, load, pm, model, articles, eq, cal, val, xval
                             fit[1])
                 frfs_after = fit[2]
                 fits.append((m, acc, fit[0], extended[0], fit[3]))
-                reason = "accepted: " + "; ".join(f"{a['description']}: {a['size']}{_size_words(a)}"
+                reason = "accepted: " + "; ".join(f"{a['description']}: {a['size']}{size_words(a)}"
                                                   for a in acc) + negl
             elif dropped:
                 verdict = "no effect accepted"

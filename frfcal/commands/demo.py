@@ -292,6 +292,8 @@ def closing_summary(res: dict, checks: dict | None = None) -> tuple[list, dict]:
     (lines, headline) : list of str, dict
         SD values are the toolkit's relative log-magnitude deviation (docs/calibration.md), dimensionless.
     """
+    from frfcal.campaign._diagnose import size_words
+
     lines, head = [], {}
     report = res.get("report")
     lines.append(f"report: {report}  (one self-contained HTML page: open it in a browser)" if report else
@@ -339,7 +341,7 @@ def closing_summary(res: dict, checks: dict | None = None) -> tuple[list, dict]:
             lines.append(f"  diagnosis: {d['verdict']}")
             acc = d.get("accepted") or []
             for a in acc:
-                lines.append(f"    accepted: {a['family']} {a['name']}: {a['size']} ({a['description']})")
+                lines.append(f"    accepted: {a['family']} {a['name']}: {a['size']}{size_words(a)} ({a['description']})")
             if d["verdict"] not in ("nothing to explain", "nonlinear"):
                 for r in (d.get("ranked") or [])[:3]:
                     lines.append(f"    ranked {r['rank']}: {r['family']} {r['name']} ({r['size']}), explains "

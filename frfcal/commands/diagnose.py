@@ -44,6 +44,8 @@ def ranked_lines(rows) -> list:
 
 def print_diagnosis(d: dict, out) -> None:
     """The human-readable diagnosis (``d`` = the ``diagnosis`` entry of the result)."""
+    from frfcal.campaign._diagnose import size_words
+
     for g in d["gates"]:
         nl = g["nonlinearity"]
         levels = ", ".join(f"{_fmt(r['level_n'], '.3g')} N ({r['sweep']})" for r in g["runs"])
@@ -77,7 +79,7 @@ def print_diagnosis(d: dict, out) -> None:
             for line in ranked_lines(m["ranked"][:10]):
                 print(line, file=out)
         for a in m["accepted"]:
-            print(f"ACCEPTED: {a['description']}: {a['size']} (grids {', '.join(map(str, a['grids']))}; "
+            print(f"ACCEPTED: {a['description']}: {a['size']}{size_words(a)} (grids {', '.join(map(str, a['grids']))}; "
                   f"{', '.join(a['parts'])}): {a['decision']['reason']}", file=out)
             if len(a.get("tied", ())) > 1:
                 print(f"  place: the lowest hold-out SD of {len(a['tied'])} places the screening could not tell "
