@@ -413,13 +413,19 @@ def _diagnose(args, ex, sc, effects, camp, model, articles, eq, cal, pool, senso
                 from frfcal.campaign._diagnose import _refined
 
                 t1 = time.perf_counter()
-                ref, h_ref, x_ref, _ = _refined(camp, pm, model, articles, m, fit, [term], quantity,
-                                                lambda msg: print("  " + msg, flush=True))
+                ref, h_ref, x_ref, sur_ref = _refined(camp, pm, model, articles, m, fit, [term], quantity,
+                                                      lambda msg: print("  " + msg, flush=True))
                 prep["raw-line refinement of the chosen effect (as the diagnose stage)"] = time.perf_counter() - t1
                 c_ref = float(x_ref[pm.n_params])
                 refined = {"candidate": n, "c": c_ref, "value_each": physical(term, c_ref),
                            "holdout_sd_estimated_damping": h_ref,
                            "sd_raw": None if ref is None else float(ref.sd_raw)}
+                if ref is not None:  # what the raw lines resolve of the refined size (as the stage reports it)
+                    from frfcal.campaign._diagnose import _size_uncertainty, effect_identifiability
+
+                    idf = effect_identifiability(camp, [articles[i] for i in m.articles], sur_ref, x_ref, ref,
+                                                 fit.lower, fit.upper, list(pm.names) + [n], quantity, pm.n_params)
+                    refined.update(_size_uncertainty(idf, pm.n_params, c_ref))
                 sd_model[f"deck + {n}, refined on the raw lines (the campaign's answer)"] = sc.model_sd(
                     x_ref[:pm.n_params], 0, hold_ch, BAND, terms=[term], values=[physical(term, c_ref)])
         sd_model["truth (deck + true effect at p_true)"] = sc.model_sd(
@@ -459,6 +465,11 @@ def _diagnose(args, ex, sc, effects, camp, model, articles, eq, cal, pool, senso
         print(f"refined on the raw lines (the campaign's answer): {refined['candidate']} at {refined['value_each']:.4g}"
               f" per place, raw-line SD {refined['sd_raw']}, hold-out SD {refined['holdout_sd_estimated_damping']}"
               " (estimated damping)")
+        if "size_identifiable" in refined:
+            sd = refined["size_std_percent"]
+            print(f"  its size as the raw lines resolve it: "
+                  + (f"s.d. from the noise {sd:.3g} %" if sd is not None else "s.d. not resolved")
+                  + f", {refined['size_identifiability']}; largest correlation {refined['size_max_correlation']}")
     print()
     print(f"{'acceptance trial':<52}{'c':>18}{'hold-out SD':>13}{'/floor':>8}{'CV test':>11}  verdict")
     print(f"{'before (existing parameters re-fitted)':<52}{'':>18}{h_before:>13.4g}{h_before / floor:>8.2f}"

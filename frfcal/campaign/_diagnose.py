@@ -773,7 +773,7 @@ def _accept_member(camp, load, pm, model, articles, m, check, rows, ctx, quantit
         idf = None
         if ref is not None:  # what the raw lines tell of the refined sizes (the calibrate stage's identifiability)
             idf = effect_identifiability(camp, arts, sur_ref, x_ref, ref, fit_acc.lower, fit_acc.upper,
-                                         list(pm.names) + [a["name"] for a in accepted], quantity)
+                                         list(pm.names) + [a["name"] for a in accepted], quantity, pm.n_params)
         for j, a in enumerate(accepted):  # the refined magnitudes (raw lines, estimated damping) are reported
             cd = ctx["cands"][[cd.name for cd in ctx["cands"]].index(a["name"])]
             a["c_equalized"], a["c"] = a["c"], float(x_ref[n_p + j])
@@ -1016,10 +1016,19 @@ def _refined(camp, pm, model, articles, m, fit, extended_terms, quantity, log):
     return ref, h, ref.p, sur
 
 
-def effect_identifiability(camp, arts, sur, x, ref, lower, upper, names, quantity):
+#: An effect size inside its bounds is judged as a parameter of range +-EFFECT_RANGE of its value (its own
+#: bounds span decades, [0, 100 x scale]: range-relative thresholds would pass anything).
+EFFECT_RANGE = 0.5
+
+
+def effect_identifiability(camp, arts, sur, x, ref, lower, upper, names, quantity, n_p: int):
     """:func:`calibration.identifiability` of the extended model at its refined point ``x``, from the raw-line
     objective the refinement ``ref`` ended on (its estimated damping, each article's lines), as the calibrate
-    stage reports the parameters'."""
+    stage reports the parameters'.
+
+    The effect magnitudes (``x[n_p:]``) enter relative to their refined value, q = c / c* - 1 (so
+    ``std`` is a fraction of the size), with bounds +-:data:`EFFECT_RANGE`; an effect at its own bound (c at 0
+    or at its upper bound to 1e-9 of the range) keeps that bound and is reported at it."""
     from calibration import ModalDampingObjective, identifiability
 
     from frfcal.campaign._stages import raw_data
@@ -1027,17 +1036,36 @@ def effect_identifiability(camp, arts, sur, x, ref, lower, upper, names, quantit
     raw = [raw_data(a, camp.channels.calibrate) for a in arts]
     obj = ModalDampingObjective(sur, raw, ref.zeta, ref.p_zeta, 0.0, quantity)
     stride = raw[0].frf.shape[1] * raw[0].frf.shape[2]
-    return identifiability(obj.jacobian(x), obj.residual(x), x, lower, upper, names, stride=stride)
+    x = np.asarray(x, float)
+    J, v, lo, hi = relative_effects(obj.jacobian(x), x, lower, upper, n_p)
+    return identifiability(J, obj.residual(x), v, lo, hi, names, stride=stride)
+
+
+def relative_effects(jacobian, x, lower, upper, n_p: int) -> tuple:
+    """(J, x, lower, upper) with every effect magnitude ``x[n_p:]`` inside its bounds replaced by
+    q = c / c* - 1 at q = 0 (its Jacobian column times c*, bounds +-:data:`EFFECT_RANGE`); the parameters and
+    an effect at its bound (within 1e-9 of the range, or c* = 0) as given."""
+    J = np.array(jacobian, float)
+    x = np.asarray(x, float)
+    v, lo, hi = x.copy(), np.array(lower, float), np.array(upper, float)
+    for k in range(n_p, x.size):
+        span = hi[k] - lo[k]
+        if x[k] - lo[k] > 1e-9 * span and hi[k] - x[k] > 1e-9 * span and x[k] != 0:
+            J[:, k] *= x[k]
+            v[k], lo[k], hi[k] = 0.0, -EFFECT_RANGE, EFFECT_RANGE
+    return J, v, lo, hi
 
 
 def _size_uncertainty(idf, k: int, c: float) -> dict:
-    """An accepted effect's size as the data resolve it: its standard deviation relative to the size (%,
-    None when unresolved), identifiable or not and why, its largest correlation and with what."""
+    """An accepted effect's size as the data resolve it (``idf`` from :func:`effect_identifiability`): its
+    standard deviation relative to the size (%, None when unresolved or at a bound), identifiable or not and
+    why, its largest correlation and with what."""
     std = float(idf.std[k])
     corr = np.asarray(idf.correlation[k], float).copy()
     corr[k] = np.nan
     j = int(np.nanargmax(np.abs(corr))) if np.any(np.isfinite(corr)) else None
-    return {"size_std_percent": 100.0 * std / abs(c) if np.isfinite(std) and c else None,
+    relative = idf.at_bound[k] == 0
+    return {"size_std_percent": 100.0 * std if np.isfinite(std) and relative and c else None,
             "size_identifiable": bool(idf.identifiable[k]),
             "size_identifiability": idf.reasons[k] or "identifiable",
             "size_max_correlation": None if j is None else {"with": idf.names[j], "value": float(corr[j])}}

@@ -417,3 +417,27 @@ def test_gap_closed_on_three_articles_open_on_two_groups_and_the_contact_separat
         assert per[art] == pytest.approx(eff.value, rel=0.05)
     for art in ("A4", "A5"):
         assert abs(per[art]) < 0.01 * eff.value
+
+
+def test_effect_size_identifiability_is_relative_to_the_size():
+    """An effect's bounds span decades ([0, 100] in c): at c = 0.07 it is not "at the lower bound" (the
+    range-relative rule of the parameters would say so), and its s.d. is a fraction of the size; at c = 0
+    it is at the bound."""
+    from calibration import identifiability
+    from frfcal.campaign._diagnose import _size_uncertainty, relative_effects
+
+    rng = np.random.default_rng(4)
+    A = rng.standard_normal((400, 3))
+    x = np.array([0.02, -0.01, 0.07])
+    r = 1e-3 * rng.standard_normal(400)
+    lower, upper = np.array([-0.3, -0.3, 0.0]), np.array([0.3, 0.3, 100.0])
+    raw = identifiability(A, r, x, lower, upper, ("p1", "p2", "k"))
+    assert raw.at_bound[2] == -1  # the parameters' rule on the effect's raw bounds
+    J, v, lo, hi = relative_effects(A, x, lower, upper, 2)
+    rel = identifiability(J, r, v, lo, hi, ("p1", "p2", "k"))
+    assert rel.at_bound[2] == 0 and rel.identifiable[2]
+    u = _size_uncertainty(rel, 2, 0.07)
+    assert u["size_std_percent"] == pytest.approx(100 * raw.std[2] / 0.07, rel=1e-6)
+    at0 = identifiability(*relative_effects(A, np.array([0.02, -0.01, 0.0]), lower, upper, 2)[:1], r,
+                          np.array([0.02, -0.01, 0.0]), lower, upper, ("p1", "p2", "k"))
+    assert at0.at_bound[2] == -1 and _size_uncertainty(at0, 2, 0.0)["size_std_percent"] is None
