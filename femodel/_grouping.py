@@ -167,30 +167,19 @@ def _nominal_from_model(params: ParameterSet, fe, source) -> list[np.ndarray]:
             elif card == "CMASS2":
                 tab, r = table(fe.elements, "CMASS2", prm, key)
                 v = tab["m"][r] * wt
-            elif card == "PMASS":
-                table(fe.properties, "PMASS", prm, key)
-                el = fe.elements.get("CMASS1")
-                ms = np.array([]) if el is None else el["m"][el["pid"] == cid]
-                if ms.size == 0:
-                    raise ParameterError(f"{where}parameter {prm.name!r}: PMASS {cid} is used by no CMASS1")
-                if not np.allclose(ms, ms[0], rtol=1e-12, atol=0.0):
+            elif card in ("PMASS", "PELAS"):
+                table(fe.properties, card, prm, key)
+                el_card, f = ("CMASS1", "m") if card == "PMASS" else ("CELAS1", "k")
+                el = fe.elements.get(el_card)
+                vs = np.array([]) if el is None else el[f][el["pid"] == cid]
+                if vs.size == 0:
+                    raise ParameterError(f"{where}parameter {prm.name!r}: {card} {cid} is used by no {el_card}")
+                if not np.allclose(vs, vs[0], rtol=1e-12, atol=0.0):
                     raise ParameterError(
-                        f"{where}parameter {prm.name!r}: PMASS {cid} masses join translational and rotational "
-                        "components; its SI value is ambiguous"
+                        f"{where}parameter {prm.name!r}: {card} {cid} {el_card} elements join translational and "
+                        "rotational components; its SI value is ambiguous"
                     )
-                v = ms[0] * wt
-            elif card == "PELAS":
-                table(fe.properties, "PELAS", prm, key)
-                el = fe.elements.get("CELAS1")
-                ks = np.array([]) if el is None else el["k"][el["pid"] == cid]
-                if ks.size == 0:
-                    raise ParameterError(f"{where}parameter {prm.name!r}: PELAS {cid} is used by no CELAS1")
-                if not np.allclose(ks, ks[0], rtol=1e-12, atol=0.0):
-                    raise ParameterError(
-                        f"{where}parameter {prm.name!r}: PELAS {cid} springs mix translational and rotational "
-                        "components; its SI value is ambiguous"
-                    )
-                v = ks[0]
+                v = vs[0] * (wt if card == "PMASS" else 1.0)
             else:  # pragma: no cover - guarded by SUPPORTED_FIELDS
                 raise ParameterError(f"{where}parameter {prm.name!r}: unsupported card {card}")
             v = float(v)

@@ -149,45 +149,52 @@ def _rod_elements(by_type: dict, grids: GridSet, us: UnitSystem) -> dict[str, Ta
     return elements
 
 
+def _scalar_table(card: str, rows: list, grids: GridSet, by_pid: dict, pcard: str, own, field: str,
+                  factor) -> Table:
+    """CELAS/CMASS rows as a table: the two grids (0: ground), their components (1..6, in CD), the
+    property id (-1 on the element's own value) and ``field``: the deck value (``by_pid[pid]``, or
+    ``own(e)``) times ``factor(rot)``, ``rot`` the rotational flags of the components held."""
+    n = len(rows)
+    nodes = np.zeros((n, 2), np.int64)
+    c12 = np.zeros((n, 2), np.int8)
+    val = np.zeros(n)
+    pid = np.full(n, -1, np.int64)
+    for i, (eid, e) in enumerate(rows):
+        g = [0 if x is None else int(x) for x in e.nodes]
+        if not any(g):
+            raise ModelError(f"{grids.where}: {card} {eid} names no grid")
+        grids.require(card, eid, [x for x in g if x])
+        c = [int(e.c1 or 0), int(e.c2 or 0)]
+        for j in range(2):
+            if g[j] and not 1 <= c[j] <= 6:
+                raise ModelError(f"{grids.where}: {card} {eid}: component C{j + 1}={c[j]} must be 1..6 for a GRID")
+        nodes[i] = g
+        c12[i] = c
+        if pcard:
+            pid[i] = int(e.pid)
+            if pid[i] not in by_pid:
+                raise ModelError(f"{grids.where}: {card} {eid} references undefined {pcard} {pid[i]}")
+            vd = by_pid[pid[i]]
+        else:
+            vd = own(e)
+        val[i] = vd * factor([cc >= 4 for cc, gg in zip(c, g) if gg])
+    return Table(card, np.array([r[0] for r in rows], np.int64), {"pid": pid, "nodes": nodes, "components": c12,
+                                                                   field: val})
+
+
 def _spring_elements(by_type: dict, grids: GridSet, pelas_k: dict, us: UnitSystem) -> dict[str, Table]:
     """CELAS1/CELAS2: rate "k" in SI for the pair of components it joins (N/m, N m/rad or N/rad)."""
-    L = us.length_m
+    L, F = us.length_m, us.force_n
+
+    def factor(rot):
+        return F * L if all(rot) else F / L if not any(rot) else F
+
     elements = {}
     for card in ("CELAS1", "CELAS2"):
         rows = by_type.get(card, [])
-        if not rows:
-            continue
-        n = len(rows)
-        nodes = np.zeros((n, 2), np.int64)
-        c12 = np.zeros((n, 2), np.int8)
-        k = np.zeros(n)
-        pid = np.full(n, -1, np.int64)
-        for i, (eid, e) in enumerate(rows):
-            g = [0 if x is None else int(x) for x in e.nodes]
-            grids.require(card, eid, [x for x in g if x])
-            c = [int(e.c1 or 0), int(e.c2 or 0)]
-            for j in range(2):
-                if g[j] and not 1 <= c[j] <= 6:
-                    raise ModelError(f"{grids.where}: {card} {eid}: component C{j + 1}={c[j]} must be 1..6 for a GRID")
-            nodes[i] = g
-            c12[i] = c
-            if card == "CELAS1":
-                pid[i] = int(e.pid)
-                if pid[i] not in pelas_k:
-                    raise ModelError(f"{grids.where}: CELAS1 {eid} references undefined PELAS {pid[i]}")
-                kd = pelas_k[pid[i]]
-            else:
-                kd = field_float(e.k, 0.0)
-            rot = [cc >= 4 for cc, gg in zip(c, g) if gg]
-            if all(rot):
-                fac = us.force_n * L
-            elif not any(rot):
-                fac = us.force_n / L
-            else:
-                fac = us.force_n
-            k[i] = kd * fac
-        elements[card] = Table(card, np.array([r[0] for r in rows], np.int64), {"pid": pid, "nodes": nodes, "components": c12, "k": k})
-
+        if rows:
+            elements[card] = _scalar_table(card, rows, grids, pelas_k, "PELAS" if card == "CELAS1" else "",
+                                           lambda e: field_float(e.k, 0.0), "k", factor)
     return elements
 
 
@@ -414,40 +421,17 @@ def _scalar_mass_elements(bdf, grids: GridSet, pmass_m: dict, us: UnitSystem) ->
     As CELAS1/CELAS2: components in the grid's displacement system (CD); a
     blank second grid is a mass to ground (only the first DOF's diagonal).
     """
-    L = us.length_m
+    L, Mu = us.length_m, us.mass_kg
+
+    def factor(rot):
+        return Mu * (L**2 if all(rot) else 1.0 if not any(rot) else L)
+
     elements = {}
     for card in ("CMASS1", "CMASS2"):
         rows = [(eid, e) for eid, e in sorted(bdf.masses.items()) if e.type == card]
-        if not rows:
-            continue
-        n = len(rows)
-        nodes = np.zeros((n, 2), np.int64)
-        c12 = np.zeros((n, 2), np.int8)
-        m = np.zeros(n)
-        pid = np.full(n, -1, np.int64)
-        for i, (eid, e) in enumerate(rows):
-            g = [0 if x is None else int(x) for x in e.nodes]
-            if not any(g):
-                raise ModelError(f"{grids.where}: {card} {eid} names no grid")
-            grids.require(card, eid, [x for x in g if x])
-            c = [int(e.c1 or 0), int(e.c2 or 0)]
-            for j in range(2):
-                if g[j] and not 1 <= c[j] <= 6:
-                    raise ModelError(f"{grids.where}: {card} {eid}: component C{j + 1}={c[j]} must be 1..6 for a GRID")
-            nodes[i] = g
-            c12[i] = c
-            if card == "CMASS1":
-                pid[i] = int(e.pid)
-                if pid[i] not in pmass_m:
-                    raise ModelError(f"{grids.where}: CMASS1 {eid} references undefined PMASS {pid[i]}")
-                md = pmass_m[pid[i]]
-            else:
-                md = field_float(e.mass, 0.0)
-            rot = [cc >= 4 for cc, gg in zip(c, g) if gg]
-            fac = us.mass_kg * (L**2 if all(rot) else 1.0 if not any(rot) else L)
-            m[i] = md * fac
-        elements[card] = Table(card, np.array([r[0] for r in rows], np.int64),
-                               {"pid": pid, "nodes": nodes, "components": c12, "m": m})
+        if rows:
+            elements[card] = _scalar_table(card, rows, grids, pmass_m, "PMASS" if card == "CMASS1" else "",
+                                           lambda e: field_float(e.mass, 0.0), "m", factor)
     return elements
 
 
