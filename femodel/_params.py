@@ -74,6 +74,10 @@ SUPPORTED_FIELDS: dict[tuple[str, str], str] = {
     ("PBAR", "J"): "area_moment",
 }
 
+#: Nastran's own names of fields the table spells shorter: PELAS K1 (its first spring's rate; a PELAS
+#: card's second spring, K2, is not a parameter) and PMASS M1 are read as K and M.
+FIELD_ALIASES: dict[tuple[str, str], str] = {("PELAS", "K1"): "K", ("PMASS", "M1"): "M"}
+
 #: Kinds whose unit follows the components the scalar element joins (translational, rotational).
 COMPONENT_KINDS: dict[str, tuple[str, str]] = {"spring": ("trans_spring", "rot_spring"),
                                                "scalar_mass": ("mass", "rot_mass")}
@@ -285,6 +289,7 @@ def _parameter_from_table(tab: dict, k: int, source, deck=None) -> Parameter:
     if not isinstance(card, str) or not isinstance(fld, str):
         _fail(source, f"{label}: card and field must be strings")
     card, fld = card.strip().upper(), fld.strip().upper()
+    fld = FIELD_ALIASES.get((card, fld), fld)
     if (card, fld) not in SUPPORTED_FIELDS:
         supported = ", ".join(f"{c}.{f}" for c, f in SUPPORTED_FIELDS)
         _fail(source, f"{label}: card {card} field {fld} cannot be parameterized (supported: {supported})")

@@ -148,7 +148,7 @@ def test_scalar_mass_parameters_calibrate_and_write_back(tmp_path):
     ps = parameters_from_dict({"model": {"bdf": src, "units": "mm-t-s"}, "parameter": [
         {"name": "m_sensor", "card": "CMASS2", "id": 5, "field": "M", "lower": -0.5, "upper": 0.5,
          "nominal": 1000.0, "unit": "kg"},
-        {"name": "m_pair", "card": "PMASS", "id": 7, "field": "M", "lower": -0.5, "upper": 0.5},
+        {"name": "m_pair", "card": "PMASS", "id": 7, "field": "M1", "lower": -0.5, "upper": 0.5},  # Nastran's name
         {"name": "j_rot", "card": "CMASS2", "id": 8, "field": "M", "lower": -0.5, "upper": 0.5,
          "nominal": 0.5, "unit": "kg*m^2"},
     ]})
@@ -170,3 +170,11 @@ def test_scalar_mass_parameter_unit_must_match_its_components(tmp_path):
         parameters_from_dict({"model": {"bdf": src, "units": "si"}, "parameter": [
             {"name": "m", "card": "CMASS2", "id": 5, "field": "M", "lower": -0.5, "upper": 0.5,
              "nominal": 1.0, "unit": "kg*m^2"}]})
+
+
+def test_nastran_field_names_of_pelas_and_pmass_are_accepted():
+    """PELAS K1 and PMASS M1 (the cards' own field names) are the table's K and M."""
+    ps = parameters_from_dict({"model": {"units": "si"}, "parameter": [
+        {"name": "k", "card": "pelas", "id": 1, "field": "K1", "lower": -0.1, "upper": 0.1},
+        {"name": "m", "card": "PMASS", "id": 2, "field": "m1", "lower": -0.1, "upper": 0.1}]})
+    assert [(q.card, q.field) for q in ps.parameters] == [("PELAS", "K"), ("PMASS", "M")]
