@@ -506,21 +506,22 @@ def _shear_flexible(k) -> np.ndarray:
 def _add_rods(model, col, cd_axes, wt):
     from femodel._elements_line import rod_matrices
 
-    for card in ("CROD", "CONROD"):
+    for card in ("CROD", "CONROD", "CTUBE"):
         tab = model.elements.get(card)
         if tab is None or len(tab) == 0:
             continue
-        if card == "CROD":
-            prop = model.properties.get("PROD")
+        if card in ("CROD", "CTUBE"):
+            pcard = "PROD" if card == "CROD" else "PTUBE"
+            prop = model.properties.get(pcard)
             if prop is None:
-                raise ModelError("CROD elements but no PROD defined")
+                raise ModelError(f"{card} elements but no {pcard} defined")
             try:
                 pr = prop.rows(tab["pid"])
             except ModelError as exc:
-                raise ModelError(f"CROD: {exc}") from None
+                raise ModelError(f"{card}: {exc}") from None
             mids, A, J, nsm = prop["mid"][pr], prop["A"][pr], prop["J"][pr], prop["nsm"][pr]
             groups = tab["pid"]
-            pname = lambda p: f"CROD PROD {int(p)}"  # noqa: E731
+            pname = lambda p, c=card, q=pcard: f"{c} {q} {int(p)}"  # noqa: E731
         else:
             mids, A, J, nsm = tab["mid"], tab["A"], tab["J"], tab["nsm"]
             groups = tab.ids

@@ -46,7 +46,7 @@ from femodel._params import ParameterError
 from femodel._terms import AddedMass, AddedSpring, ElementFactor
 
 #: Element cards whose property is a "part" (property group) of the structure.
-_LINE_CARDS = ("CBAR", "CBEAM", "CROD", "CONROD")
+_LINE_CARDS = ("CBAR", "CBEAM", "CROD", "CONROD", "CTUBE")
 _SHELL_CARDS = ("CQUAD4", "CTRIA3")
 _SOLID_CARDS = ("CTETRA", "CPYRAM", "CPENTA", "CHEXA")
 _STRUCTURAL_CARDS = _LINE_CARDS + _SHELL_CARDS + _SOLID_CARDS

@@ -121,12 +121,14 @@ def _rod_elements(by_type: dict, grids: GridSet, us: UnitSystem) -> dict[str, Ta
     """CROD (PROD property) and CONROD (section on the element card)."""
     L = us.length_m
     elements = {}
-    if "CROD" in by_type:
-        rows = by_type["CROD"]
+    for card in ("CROD", "CTUBE"):  # CTUBE: a rod of its PTUBE's tube section
+        rows = by_type.get(card, [])
+        if not rows:
+            continue
         for eid, e in rows:
-            grids.require("CROD", eid, e.nodes)
-        elements["CROD"] = Table(
-            "CROD",
+            grids.require(card, eid, e.nodes)
+        elements[card] = Table(
+            card,
             np.array([r[0] for r in rows], np.int64),
             {"pid": np.array([int(e.pid) for _, e in rows], np.int64), "nodes": np.array([e.nodes for _, e in rows], np.int64)},
         )

@@ -89,6 +89,31 @@ def read_materials(bdf, us: UnitSystem, where: str) -> dict[str, Table]:
     return mats
 
 
+def _ptube_table(rows, us: UnitSystem, where: str) -> Table:
+    """PTUBE: the tube's area A = pi/4 (OD^2 - ID^2) and torsion constant J = pi/32 (OD^4 - ID^4), ID = OD - 2 T
+    (T blank: a solid rod), in SI as PROD's fields; a tapered tube (OD2 != OD) is refused."""
+    L = us.length_m
+    A, J, nsm, mid = [], [], [], []
+    for pid, p in rows:
+        od, t = field_float(p.OD1, 0.0), p.t
+        od2 = p.OD2 if p.OD2 is not None else od
+        if not od > 0:
+            raise ModelError(f"{where}: PTUBE {pid}: outer diameter {od!r} must be positive")
+        if abs(float(od2) - od) > 1e-12 * od:
+            raise ModelError(f"{where}: PTUBE {pid}: a tapered tube (OD2 {od2!r} != OD {od!r}) is not supported")
+        t = od / 2.0 if t is None or t == 0 else float(t)
+        if not 0 < t <= od / 2.0:
+            raise ModelError(f"{where}: PTUBE {pid}: wall thickness {t!r} must be in (0, OD/2]")
+        di = od - 2.0 * t
+        A.append(np.pi / 4.0 * (od**2 - di**2))
+        J.append(np.pi / 32.0 * (od**4 - di**4))
+        nsm.append(field_float(p.nsm, 0.0))
+        mid.append(int(p.mid))
+    return Table("PTUBE", np.array([r[0] for r in rows], np.int64),
+                 {"mid": np.array(mid, np.int64), "A": np.array(A) * L**2, "J": np.array(J) * L**4,
+                  "nsm": np.array(nsm) * us.mass_kg / L})
+
+
 def read_properties(bdf, mats: dict[str, Table], us: UnitSystem, where: str) -> dict[str, Table]:
     """Property tables in SI, keyed by card ("PBAR" holds every bar/beam section type).
 
@@ -125,6 +150,8 @@ def read_properties(bdf, mats: dict[str, Table], us: UnitSystem, where: str) -> 
                 "nsm": np.array([field_float(r[1].nsm, 0.0) for r in rows]) * us.mass_kg / L,
             },
         )
+    if "PTUBE" in props_by_type:
+        props["PTUBE"] = _ptube_table(props_by_type["PTUBE"], us, where)
     if "PSHELL" in props_by_type:
         rows = props_by_type["PSHELL"]
 

@@ -112,3 +112,38 @@ def test_section_units_are_checked(tmp_path):
         parameters_from_dict({"model": {"bdf": str(path), "units": "mm-t-s"}, "parameter": [
             {"name": "I", "card": "PBAR", "id": 10, "field": "I1", "lower": -0.5, "upper": 0.5, "nominal": 2400.0,
              "unit": "mm^2"}]})
+
+
+ROD = """BEGIN BULK
+GRID,1,,0.,0.,0.
+GRID,2,,300.,40.,-20.
+MAT1,1,210000.,,0.3,7.85-9
+{prop}
+{elem}
+ENDDATA
+"""
+
+
+def test_ctube_is_the_crod_of_its_tube_section(tmp_path):
+    """CTUBE/PTUBE: A = pi/4 (OD^2 - ID^2), J = pi/32 (OD^4 - ID^4) (T blank: solid) on the rod kernel."""
+    def mats(prop, elem, name):
+        path = tmp_path / name
+        path.write_text(ROD.format(prop=prop, elem=elem))
+        asm = assemble(read_bdf(path, units="mm-t-s"))
+        return asm.stiffness_g().toarray(), asm.mass_g().toarray()
+
+    od, t = 20.0, 2.0
+    di = od - 2 * t
+    area, tors = np.pi / 4 * (od**2 - di**2), np.pi / 32 * (od**4 - di**4)
+    K1, M1 = mats(f"PTUBE,7,1,{od},{t},1.-7", "CTUBE,9,7,1,2", "tube.bdf")
+    K2, M2 = mats(f"PROD,7,1,{area!r},{tors!r},,1.-7", "CROD,9,7,1,2", "rod.bdf")
+    assert np.abs(K1).max() > 0
+    np.testing.assert_allclose(K1, K2, rtol=0, atol=1e-12 * np.abs(K2).max())
+    np.testing.assert_allclose(M1, M2, rtol=0, atol=1e-12 * np.abs(M2).max())
+    Ks, _ = mats(f"PTUBE,7,1,{od}", "CTUBE,9,7,1,2", "solid.bdf")  # T blank: a solid rod of diameter OD
+    Kr, _ = mats(f"PROD,7,1,{np.pi / 4 * od**2!r},{np.pi / 32 * od**4!r}", "CROD,9,7,1,2", "solidrod.bdf")
+    np.testing.assert_allclose(Ks, Kr, rtol=0, atol=1e-12 * np.abs(Kr).max())
+    from femodel import ModelError
+
+    with pytest.raises(ModelError, match="PTUBE 7: a tapered tube"):
+        mats(f"PTUBE,7,1,{od},{t},,{od + 4}", "CTUBE,9,7,1,2", "taper.bdf")
