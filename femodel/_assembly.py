@@ -533,14 +533,20 @@ def _add_rods(model, col, cd_axes, wt):
         kE = to_cd(out["stiffness_E"], nodes, cd_axes, 6)
         kG = to_cd(out["stiffness_G"], nodes, cd_axes, 6)
         mu = to_cd(out["mass_unit"], nodes, cd_axes, 6)
-        # group by material (CONROD carries its own section, so per material)
-        for mid in np.unique(mids):
-            sel = mids == mid
+        # group by material (CONROD carries its own section, so per material); a CROD's terms also carry its
+        # PROD's A (axial, mass) and J (torsion) as factors, so they group by property
+        keys = groups if card == "CROD" else mids
+        for key in np.unique(keys):
+            sel = keys == key
+            mid = int(mids[sel][0])
+            sec = (lambda f: [(("PROD", int(key), f), 1)]) if card == "CROD" else (lambda f: [])
             lab = ", ".join(sorted({pname(g) for g in groups[sel]})[:3]) + (" ..." if len(set(groups[sel].tolist())) > 3 else "")
-            col.add("K", [(("MAT1", int(mid), "E"), 1)], lab + " axial", kE[sel], pat.subset(sel), E[sel])
+            col.add("K", [(("MAT1", mid, "E"), 1)] + sec("A"), lab + " axial", kE[sel], pat.subset(sel), E[sel])
             if np.any(J[sel] != 0):
-                col.add("K", [_g_factor(int(mid), bool(follows[sel][0]))], lab + " torsion", kG[sel], pat.subset(sel), G[sel])
-            col.add("M", [(("MAT1", int(mid), "RHO"), 1)], lab + " mass", mu[sel], pat.subset(sel), wt * rho[sel] * A[sel])
+                col.add("K", [_g_factor(mid, bool(follows[sel][0]))] + sec("J"), lab + " torsion", kG[sel],
+                        pat.subset(sel), G[sel])
+            col.add("M", [(("MAT1", mid, "RHO"), 1)] + sec("A"), lab + " mass", mu[sel], pat.subset(sel),
+                    wt * rho[sel] * A[sel])
             if np.any(nsm[sel] != 0):
                 col.add("M", [], lab + " NSM", mu[sel], pat.subset(sel), wt * nsm[sel])
 

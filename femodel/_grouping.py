@@ -164,6 +164,9 @@ def _nominal_from_model(params: ParameterSet, fe, source) -> list[np.ndarray]:
                                          f"bending stiffness is not a monomial of {fld} (Timoshenko); leave K1, K2 "
                                          "blank (Nastran's default, no shear flexibility) to calibrate its section")
                 v = tab[fld][r]
+            elif card == "PROD":
+                tab, r = table(fe.properties, "PROD", prm, key)
+                v = tab[fld][r]
             elif card == "CMASS2":
                 tab, r = table(fe.elements, "CMASS2", prm, key)
                 v = tab["m"][r] * wt

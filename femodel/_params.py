@@ -72,6 +72,8 @@ SUPPORTED_FIELDS: dict[tuple[str, str], str] = {
     ("PBAR", "I1"): "area_moment",
     ("PBAR", "I2"): "area_moment",
     ("PBAR", "J"): "area_moment",
+    ("PROD", "A"): "area",
+    ("PROD", "J"): "area_moment",
 }
 
 #: Nastran's own names of fields the table spells shorter: PELAS K1 (its first spring's rate; a PELAS
@@ -484,7 +486,7 @@ def read_parameters(path) -> ParameterSet:
 def _container(model, card: str) -> dict:
     if card == "MAT1":
         return model.materials
-    if card in ("PSHELL", "PBUSH", "PELAS", "PBAR"):
+    if card in ("PSHELL", "PBUSH", "PELAS", "PBAR", "PROD"):
         return model.properties
     if card == "PMASS":
         return model.properties_mass
@@ -514,8 +516,8 @@ def get_deck_value(obj, fld: str) -> float | None:
         return obj.t
     if t in ("CONM2", "CMASS2", "PMASS"):
         return obj.mass
-    if t == "PBAR":
-        return {"A": obj.A, "I1": obj.i1, "I2": obj.i2, "J": obj.j}[fld]
+    if t in ("PBAR", "PROD"):
+        return {"A": obj.A, "I1": getattr(obj, "i1", None), "I2": getattr(obj, "i2", None), "J": obj.j}[fld]
     if t == "PBUSH":
         i = int(fld[1]) - 1
         return obj.Ki[i] if len(obj.Ki) > i else None
@@ -538,7 +540,7 @@ def set_deck_value(obj, fld: str, value: float) -> None:
         obj.t = value
     elif t in ("CONM2", "CMASS2", "PMASS"):
         obj.mass = value
-    elif t == "PBAR":
+    elif t in ("PBAR", "PROD"):
         setattr(obj, {"A": "A", "I1": "i1", "I2": "i2", "J": "j"}[fld], value)
     elif t == "PBUSH":
         obj.Ki[int(fld[1]) - 1] = value

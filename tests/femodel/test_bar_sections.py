@@ -147,3 +147,36 @@ def test_ctube_is_the_crod_of_its_tube_section(tmp_path):
 
     with pytest.raises(ModelError, match="PTUBE 7: a tapered tube"):
         mats(f"PTUBE,7,1,{od},{t},,{od + 4}", "CTUBE,9,7,1,2", "taper.bdf")
+
+
+def test_prod_area_and_torsion_constant_are_parameters(tmp_path):
+    """PROD A (axial E A, mass rho A) and J (G J): the parametric model equals the written-back deck."""
+    path = tmp_path / "truss.bdf"
+    path.write_text("""BEGIN BULK
+GRID,1,,0.,0.,0.
+GRID,2,,300.,0.,0.
+GRID,3,,150.,200.,30.
+GRID,4,,150.,-100.,250.
+MAT1,1,210000.,,0.3,7.85-9
+PROD,5,1,50.,400.
+PROD,6,1,80.,900.
+CROD,10,5,1,2
+CROD,11,5,2,3
+CROD,12,6,3,1
+CROD,13,6,1,4
+CROD,14,5,2,4
+CROD,15,6,3,4
+CONM2,20,4,,0.001
+ENDDATA
+""")
+    ps = parameters_from_dict({"model": {"bdf": str(path), "units": "mm-t-s"}, "parameter": [
+        {"name": "A5", "card": "PROD", "id": 5, "field": "A", "lower": -0.5, "upper": 0.5, "nominal": 50.0,
+         "unit": "mm^2"},
+        {"name": "J6", "card": "PROD", "id": 6, "field": "J", "lower": -0.5, "upper": 0.5},
+        {"name": "A6", "card": "PROD", "id": 6, "field": "A", "lower": -0.5, "upper": 0.5}]})
+    pm = parametric_model(ps)
+    p = np.array([0.3, -0.25, 0.2])
+    asm = assemble(read_bdf(pm.write_bdf(tmp_path / "p.bdf", p), units="mm-t-s"))
+    assert _rel(pm.stiffness(p), asm.stiffness()) < 1e-13
+    assert _rel(pm.mass(p), asm.mass()) < 1e-13
+    assert read_bdf(tmp_path / "p.bdf", units="mm-t-s").properties["PROD"]["A"][0] == pytest.approx(65e-6, rel=1e-12)
