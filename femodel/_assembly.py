@@ -447,21 +447,11 @@ def _add_bars(model, col, cd_axes, wt):
             model.xyz[nodes[:, 0]], model.xyz[nodes[:, 1]], tab["v"], tab["wa"], tab["wb"],
             prop["A"][pr], prop["I1"][pr], prop["I2"][pr], prop["J"][pr], E, G, prop["k1"][pr], prop["k2"][pr],
             coupled=model.coupmass, torsion_inertia=(card == "CBEAM"), ids=tab.ids, what=card,
-            pins=tab.fields.get("pins"),
+            pins=tab.fields.get("pins"), section_parts=sectioned,
         )
         parts = None
-        if np.any(sectioned):
-            s = np.flatnonzero(sectioned)
-            sub = beam_matrices(
-                model.xyz[nodes[s, 0]], model.xyz[nodes[s, 1]], tab["v"][s], tab["wa"][s], tab["wb"][s],
-                prop["A"][pr][s], prop["I1"][pr][s], prop["I2"][pr][s], prop["J"][pr][s], E[s], G[s],
-                prop["k1"][pr][s], prop["k2"][pr][s], coupled=model.coupmass, torsion_inertia=(card == "CBEAM"),
-                ids=tab.ids[s], what=card, pins=None if tab.fields.get("pins") is None else tab["pins"][s],
-                section_parts=True,
-            )
-            parts = np.zeros((3,) + out["stiffness_E"].shape)
-            parts[:, s] = sub["stiffness_E_parts"]
-            parts = [to_cd(parts[k], nodes, cd_axes, 6) for k in range(3)]
+        if "stiffness_E_parts" in out:
+            parts = [to_cd(out["stiffness_E_parts"][k], nodes, cd_axes, 6) for k in range(3)]
         pat = BlockPattern(nodes, model.n_grids)
         kE = to_cd(out["stiffness_E"], nodes, cd_axes, 6)
         kG = to_cd(out["stiffness_G"], nodes, cd_axes, 6)
@@ -556,25 +546,16 @@ def _add_springs(model, col):
         tab = model.elements.get(card)
         if tab is None or len(tab) == 0:
             continue
-        g = tab["nodes"]
-        c = tab["components"].astype(np.int64)
+        # scalar springs connect g-set DOF directly (components are in CD)
+        dofs, ke = _scalar_pairs(model, tab, card)
         k = tab["k"]
         for i in range(len(tab)):
-            # scalar springs connect g-set DOF directly (components are in CD)
-            dofs = []
-            signs = []
-            for j in range(2):
-                if g[i, j]:
-                    dofs.append(6 * int(model.grid_index(g[i, j], what=f"{card} {tab.ids[i]} grid")[0]) + c[i, j] - 1)
-                    signs.append(1.0 if j == 0 else -1.0)
-            s = np.array(signs)
-            ke = np.outer(s, s)[None]
             if card == "CELAS1":
                 pid = int(tab["pid"][i])
                 fac, lab = [(("PELAS", pid, "K1"), 1)], f"CELAS1 PELAS {pid}"
             else:
                 fac, lab = [(("CELAS2", int(tab.ids[i]), "K"), 1)], f"CELAS2 {int(tab.ids[i])}"
-            col.add_dofs("K", fac, lab, ke, np.array([dofs]), np.array([k[i]]))
+            col.add_dofs("K", fac, lab, ke[i : i + 1], dofs[i : i + 1], np.array([k[i]]))
 
 
 def _scalar_pairs(model, tab, card) -> tuple[np.ndarray, np.ndarray]:

@@ -199,7 +199,7 @@ def release_pins(k: np.ndarray, pins: np.ndarray) -> np.ndarray:
 
 
 def beam_matrices(x_a, x_b, v, wa, wb, A, I1, I2, J, E, G, k1, k2, *, coupled, torsion_inertia, ids=None, what="CBAR",
-                  pins=None, section_parts=False):
+                  pins=None, section_parts=None):
     """CBAR/CBEAM element matrices in basic coordinates.
 
     Parameters
@@ -217,9 +217,9 @@ def beam_matrices(x_a, x_b, v, wa, wb, A, I1, I2, J, E, G, k1, k2, *, coupled, t
     pins : (n, 12) bool, optional
         Pin flags (released local end DOF), condensed out of the stiffness;
         the mass is left as is.
-    section_parts : bool
-        Also return the E part split by section property (Euler-Bernoulli
-        elements only, phi = 0 where the split is asked for):
+    section_parts : (n,) bool, optional
+        Also return the E part split by section property for these elements
+        (Euler-Bernoulli: phi = 0 there; zeros for the others):
         "stiffness_E_parts" (3, n, 12, 12), the stiffness per unit E and per
         unit A (axial), I1 (bending plane 1) and I2 (bending plane 2); their
         sum weighted by (A, I1, I2) is "stiffness_E". The blocks are
@@ -256,15 +256,16 @@ def beam_matrices(x_a, x_b, v, wa, wb, A, I1, I2, J, E, G, k1, k2, *, coupled, t
         "mass_unit": _transform(m_unit, T),
         "length": length,
     }
-    if section_parts:
-        if np.any(phi1 != 0) or np.any(phi2 != 0):
+    s = np.zeros(0, np.int64) if section_parts is None else np.flatnonzero(section_parts)
+    if s.size:
+        if np.any(phi1[s] != 0) or np.any(phi2[s] != 0):
             raise ModelError(f"{what}: section parts of shear-flexible (K1/K2) sections are not monomials of A, I1, I2")
-        zero = np.zeros_like(length)
-        parts = []
-        for sec in ((ones, zero, zero), (zero, ones, zero), (zero, zero, ones)):
-            kp, _ = beam_local_stiffness(length, *sec, zero, zero, zero)
-            parts.append(_transform(release_pins(kp, pins) if pins is not None else kp, T))
-        out["stiffness_E_parts"] = np.stack(parts)
+        zero, one = np.zeros(s.size), np.ones(s.size)
+        parts = np.zeros((3,) + kE.shape)
+        for k, sec in enumerate(((one, zero, zero), (zero, one, zero), (zero, zero, one))):
+            kp, _ = beam_local_stiffness(length[s], *sec, zero, zero, zero)
+            parts[k, s] = _transform(release_pins(kp, pins[s]) if pins is not None else kp, T[s])
+        out["stiffness_E_parts"] = parts
     if torsion_inertia:
         mt = beam_local_mass(length, np.zeros_like(length), coupled, torsion_inertia=J)
         out["mass_torsion_unit"] = _transform(mt, T)

@@ -159,7 +159,9 @@ def _nominal_from_model(params: ParameterSet, fe, source) -> list[np.ndarray]:
                     raise ParameterError(f"{where}parameter {prm.name!r}: property {cid} is a {tab['card'][r]}; "
                                          f"{fld} is a parameter of PBAR sections only (a {tab['card'][r]} section's "
                                          "A, I and J are not monomials of its fields)")
-                if np.isfinite(tab["k1"][r]) and tab["k1"][r] > 0 or np.isfinite(tab["k2"][r]) and tab["k2"][r] > 0:
+                from femodel._assembly import _shear_flexible
+
+                if _shear_flexible(tab["k1"][r]) or _shear_flexible(tab["k2"][r]):
                     raise ParameterError(f"{where}parameter {prm.name!r}: PBAR {cid} has shear factors K1/K2: its "
                                          f"bending stiffness is not a monomial of {fld} (Timoshenko); leave K1, K2 "
                                          "blank (Nastran's default, no shear flexibility) to calibrate its section")

@@ -86,15 +86,7 @@ def read_bdf(path, *, units: str = "si", allow_unsupported: bool = False) -> FEM
             warnings.simplefilter("ignore")
             mode = _deck_kind(path)
             if mode == "bulk-with-begin":
-                # bulk data with a BEGIN BULK line but no executive/case control:
-                # pyNastran wants either both or neither, so feed it without the line
-                import io
-
-                text = "".join(
-                    line for line in open(path, errors="replace") if not line.strip().upper().startswith("BEGIN")
-                )
-                bdf.include_dir = str(path.parent)
-                bdf.read_bdf(io.StringIO(text), xref=False, validate=False, punch=True)
+                read_bulk_with_begin(bdf, path)
             else:
                 bdf.read_bdf(str(path), xref=False, validate=False, punch=(mode == "bulk"))
     except (SyntaxError, RuntimeError, ValueError, KeyError, IndexError, TypeError, AssertionError) as exc:
@@ -113,6 +105,16 @@ def read_bdf(path, *, units: str = "si", allow_unsupported: bool = False) -> FEM
         warnings.warn(f"{path}: ignoring unsupported cards: {listing}", stacklevel=2)
 
     return _convert(bdf, path, us, unsupported)
+
+
+def read_bulk_with_begin(bdf, path: Path) -> None:
+    """Bulk data with a BEGIN BULK line but no executive/case control into ``bdf`` (pyNastran wants either
+    both or neither, so it is fed without the line; INCLUDEs relative to the deck's folder)."""
+    import io
+
+    text = "".join(line for line in open(path, errors="replace") if not line.strip().upper().startswith("BEGIN"))
+    bdf.include_dir = str(path.parent)
+    bdf.read_bdf(io.StringIO(text), xref=False, validate=False, punch=True)
 
 
 def _deck_kind(path: Path) -> str:

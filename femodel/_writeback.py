@@ -21,6 +21,7 @@ import numpy as np
 from femodel._params import (
     ParameterError,
     ParameterSet,
+    _container,
     SUPPORTED_FIELDS,
     deck_card,
     get_deck_value,
@@ -37,20 +38,14 @@ def _read_deck(path: Path, save_file_structure: bool = False):
     log.setLevel(logging.ERROR)
     if not path.is_file():
         raise FileNotFoundError(f"Nastran deck not found: {path}")
-    from femodel._reader import _deck_kind
+    from femodel._reader import _deck_kind, read_bulk_with_begin
 
-    if _deck_kind(path) == "bulk-with-begin":
-        # BEGIN BULK without executive/case control: pyNastran wants both or neither (as read_bdf does,
-        # fed without the line; its INCLUDEs are then flattened into the written deck)
-        import io
-
-        text = "".join(line for line in open(path, errors="replace") if not line.strip().upper().startswith("BEGIN"))
+    if _deck_kind(path) == "bulk-with-begin":  # as read_bdf reads it (its INCLUDEs flattened on write)
         bdf = BDF(debug=None, log=log)
-        bdf.include_dir = str(path.parent)
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
-                bdf.read_bdf(io.StringIO(text), xref=False, validate=False, punch=True)
+                read_bulk_with_begin(bdf, path)
         except (SyntaxError, RuntimeError, ValueError, KeyError, IndexError, TypeError, AssertionError) as exc:
             raise ParameterError(f"{path}: pyNastran could not parse the deck: {exc}") from None
         return bdf
@@ -464,9 +459,7 @@ def write_bdf(model_path, out_path, values, *, parameters: ParameterSet | None =
 
     extra = []
     for (card, cid), obj in sorted(modified.items()):
-        container = {"MAT1": bdf.materials, "CONM2": bdf.masses, "CMASS2": bdf.masses, "PMASS": bdf.properties_mass,
-                     "CELAS2": bdf.elements}.get(card, bdf.properties)
-        del container[cid]
+        del _container(bdf, card)[cid]
         comment = obj.comment or ""
         fields = list(obj.repr_fields())
         if card == "MAT1" and cid in g_default:

@@ -133,13 +133,6 @@ class LoadResult:
     drives: tuple  # of Transducer
 
 
-def _index(lookup, names, what, path):
-    missing = [n for n in names if n not in lookup]
-    if missing:
-        raise CalibrationError(f"{path}: {what} {missing} are not {what} of the run (has {sorted(lookup)})")
-    return [lookup[n] for n in names]
-
-
 def _same_point(a, b) -> bool:
     return int(a.grid) == int(b.grid) and np.allclose(np.asarray(a.direction, float), np.asarray(b.direction, float),
                                                        atol=1e-6)
@@ -196,18 +189,17 @@ def load_stage(camp: Campaign, log=print) -> LoadResult:
     names = list(ch.calibrate) + list(ch.holdout)
     lo, hi = camp.band.low_hz, camp.band.high_hz
     out, geometry = [], None
-    first_sensors, first_drives, drive_names = {}, {}, None
+    first_sensors, first_drives = {}, {}  # the first run's channels and drives by name: the campaign's
     for entry in camp.run:
         path = camp.resolve(entry.path)
         run = read_run(path)
         rows = _by_point(run.sensors, names, first_sensors, "sensors", path, log)
-        wanted = list(ch.drives) if ch.drives else drive_names
-        cols = list(range(len(run.drives))) if wanted is None else _by_point(run.drives, wanted, first_drives,
-                                                                             "drives", path, log)
+        wanted = list(ch.drives) or list(first_drives)  # none named: every drive of the first run
+        cols = _by_point(run.drives, wanted, first_drives, "drives", path, log) if wanted else list(
+            range(len(run.drives)))
         if not first_sensors:
             first_sensors = {n: run.sensors[r] for n, r in zip(names, rows)}
             first_drives = {run.drives[c].name: run.drives[c] for c in cols}
-            drive_names = [run.drives[c].name for c in cols] if len(cols) == len(run.drives) else None
         f = np.asarray(run.frequency_hz, float)
         valid = np.asarray(run.valid, bool)
         inband = (f >= lo) & (f <= hi)
@@ -228,7 +220,7 @@ def load_stage(camp: Campaign, log=print) -> LoadResult:
             raise CalibrationError(
                 f"{path}: {bad.sum()} valid line(s) hold NaN/inf (first at {f[sel][bad][0]:.3f} Hz): flag them invalid"
             )
-        drives = tuple(list(first_drives)[k] for k in range(len(cols)))  # the first run's names
+        drives = tuple(first_drives)  # the first run's names
         sig = signal_pairs(f[sel], H, se)
         for line in sig.describe(names, drives):
             log(f"{path.name}: {line}: left out of calibration and validation")
