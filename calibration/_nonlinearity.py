@@ -55,16 +55,24 @@ def _z_of_p(p: float) -> float:
 def _chi2_z(t: float, dof: int) -> float:
     """z of a chi-square statistic ``t`` with ``dof`` degrees of freedom (upper tail).
 
-    Exact while the p-value is representable; beyond, the Wilson-Hilferty cube-root
-    normal approximation, so that a huge statistic keeps a finite, ordered size.
+    Exact while the tail probability is representable: the upper tail for a
+    statistic above its median, the lower tail (z = -isf(cdf)) below it, so
+    that a statistic far below its expectation gets its own size instead of
+    the -8.2 at which ``isf(1 - 1e-16)`` saturates. Beyond, the Wilson-Hilferty
+    cube-root normal approximation, so that a huge (or tiny) statistic keeps a
+    finite, ordered size.
     """
-    from scipy.stats import chi2
+    from scipy.stats import chi2, norm
 
     if dof <= 0 or not np.isfinite(t):
         return float("nan")
     p = float(chi2.sf(t, dof))
-    if p > 1e-300:
+    if 1e-300 < p <= 0.5:
         return _z_of_p(p)
+    if p > 0.5:
+        c = float(chi2.cdf(t, dof))
+        if c > 1e-300:
+            return -float(norm.isf(c))
     v = 2.0 / (9.0 * dof)
     return float(((t / dof) ** (1.0 / 3.0) - (1.0 - v)) / np.sqrt(v))
 
