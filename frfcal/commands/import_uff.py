@@ -42,6 +42,8 @@ def uff_to_run(uff, out, *, article=None, overwrite=False) -> dict:
 def run(args) -> int:
     import json
 
+    if Path(args.out).exists() and not args.force:
+        raise FileExistsError(f"{args.out}: the run file exists; pass --force to overwrite it")
     full = uff_to_run(args.uff, args.out, article=args.article, overwrite=args.force)
     info = {k: v for k, v in full.items() if k != "band_hz"}
     info["path"] = args.out

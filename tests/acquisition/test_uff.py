@@ -72,7 +72,7 @@ def test_errors_and_cli(tmp_path, capsys):
     assert '"n_lines": 40' in capsys.readouterr().out
     assert np.array_equal(read_run(tmp_path / "c.h5").frf, read_run(tmp_path / "r.h5").frf)
     assert main(["import-uff", str(tmp_path / "c.uff"), "--out", str(tmp_path / "c.h5")]) == 2  # exists
-    assert "exists" in capsys.readouterr().err
+    assert "exists; pass --force to overwrite it" in capsys.readouterr().err  # the flag, not the Python keyword
 
 
 # --- MIMO files written by another system (pyuff directly, not export_uff) ---------------------------------------
