@@ -27,7 +27,7 @@ from calibration._errors import CalibrationError
 from calibration._extend import extended_surrogate
 from calibration._figures import crossvalidation_figure, frf_figure, mac_figure, model_frf, parameter_figure
 from calibration._executor import DaskExecutor, Executor, ProcessExecutor, SerialExecutor, make_executor
-from calibration._identifiability import Identifiability, identifiability
+from calibration._identifiability import Identifiability, identifiability, with_spread
 from calibration._fit import (
     Calibration,
     CycleOptions,
@@ -148,6 +148,7 @@ __all__ = [
     "Identifiability",
     "IdentifiedModes",
     "identifiability",
+    "with_spread",
     "Validation",
     "cross_validate",
     "Grouping",

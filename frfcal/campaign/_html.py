@@ -368,10 +368,12 @@ def _parameters(camp, r: ReportResults, tmp: Path) -> str:
     pm = r.model
     names = list(pm.parameters.names)
     nominal = pm.physical(np.zeros(pm.n_params))
-    xv = {x.label: x.crossvalidation for x in r.crossvalidate.members} if r.crossvalidate is not None else {}
+    xs = {x.label: x for x in r.crossvalidate.members} if r.crossvalidate is not None else {}
     out = []
     for m in r.calibrate.members:
-        idf, cv = m.identifiability, xv.get(m.label)
+        x = xs.get(m.label)
+        cv = None if x is None else x.crossvalidation
+        idf = getattr(x, "identifiability", None) or m.identifiability  # checked against the refits when made
         phys = pm.physical(m.p)
         rows, bad = [], []
         for j, n in enumerate(names):
@@ -396,7 +398,10 @@ def _parameters(camp, r: ReportResults, tmp: Path) -> str:
         if weak:
             out.append(_table(("relative singular value", "weak combination"), weak))
         out.append(f"<p>{idf.n_identifiable} of {len(names)} parameters identifiable from these channels and band"
-                   + ("" if cv is not None else "; cross-validation did not run (no CV column)") + ".</p>")
+                   + ("" if cv is not None else "; cross-validation did not run (no CV column)")
+                   + ("" if idf.spread is None else "; the verdict includes the spread of the cross-validation "
+                      "refits (a parameter whose refits scatter beyond 5 % of its range, or end at a bound, is not "
+                      "identifiable whatever its formal std)") + ".</p>")
     return "".join(out)
 
 

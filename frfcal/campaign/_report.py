@@ -86,7 +86,8 @@ def write_outputs(camp, pm, articles, groups: GroupResult, cal: CalibrateResult,
     nominal = pm.physical(np.zeros(pm.n_params))
     for m, v, x in zip(cal.members, val.members, xval.members):
         arts = [articles[i] for i in m.articles]
-        cyc, cv, idf = reported_cycle(m, v), x.crossvalidation, m.identifiability
+        cyc, cv = reported_cycle(m, v), x.crossvalidation
+        idf = getattr(x, "identifiability", None) or m.identifiability  # checked against the refits when made
         raw_floor, raw_src = _raw_floor(camp, arts)
         params = []
         phys = pm.physical(cyc.p)

@@ -41,6 +41,7 @@ from calibration import (
     noise_floor_sd,
     pairwise_sd,
     validate,
+    with_spread,
 )
 from calibration._refine import ModalDampingObjective, Refinement, carried_damping, refine
 from calibration._surrogate import assembled, basis_layout
@@ -739,9 +740,13 @@ def validate_stage(camp: Campaign, articles, cal: CalibrateResult, bounds, log=p
 
 @dataclass(frozen=True)
 class MemberCrossValidation:
+    """One member's cross-validation; ``identifiability`` is the calibrate stage's verdict checked against
+    the refits' spread (:func:`calibration.with_spread`), None without refits."""
+
     label: str
     crossvalidation: CrossValidation | None
     time_s: float = 0.0
+    identifiability: Identifiability | None = None
 
 
 @dataclass(frozen=True)
@@ -776,5 +781,13 @@ def crossvalidate_stage(camp: Campaign, articles, equalize: EqualizeResult, cal:
             log(f"[{m.label}] cross-validation RSE {cv.rse:.4g} ({cv.p.shape[0]} realizations)")
             for j in np.flatnonzero(cv.n_at_bound):
                 log(f"[{m.label}] CV of {parameter_names[j]}: not meaningful, {cv.cv_reason[j]}")
-        out.append(MemberCrossValidation(m.label, cv, time.perf_counter() - t))
+        idf = None
+        if cv is not None and m.identifiability is not None:
+            idf = with_spread(m.identifiability, cv.p)
+            for j in np.flatnonzero(np.asarray(m.identifiability.identifiable) & ~np.asarray(idf.identifiable)):
+                log(f"[{m.label}] {parameter_names[j]} NOT identifiable after all: {idf.reasons[j]}")
+            if idf.n_identifiable != m.identifiability.n_identifiable:
+                log(f"[{m.label}] {idf.n_identifiable} of {len(parameter_names)} parameters identifiable "
+                    "(checked against the cross-validation refits)")
+        out.append(MemberCrossValidation(m.label, cv, time.perf_counter() - t, idf))
     return CrossValidationResult(tuple(out))

@@ -156,6 +156,18 @@ def test_campaign_reports_identifiability_floor_and_per_article_damping(tmp_path
     assert [r["name"] for r in idf["parameters"]] == list(pm.parameters.names)
     assert len(idf["singular_values"]) == pm.n_params and idf["n_identifiable"] >= 1
     assert "parameters identifiable from these channels and band" in text
-    for row, r in zip(m["parameters"], idf["parameters"]):
+    cvp = np.array(m["crossvalidation"]["p"])
+    span = pm.upper - pm.lower
+    for j, (row, r) in enumerate(zip(m["parameters"], idf["parameters"])):
         assert row["identifiable"] == r["identifiable"]
         assert row["cv_percent"] is None or row["cv_percent"] > 0
+        # the verdict was checked against the refits: an identifiable parameter neither scatters beyond
+        # 5 % of its range nor ends at a bound in any of them
+        pinned = row["cv_not_meaningful"] is not None
+        assert (r["spread_p"] is None) == pinned
+        if not pinned:
+            assert r["spread_p"] == pytest.approx(np.std(cvp[:, j], ddof=1), rel=1e-9)
+        if r["identifiable"]:
+            assert not pinned and r["spread_p"] <= 0.05 * span[j]
+    overruled = [ln for ln in lines if "NOT identifiable after all" in ln]
+    assert all(("cross-validation" in ln) for ln in overruled)

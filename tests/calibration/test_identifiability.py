@@ -13,6 +13,7 @@ from calibration import (
     full_order_frf,
     half_bandwidth_frequencies,
     identifiability,
+    with_spread,
 )
 from tests.calibration._models import beam_model
 
@@ -47,6 +48,52 @@ def test_std_grows_with_noise_until_not_identifiable():
     assert idf.std == pytest.approx([0.01, 0.02, 0.005, 0.1], rel=0.15)
     assert not idf.identifiable[3] and "exceeds 5 % of its range" in idf.reasons[3]
     assert idf.identifiable[:3].all()
+
+
+def test_half_data_refits_spread_like_the_formal_std_of_a_linear_problem():
+    # The rule behind with_spread: for a linear least-squares problem the spread of estimates on random
+    # halves of the residuals about their mean is the full-data std (Var(p_half - p_full) = 2 s^2 - s^2).
+    rng = np.random.default_rng(3)
+    m, theta = 400, np.array([0.05, -0.1, 0.02, 0.1])
+    J = rng.standard_normal((m, 4)) * np.array([1.0, 0.5, 2.0, 0.1])
+    y = J @ theta + 0.05 * rng.standard_normal(m)
+    full = np.linalg.lstsq(J, y, rcond=None)[0]
+    idf = identifiability(J, y - J @ full, full, LO, HI, NAMES)
+    halves = []
+    for _ in range(400):
+        keep = rng.permutation(m)[: m // 2]
+        halves.append(np.linalg.lstsq(J[keep], y[keep], rcond=None)[0])
+    spread = np.std(halves, axis=0, ddof=1)
+    assert spread == pytest.approx(idf.std, rel=0.2)  # measured 0.88-1.10 over seeds 0-3
+    out = with_spread(idf, np.array(halves))
+    # consistent: nothing changes but the recorded spread; d (std 0.025 < 0.03) stays identifiable
+    assert out.identifiable.tolist() == idf.identifiable.tolist() == [True] * 4
+    assert out.reasons == idf.reasons and np.allclose(out.spread, spread)
+
+
+def test_refits_that_scatter_or_pin_overrule_an_optimistic_formal_std():
+    J, r = _linear()
+    idf = identifiability(J, r, np.zeros(4), LO, HI, NAMES)
+    assert idf.identifiable.all() and np.all(idf.std < 1e-3)
+    rng = np.random.default_rng(1)
+    P = 1e-4 * rng.standard_normal((10, 4))
+    P[:, 1] = 0.06 * np.linspace(-1, 1, 10)  # s.d. 3.6 % with the lines: beyond 5 % of the 0.6 range
+    P[3, 2] = HI[2]  # pinned in one refit
+    out = with_spread(idf, P)
+    assert out.identifiable.tolist() == [True, False, False, True] and out.n_identifiable == 2
+    assert "cross-validation spread" in out.reasons[1] and "formal std" in out.reasons[1]
+    assert "at a bound in 1 of 10 cross-validation refits" in out.reasons[2]
+    assert np.isnan(out.spread[2]) and out.spread[1] == pytest.approx(P[:, 1].std(ddof=1))
+    assert out.to_dict()["parameters"][2]["spread_p"] is None
+    assert "CV s.d.%" in out.table() and "pinned" in out.table()
+    # already not identifiable: the reason is kept, not replaced
+    J2, r2 = _linear(sigma=0.2)
+    weak = identifiability(J2, r2, np.zeros(4), LO, HI, NAMES)
+    P2 = np.zeros((5, 4))
+    P2[:, 3] = np.linspace(-0.2, 0.2, 5)
+    assert with_spread(weak, P2).reasons[3] == weak.reasons[3]
+    with pytest.raises(CalibrationError, match="refits have 3 parameters"):
+        with_spread(idf, np.zeros((5, 3)))
 
 
 def test_collinear_pair_is_named_as_a_combination():
