@@ -337,7 +337,7 @@ class ElementFactor:
 
         wanted = np.asarray(self.elements, dtype=np.int64)
         found = np.zeros(wanted.size, dtype=bool)
-        elements = {}
+        elements, bare = {}, []
         for card, tab in fe.elements.items():
             if len(tab) == 0:
                 continue
@@ -345,10 +345,18 @@ class ElementFactor:
             if not np.any(sel):
                 continue
             if card in ("CONM1", "CONM2", "CMASS1", "CMASS2", "CELAS1", "CELAS2", "CBUSH", "CONROD"):
-                raise ParameterError(f"ElementFactor {self.name!r}: {card} {tab.ids[sel][:5].tolist()} have no "
-                                     "property card with a MAT1 to copy (use the card's own field parameter)")
+                # a factor scales a property's material: these cards have none. pyNastran keeps masses and
+                # springs apart from the elements, so a deck may reuse an element's id for a CONM2: the
+                # element with a property is meant then, and only an id found nowhere else is an error
+                bare.append((card, tab.ids[sel]))
+                continue
             found |= np.isin(wanted, tab.ids[sel])
             elements[card] = Table(card, tab.ids[sel], {k: np.asarray(v)[sel] for k, v in tab.fields.items()})
+        for card, ids in bare:
+            alone = ids[~np.isin(ids, wanted[found])]
+            if alone.size:
+                raise ParameterError(f"ElementFactor {self.name!r}: {card} {alone[:5].tolist()} have no "
+                                     "property card with a MAT1 to copy (use the card's own field parameter)")
         if not np.all(found):
             src = f" of {fe.path}" if fe.path else ""
             raise ParameterError(f"ElementFactor {self.name!r}: elements {wanted[~found][:10].tolist()} are not "

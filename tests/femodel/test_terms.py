@@ -317,6 +317,22 @@ def test_errors_name_the_term(frame):
         pm.with_terms([Parameter("E2", "MAT1", (2,), "E", -0.1, 0.1)])
 
 
+def test_element_factor_takes_the_element_when_a_conm2_reuses_its_id(frame, tmp_path):
+    """pyNastran keeps masses apart from elements, so a deck may give a CONM2 the id of a CBAR (an outside
+    frame: CBAR 101 and CONM2 101); a factor on that element scales the bar, not the mass."""
+    d, pm, _ = frame
+    text = (d / "frame.bdf").read_text().replace("CONM2,200,7,", "CONM2,8,7,")
+    (tmp_path / "reused.bdf").write_text(text)
+    params = ParameterSet((Parameter("E", "MAT1", (1,), "E", -0.3, 0.3),))
+    a = parametric_model(params, d / "frame.bdf").with_terms([ElementFactor("f", (7, 8, 9))])
+    b = parametric_model(params, tmp_path / "reused.bdf").with_terms([ElementFactor("f", (7, 8, 9))])
+    q = np.array([0.1, 0.5])
+    _assert_same(b.stiffness(q), a.stiffness(q), "K with the factor")
+    _assert_same(b.mass(q), a.mass(q), "M")
+    with pytest.raises(ParameterError, match=r"CONM2 \[301\]"):  # a mass id that is no element's
+        parametric_model(params, tmp_path / "reused.bdf").with_terms([ElementFactor("f", (8, 301))])
+
+
 def test_term_on_constrained_dof_is_rejected(tmp_path):
     deck = frame_deck(tmp_path / "frame.bdf")
     deck.write_text(deck.read_text().replace("ENDDATA", "SPC1,1,123456,1\nENDDATA"))
