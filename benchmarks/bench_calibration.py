@@ -215,6 +215,13 @@ def main(argv=None) -> int:
     print(f"identifiable {ident.sum()} of {ident.size}; largest error of those {100 * err[ident].max():.3f} %, "
           f"rms {100 * np.sqrt(np.mean(err[ident] ** 2)):.3f} %; of the others: "
           + ", ".join(f"{row['name']} {100 * e:.1f} %" for row, e, i in zip(m["parameters"], err, ident) if not i))
+    # each error against the std the campaign reports for it (p-error over p-std; the larger of the formal std
+    # and the cross-validation refits' spread): an honest std keeps these near 1-3
+    std = np.array([r["std_p"] if r["std_p"] is not None else np.inf for r in m["identifiability"]["parameters"]])
+    in_std = np.abs(p - p_true) / std
+    if ident.any():
+        print("identifiable errors in units of their reported std: "
+              + ", ".join(f"{row['name']} {z:.1f}" for row, z, i in zip(m["parameters"], in_std, ident) if i))
     out = {
         "dof": int(ex.n_dof), "n_params": int(p.size), "starts": args.starts + 1,
         "realizations": args.realizations, "cores": os.cpu_count(), "load_avg": os.getloadavg(),
@@ -236,6 +243,8 @@ def main(argv=None) -> int:
             "p": {row["name"]: float(v) for row, v in zip(m["parameters"], p)},
             "p_true": {row["name"]: float(v) for row, v in zip(m["parameters"], p_true)},
             "identifiable": {row["name"]: bool(i) for row, i in zip(m["parameters"], ident)},
+            "std_p": {row["name"]: float(v) for row, v in zip(m["parameters"], std)},
+            "error_in_std": {row["name"]: float(v) for row, v in zip(m["parameters"], in_std)},
         },
         "model_sd_s": t_model_sd,
     }

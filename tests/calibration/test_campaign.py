@@ -167,6 +167,7 @@ def test_campaign_reports_identifiability_floor_and_per_article_damping(tmp_path
         assert (r["spread_p"] is None) == pinned
         if not pinned:
             assert r["spread_p"] == pytest.approx(np.std(cvp[:, j], ddof=1), rel=1e-9)
+            assert r["std_p"] == pytest.approx(max(r["spread_p"], r["std_formal_p"]), rel=1e-12)
         if r["identifiable"]:
             assert not pinned and r["spread_p"] <= 0.05 * span[j]
     overruled = [ln for ln in lines if "NOT identifiable after all" in ln]

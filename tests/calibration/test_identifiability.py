@@ -69,6 +69,8 @@ def test_half_data_refits_spread_like_the_formal_std_of_a_linear_problem():
     # consistent: nothing changes but the recorded spread; d (std 0.025 < 0.03) stays identifiable
     assert out.identifiable.tolist() == idf.identifiable.tolist() == [True] * 4
     assert out.reasons == idf.reasons and np.allclose(out.spread, spread)
+    # the reported std is the larger of the two; the formal one is kept
+    assert np.allclose(out.std, np.maximum(idf.std, spread)) and np.array_equal(out.std_formal, idf.std)
 
 
 def test_refits_that_scatter_or_pin_overrule_an_optimistic_formal_std():
@@ -84,6 +86,8 @@ def test_refits_that_scatter_or_pin_overrule_an_optimistic_formal_std():
     assert "cross-validation spread" in out.reasons[1] and "formal std" in out.reasons[1]
     assert "at a bound in 1 of 10 cross-validation refits" in out.reasons[2]
     assert np.isnan(out.spread[2]) and out.spread[1] == pytest.approx(P[:, 1].std(ddof=1))
+    assert out.std[1] == out.spread[1] and out.std[2] == idf.std[2]  # a pinned refit has no spread to use
+    assert out.to_dict()["parameters"][1]["std_formal_p"] == pytest.approx(idf.std[1])
     assert out.to_dict()["parameters"][2]["spread_p"] is None
     assert "CV s.d.%" in out.table() and "pinned" in out.table()
     # already not identifiable: the reason is kept, not replaced
