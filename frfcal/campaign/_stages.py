@@ -784,8 +784,13 @@ def crossvalidate_stage(camp: Campaign, articles, equalize: EqualizeResult, cal:
         idf = None
         if cv is not None and m.identifiability is not None:
             idf = with_spread(m.identifiability, cv.p)
-            for j in np.flatnonzero(np.asarray(m.identifiability.identifiable) & ~np.asarray(idf.identifiable)):
+            before, after = np.asarray(m.identifiability.identifiable), np.asarray(idf.identifiable)
+            for j in np.flatnonzero(before & ~after):
                 log(f"[{m.label}] {parameter_names[j]} NOT identifiable after all: {idf.reasons[j]}")
+            for j in np.flatnonzero(~before & after):
+                log(f"[{m.label}] {parameter_names[j]} identifiable after all: its {cv.p.shape[0]} refits agree to "
+                    f"{100 * idf.spread[j]:.2g} % (within 1 % of its range) though it takes part in a weak "
+                    "combination")
             if idf.n_identifiable != m.identifiability.n_identifiable:
                 log(f"[{m.label}] {idf.n_identifiable} of {len(parameter_names)} parameters identifiable "
                     "(checked against the cross-validation refits)")

@@ -172,3 +172,5 @@ def test_campaign_reports_identifiability_floor_and_per_article_damping(tmp_path
             assert not pinned and r["spread_p"] <= 0.05 * span[j]
     overruled = [ln for ln in lines if "NOT identifiable after all" in ln]
     assert all(("cross-validation" in ln) for ln in overruled)
+    readmitted = [ln for ln in lines if " identifiable after all" in ln and "NOT" not in ln]
+    assert all("weak combination" in ln for ln in readmitted)

@@ -100,6 +100,27 @@ def test_refits_that_scatter_or_pin_overrule_an_optimistic_formal_std():
         with_spread(idf, np.zeros((5, 3)))
 
 
+def test_refits_that_agree_readmit_a_parameter_of_a_weak_combination():
+    """Flagged only for taking part in a flat combination (formal std tiny): >= 5 refits agreeing within 1 % of
+    the range readmit it; a wider spread, too few refits or a pinned refit do not."""
+    J, r = _linear(sigma=1e-6)
+    J[:, 1] = -2.0 * J[:, 0] + 2e-3 * np.random.default_rng(5).standard_normal(J.shape[0])
+    idf = identifiability(J, r, np.zeros(4), LO, HI, NAMES)
+    assert idf.identifiable.tolist() == [False, False, True, True]
+    assert idf.reasons[0].startswith("in weak combination") and np.all(idf.std < 0.03)
+    P = 1e-4 * np.random.default_rng(2).standard_normal((10, 4))
+    out = with_spread(idf, P)
+    assert out.identifiable.all() and out.reasons[:2] == ("", "")
+    P[:, 1] = np.linspace(-0.01, 0.01, 10)  # s.d. 0.64 %: above 1 % of the 0.6 range
+    assert with_spread(idf, P).identifiable.tolist() == [True, False, True, True]
+    assert with_spread(idf, P[:4]).identifiable.tolist() == [False, False, True, True]  # too few refits
+    P[0, 0] = LO[0]
+    assert not with_spread(idf, P).identifiable[0]
+    # at a bound (not only a weak combination) is never readmitted
+    pinned = identifiability(J, r, np.array([LO[0], 0, 0, 0]), LO, HI, NAMES)
+    assert not with_spread(pinned, 1e-4 * np.ones((10, 4)) * np.arange(10)[:, None]).identifiable[0]
+
+
 def test_collinear_pair_is_named_as_a_combination():
     J, r = _linear()
     # b moves the residual like -2 a (plus a trace of its own): a change of a by x with b by x/2 is invisible
