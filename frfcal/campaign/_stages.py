@@ -46,6 +46,7 @@ from calibration import (
 from calibration._refine import ModalDampingObjective, Refinement, carried_damping, refine
 from calibration._surrogate import assembled, basis_layout
 from calibration._signal import signal_pairs
+from labdata._quantities import quantity_factor, quantity_power
 from frfcal.campaign._identify import identify_lines
 from frfcal.campaign._schema import Campaign
 
@@ -134,22 +135,24 @@ class LoadResult:
     drives: tuple  # of Transducer
 
 
-def _same_point(a, b) -> bool:
-    return int(a.grid) == int(b.grid) and np.allclose(np.asarray(a.direction, float), np.asarray(b.direction, float),
-                                                       atol=1e-6)
+def _same_point(a, b, sign: float = 1.0) -> bool:
+    return int(a.grid) == int(b.grid) and np.allclose(np.asarray(a.direction, float),
+                                                       sign * np.asarray(b.direction, float), atol=1e-6)
 
 
-def _by_point(channels, names, first: dict, what: str, path, log) -> list:
-    """Indices of ``names`` among a run's ``channels``: by name, else by the point (grid and direction) the
-    name has in the campaign's first run.
+def _by_point(channels, names, first: dict, what: str, path, log) -> tuple[list, np.ndarray]:
+    """Indices of ``names`` among a run's ``channels``, and the sign of each: by name, else by the point
+    (grid and direction) the name has in the campaign's first run.
 
     Run files imported per article often name one point differently (a UFF entity name that carries the
     transducer's serial number: ``PCB-1234 (101+Z)`` in one file, ``PCB-5678 (101+Z)`` in the next): the
     campaign's names are the first run's, and another run's channel at the same grid and direction is that
-    channel (logged). A name found in the run at another point is used as named, with a warning.
+    channel (logged). A channel at the same grid along the opposite direction (a sensor mounted the other way
+    round in one article: ``101-Z``) is that channel with its sign turned (-1: its FRF row, or a drive's
+    column, is negated; logged). A name found in the run at another point is used as named, with a warning.
     """
     lookup = {c.name: i for i, c in enumerate(channels)}
-    out, missing = [], []
+    out, signs, missing = [], [], []
     for n in names:
         ref = first.get(n)
         if n in lookup:
@@ -159,19 +162,32 @@ def _by_point(channels, names, first: dict, what: str, path, log) -> list:
                     f"{tuple(c.direction)} here but at grid {ref.grid}, direction {tuple(ref.direction)} in the "
                     "first run; the model uses the first run's point")
             out.append(lookup[n])
+            signs.append(1.0)
             continue
         hits = [] if ref is None else [i for i, c in enumerate(channels) if _same_point(c, ref)]
+        flips = [] if ref is None or hits else [i for i, c in enumerate(channels) if _same_point(c, ref, -1.0)]
         if len(hits) == 1:
             log(f"{Path(path).name}: {what[:-1]} {n!r} is {channels[hits[0]].name!r} here (same grid {ref.grid}, "
                 f"direction {tuple(ref.direction)})")
             out.append(hits[0])
+            signs.append(1.0)
+        elif len(flips) == 1:
+            log(f"{Path(path).name}: {what[:-1]} {n!r} is {channels[flips[0]].name!r} here (same grid {ref.grid}, "
+                f"opposite direction {tuple(channels[flips[0]].direction)}): its FRF is negated")
+            out.append(flips[0])
+            signs.append(-1.0)
         else:
-            missing.append(n if ref is None else f"{n} (grid {ref.grid}, direction {tuple(ref.direction)}: "
-                                                 f"{len(hits)} channels there)")
+            there = [c for c in channels if ref is not None and int(c.grid) == int(ref.grid)]
+            missing.append(n if ref is None else
+                           f"{n} (grid {ref.grid}, direction {tuple(ref.direction)}: "
+                           + (f"{len(hits)} channels along it" if hits else "none along it or opposite")
+                           + ("" if hits or not there else
+                              "; the run has " + ", ".join(f"{c.name!r} along {tuple(c.direction)}" for c in there)
+                              + " there") + ")")
     if missing:
         raise CalibrationError(f"{path}: {what} {missing} are not {what} of the run, by name or by point "
                                f"(has {sorted(lookup)})")
-    return out
+    return out, np.array(signs)
 
 
 def load_stage(camp: Campaign, log=print) -> LoadResult:
@@ -181,7 +197,11 @@ def load_stage(camp: Campaign, log=print) -> LoadResult:
     ------
     CalibrationError
         Naming the run file: unknown channel or drive, no valid line in the
-        band, NaN on a valid line, no pair with signal, mixed FRF quantities.
+        band, NaN on a valid line, no pair with signal.
+
+    A run of another FRF quantity than the first (mobility or receptance
+    beside accelerance) is converted to the first run's, exactly, and
+    logged; a run whose valid lines do not cover the band gets a warning.
     """
     from acquisition.runfile import read_analysis, read_run
     from identification import Identification
@@ -194,10 +214,10 @@ def load_stage(camp: Campaign, log=print) -> LoadResult:
     for entry in camp.run:
         path = camp.resolve(entry.path)
         run = read_run(path)
-        rows = _by_point(run.sensors, names, first_sensors, "sensors", path, log)
+        rows, row_sign = _by_point(run.sensors, names, first_sensors, "sensors", path, log)
         wanted = list(ch.drives) or list(first_drives)  # none named: every drive of the first run
-        cols = _by_point(run.drives, wanted, first_drives, "drives", path, log) if wanted else list(
-            range(len(run.drives)))
+        cols, col_sign = _by_point(run.drives, wanted, first_drives, "drives", path, log) if wanted else (
+            list(range(len(run.drives))), np.ones(len(run.drives)))
         if not first_sensors:
             first_sensors = {n: run.sensors[r] for n, r in zip(names, rows)}
             first_drives = {run.drives[c].name: run.drives[c] for c in cols}
@@ -209,9 +229,25 @@ def load_stage(camp: Campaign, log=print) -> LoadResult:
                 f"{path}: band [{lo}, {hi}] Hz has no valid lines (run covers "
                 f"{f.min() if f.size else float('nan'):.1f}-{f.max() if f.size else float('nan'):.1f} Hz)"
             )
-        H_all = np.asarray(run.frf)[:, rows][:, :, cols]
+        fv = f[inband & valid]
+        if fv.min() > lo * 1.02 + 1e-9 or fv.max() < hi / 1.02:
+            log(f"{path.name}: warning: its valid lines cover {fv.min():.4g}-{fv.max():.4g} Hz of the band "
+                f"{lo:g}-{hi:g} Hz; the identified model stands in for the rest (equalized data, grouping): "
+                "compare such articles with care, or narrow the band")
+        H_all = np.asarray(run.frf)[:, rows][:, :, cols] * row_sign[None, :, None] * col_sign[None, None, :]
         se_all = np.asarray(run.std_error, float)
         se_all = se_all[:, rows][:, :, cols] if se_all.shape == np.asarray(run.frf).shape else None
+        quantity = run.quantity
+        if out and quantity != out[0].quantity:
+            # the campaign's quantity is the first run's: H_to = (i w)^(k_to - k_from) H_from, exact
+            to = out[0].quantity
+            w = 2 * np.pi * f
+            factor = quantity_factor(to, w) / quantity_factor(quantity, w)
+            H_all = H_all * factor[:, None, None]
+            se_all = None if se_all is None else se_all * np.abs(factor)[:, None, None]
+            log(f"{path.name}: {quantity} converted to {to} (the first run's quantity; x (i w)^"
+                f"{quantity_power(to) - quantity_power(quantity)})")
+            quantity = to
         sel = inband & valid
         H = H_all[sel]
         se = None if se_all is None else se_all[sel]
@@ -234,6 +270,10 @@ def load_stage(camp: Campaign, log=print) -> LoadResult:
                 # its rows in the campaign's names where a channel was matched by point
                 alias = {run.sensors[r].name: n for n, r in zip(names, rows)}
                 stored, stored_channels = cand, tuple(alias.get(s.name, s.name) for s in run.sensors)
+                if quantity != run.quantity or np.any(row_sign < 0) or np.any(col_sign < 0):
+                    log(f"{path.name}: its stored identification is not used (its {run.quantity} and channel "
+                        "signs are the file's, not the campaign's): identified again")
+                    stored, stored_channels = None, ()
         if geometry is None:
             spec = {s.name: s for s in run.sensors}
             geometry = (tuple(Transducer(n, int(spec[n].grid), tuple(spec[n].direction)) for n in names),
@@ -248,7 +288,7 @@ def load_stage(camp: Campaign, log=print) -> LoadResult:
             drives=drives,
             identification=None,
             ident_channels=tuple(names),
-            quantity=run.quantity,
+            quantity=quantity,
             std_error=se,
             noise_estimate=None if se is not None else estimate_std_error(f[sel], H, what=str(path)).std_error,
             pairs=None if sig.usable.all() else sig.usable,
@@ -256,9 +296,6 @@ def load_stage(camp: Campaign, log=print) -> LoadResult:
             stored=stored,
             stored_channels=stored_channels,
         ))
-    quantities = {a.quantity for a in out}
-    if len(quantities) > 1:
-        raise CalibrationError(f"runs mix FRF quantities {sorted(quantities)}")
     return LoadResult(tuple(out), *geometry)
 
 

@@ -355,3 +355,19 @@ def test_direction_codes_are_in_the_nodes_displacement_system(tmp_path):
         import_uff(_skewed_file(tmp_path / "c.uff", [_nodes([12, 0])]), tmp_path / "c.h5")
     with pytest.raises(UffError, match="node 7: displacement coordinate system 12 is cylindrical"):
         import_uff(_skewed_file(tmp_path / "d.uff", [_cs2420(12, Rx, typ=1), _nodes([12, 0])]), tmp_path / "d.h5")
+
+
+def test_repeated_lines_are_refused_at_import_and_unordered_ones_sorted(tmp_path):
+    """ASCII UFF58 keeps the abscissa to ~6 digits: an over-dense grid repeats lines, which the noise estimate
+    and calibration refuse much later; import names the line instead. Distinct lines out of order are sorted."""
+    x = np.array([5.0, 5.25, 5.5, 5.5, 6.0])
+    cells = [(101, 3, 1, 3, (1.0 + 0.1 * np.arange(5)) * (1 + 1j), {"abscissa_spacing": 0, "x": x})]
+    _foreign(tmp_path / "dup.uff", cells)
+    with pytest.raises(UffError, match=r"dup.uff: line 5.5 Hz appears 2 times in the abscissa .*ASCII UFF58 keeps"):
+        import_uff(tmp_path / "dup.uff", tmp_path / "dup.h5")
+    order = np.array([5.5, 5.0, 6.0, 5.25])
+    data = np.array([3.0, 1.0, 4.0, 2.0]) + 0j
+    _foreign(tmp_path / "unordered.uff", [(101, 3, 1, 3, data, {"abscissa_spacing": 0, "x": order})])
+    run = import_uff(tmp_path / "unordered.uff", tmp_path / "unordered.h5")
+    np.testing.assert_array_equal(run.frequency_hz, [5.0, 5.25, 5.5, 6.0])
+    np.testing.assert_array_equal(run.frf[:, 0, 0], [1.0, 2.0, 3.0, 4.0])

@@ -167,25 +167,37 @@ def test_stages_compose_and_keep_the_final_basis(staged):
     np.testing.assert_allclose(m.p, [r["p"] for r in first["members"][0]["parameters"]], rtol=0.02, atol=2e-3)
 
 
-def _renamed_copy(src, dst, rename, move=None):
-    """``src`` as a new run file whose sensors/drives carry other names (``rename``: old -> new), and
-    optionally a sensor moved to another grid (``move``: (name, grid))."""
+def _renamed_copy(src, dst, rename, move=None, flip=(), quantity=None):
+    """``src`` as a new run file whose sensors/drives carry other names (``rename``: old -> new), optionally
+    a sensor moved to another grid (``move``: (name, grid)), sensors mounted the other way round (``flip``:
+    names; direction and FRF row negated) and another FRF quantity (the data converted exactly)."""
     from acquisition.runfile import ChannelSpec, LineQuality, create_run, read_run
+    from labdata import quantity_factor
 
     run = read_run(src)
+    quantity = quantity or run.quantity
+    unit = {"accelerance": "m/s^2", "mobility": "m/s", "receptance": "m"}[quantity]
 
     def spec(c, role):
         grid = move[1] if move and c.name == move[0] else c.grid
+        sign = -1.0 if c.name in flip else 1.0
         return ChannelSpec(name=rename.get(c.name, c.name), role=role, quantity=c.quantity, unit=c.unit, grid=grid,
-                           direction=tuple(c.direction))
+                           direction=tuple(sign * np.asarray(c.direction, float) + 0.0))
 
     sensors = [spec(c, "response") for c in run.sensors]
+    if quantity != run.quantity:
+        qn = {"accelerance": "acceleration", "mobility": "velocity", "receptance": "displacement"}[quantity]
+        sensors = [ChannelSpec(name=c.name, role=c.role, quantity=qn, unit=unit, grid=c.grid,
+                               direction=c.direction) for c in sensors]
     drives = [spec(c, "force") for c in run.drives]
-    with create_run(dst, article="SF2", sensors=sensors, drives=drives, overwrite=True) as w:
+    signs = np.array([-1.0 if c.name in flip else 1.0 for c in run.sensors])
+    with create_run(dst, article="SF2", sensors=sensors, drives=drives, quantity=quantity, overwrite=True) as w:
         for k, fk in enumerate(run.frequency_hz):
-            q = LineQuality(force_n=np.ones(len(drives)), std_error=np.asarray(run.std_error)[k],
+            fac = 1.0 if quantity == run.quantity else complex(
+                quantity_factor(quantity, 2 * np.pi * fk) / quantity_factor(run.quantity, 2 * np.pi * fk))
+            q = LineQuality(force_n=np.ones(len(drives)), std_error=np.asarray(run.std_error)[k] * abs(fac),
                             thd=np.zeros(len(sensors) + len(drives)), flags=int(np.asarray(run.flags)[k]))
-            w.append_line(float(fk), np.asarray(run.frf)[k], q)
+            w.append_line(float(fk), np.asarray(run.frf)[k] * signs[:, None] * fac, q)
     return dst
 
 
@@ -210,8 +222,8 @@ def test_runs_naming_one_point_differently_are_matched_by_grid_and_direction(sta
     # the renamed channel at another point: neither its name nor its point is in the run
     moved = _renamed_copy(first, tmp_path / "run3.h5", rename, move=("acc2", 10**9))
     bad = camp.model_copy(update={"run": [camp.run[0], camp.run[0].model_copy(update={"path": moved})]})
-    with pytest.raises(CalibrationError, match=r"run3.h5: sensors \['acc2 \(grid \d+, direction .*: 0 channels "
-                                               r"there\)'\] are not sensors of the run, by name or by point"):
+    with pytest.raises(CalibrationError, match=r"run3.h5: sensors \['acc2 \(grid \d+, direction .*: none along it "
+                                               r"or opposite\)'\] are not sensors of the run, by name or by point"):
         load_stage(bad, lines.append)
     # the same name at another point: used as named, with a warning (the model has the first run's point)
     shifted = _renamed_copy(first, tmp_path / "run4.h5", {}, move=("acc2", 10**9))
@@ -219,3 +231,27 @@ def test_runs_naming_one_point_differently_are_matched_by_grid_and_direction(sta
     lines.clear()
     load_stage(odd, lines.append)
     assert any("warning: sensor 'acc2' is at grid 1000000000" in ln for ln in lines), lines
+
+
+def test_a_run_in_another_quantity_with_a_sensor_mounted_the_other_way_is_converted(staged, tmp_path):
+    """Outside labs: one article's file holds mobility (or receptance) and one sensor pointing -Z where the
+    first run's points +Z. The load stage converts to the first run's quantity (exactly, x (i w)^k) and
+    negates the flipped channel, so both articles hold the same FRF; before, it refused the mix and called
+    the flipped point '0 channels there'."""
+    from frfcal.campaign import load_stage
+
+    camp, _ = staged
+    first = camp.resolve(camp.run[0].path)
+    for quantity in ("mobility", "receptance"):
+        second = _renamed_copy(first, tmp_path / f"{quantity}.h5", {"acc2": "acc2 upside down"}, flip=("acc2",),
+                               quantity=quantity)
+        two = camp.model_copy(update={"run": [camp.run[0], camp.run[0].model_copy(update={"path": second})]})
+        lines = []
+        a, b = load_stage(two, lines.append).articles
+        assert a.quantity == b.quantity == "accelerance"
+        np.testing.assert_allclose(b.frf, a.frf, rtol=1e-12, atol=0)
+        if a.std_error is not None:
+            np.testing.assert_allclose(b.std_error, a.std_error, rtol=1e-12, atol=0)
+        assert any(f"{quantity} converted to accelerance" in ln for ln in lines), lines
+        assert any("sensor 'acc2' is 'acc2 upside down' here" in ln and "its FRF is negated" in ln
+                   for ln in lines), lines
