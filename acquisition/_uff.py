@@ -70,6 +70,22 @@ def _unit_labels(num, den) -> tuple[str, str]:
     return num, den
 
 
+def _label_unit(label, known) -> str:
+    """The unit in an axis label's last (...) or [...] when it is one of ``known`` (``Acceleration (g)`` ->
+    ``g``); "" otherwise (a label without a unit, or with another remark in parentheses)."""
+    import re
+
+    found = re.findall(r"[\(\[]([^()\[\]]+)[\)\]]", str(label or ""))
+    if not found:
+        return ""
+    unit = found[-1].strip()
+    try:
+        num, den = _unit_labels(unit, "")
+    except ValueError:
+        return ""
+    return unit if (num in known and num not in ("", "none")) or den not in ("", "none") else ""
+
+
 class UffError(ValueError):
     """A UFF file cannot be mapped to a run (names the file and the record)."""
 
@@ -437,8 +453,15 @@ def import_uff(path, out, *, article: str | None = None, overwrite: bool = False
         if not np.iscomplexobj(data):
             raise UffError(f"{path}: {rec(n, s)}: real ordinate data (type {s.get('ord_data_type')}); an FRF "
                            "needs complex data (type 5 or 6)")
+        # a blank units label: some writers put the unit in the axis label instead ("Acceleration (g)")
+        num_lab, den_lab = (str(s.get(k, "") or "").strip() for k in ("ordinate_axis_units_lab",
+                                                                        "orddenom_axis_units_lab"))
+        if num_lab.lower() in ("", "none"):
+            num_lab = _label_unit(s.get("ordinate_axis_lab"), _SCALE_NUM) or num_lab
+        if den_lab.lower() in ("", "none"):
+            den_lab = _label_unit(s.get("orddenom_axis_lab"), _SCALE_DEN) or den_lab
         try:
-            unit_num, unit_den = _unit_labels(s.get("ordinate_axis_units_lab", ""), s.get("orddenom_axis_units_lab", ""))
+            unit_num, unit_den = _unit_labels(num_lab, den_lab)
         except ValueError as exc:
             raise UffError(f"{path}: {rec(n, s)}: {exc}") from None
         if unit_num not in _SCALE_NUM:

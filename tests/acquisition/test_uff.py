@@ -92,7 +92,9 @@ def _foreign(path, cells, **common):
                   ordinate_axis_units_lab="m/s^2", orddenom_axis_units_lab="N")
         kw.update(common)
         kw.update(over)
+        labels = {k: kw.pop(k) for k in list(kw) if k.endswith("_axis_lab")}  # not prepare_58 arguments
         ds = pyuff.prepare_58(**kw)
+        ds.update(labels)
         ds["type"] = 58
         sets.append(ds)
     pyuff.UFF(str(path)).write_sets(sets, mode="overwrite")
@@ -371,3 +373,17 @@ def test_repeated_lines_are_refused_at_import_and_unordered_ones_sorted(tmp_path
     run = import_uff(tmp_path / "unordered.uff", tmp_path / "unordered.h5")
     np.testing.assert_array_equal(run.frequency_hz, [5.0, 5.25, 5.5, 6.0])
     np.testing.assert_array_equal(run.frf[:, 0, 0], [1.0, 2.0, 3.0, 4.0])
+
+
+def test_a_unit_given_only_in_the_axis_label_is_used(tmp_path):
+    """Some writers leave the units label blank and write 'Acceleration (g)' as the axis label: read as SI the
+    file was 9.81x off. A unit in the axis label's parentheses counts when the units label is blank and it is
+    a known unit; another remark in parentheses leaves the blank (SI) reading."""
+    data = (1.0 + 0.1 * np.arange(F_AX.size)) * (1 + 1j)
+    blank = {"ordinate_axis_units_lab": "", "orddenom_axis_units_lab": ""}
+    _foreign(tmp_path / "g.uff", [(101, 3, 1, 3, data, {**blank, "ordinate_axis_lab": "Acceleration (g)",
+                                                         "orddenom_axis_lab": "Force [N]"})])
+    np.testing.assert_allclose(import_uff(tmp_path / "g.uff", tmp_path / "g.h5").frf[:, 0, 0], 9.80665 * data,
+                               rtol=1e-12)
+    _foreign(tmp_path / "x.uff", [(101, 3, 1, 3, data, {**blank, "ordinate_axis_lab": "Acceleration (X)"})])
+    np.testing.assert_allclose(import_uff(tmp_path / "x.uff", tmp_path / "x.h5").frf[:, 0, 0], data, rtol=1e-12)
