@@ -40,7 +40,7 @@ from calibration import (
 )
 from calibration._damping import mapped_damping
 from frfcal.campaign._schema import Campaign
-from frfcal.campaign._stages import Article, floor_std_error, floors_of, identified_modes, pair_mask
+from frfcal.campaign._stages import Article, floor_std_error, floors_of, ident_frf, identified_modes, pair_mask
 
 VERDICTS = ("nothing to explain", "nonlinear", "effect(s) found", "no effect accepted")
 
@@ -116,17 +116,6 @@ def _expected(article: Article, channels, H, eps):
     return difference_noise(eps), "adjacent-line differences of the residual (no standard errors)"
 
 
-def _ident_frf(article: Article, channels):
-    rows = [article.ident_channels.index(n) for n in channels]
-    ident = article.identification
-    n_in = ident.model.n_in
-
-    def frf(f):
-        H = ident.frf(f)[:, rows]
-        return H if n_in == len(article.drives) else H[:, :, :len(article.drives)]
-    return frf
-
-
 def _frequency_scatter(modes_per) -> list:
     """Per article, per identified mode: standard deviation (Hz) of its frequency over the articles
     (nearest mode within 5 % in each other article); zeros with one article."""
@@ -191,7 +180,7 @@ def member_residual(camp: Campaign, load, articles, member, cfg=None, model=None
         mask = pair_mask(a, chans, a.freq_hz.size)
         tests.append(Ht)
         items.append(ResidualItem(a.name, a.freq_hz, eps, q, mask))
-        models.append(_ident_frf(a, chans))
+        models.append(ident_frf(a, chans))
         mode_rows.extend(mode_residuals(sur, x, modes_per[k], a.name,
                                         mac_min=camp.validation.mac_min, band_hz=band,
                                         shift_threshold=cfg.shift_threshold, scatter_hz=scatter_hz[k]))

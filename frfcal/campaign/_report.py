@@ -113,7 +113,13 @@ def write_outputs(camp, pm, articles, groups: GroupResult, cal: CalibrateResult,
             "sd_raw_floor_source": raw_src,
             "identifiability": idf.to_dict(),
             "calibration": cyc.to_dict(),
-            "validation": None if v.validation is None else v.validation.to_dict(),
+            "validation": None if v.validation is None else {
+                **v.validation.to_dict(),
+                # several articles: their test-to-test scatter on the hold-out channels, beside the noise floor
+                **({} if getattr(v, "scatter", None) is None else {
+                    "scatter": v.scatter,
+                    "floor_with_scatter_ratio": (v.validation.sd_calibrated / (v.validation.sd_floor + v.scatter)
+                                                 if v.validation.sd_floor else None)})},
             "crossvalidation": None if cv is None else cv.to_dict(),
             "timings": {"calibration_s": m.time_s, "validation_s": v.time_s, "crossvalidation_s": x.time_s},
         }

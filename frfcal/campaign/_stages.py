@@ -42,6 +42,8 @@ from calibration import (
     pairwise_sd,
     validate,
     with_spread,
+    expected_from_std_error,
+    scatter_sd,
 )
 from calibration._refine import ModalDampingObjective, Refinement, carried_damping, refine
 from calibration._surrogate import assembled, basis_layout
@@ -405,6 +407,36 @@ def raw_data(article: Article, channels) -> FitData:
                    mask=pair_mask(article, channels, article.freq_hz.size))
 
 
+def ident_frf(article: Article, channels):
+    """f -> the article's identified model on ``channels`` x its drives, (n_f, n_ch, n_in)."""
+    rows = [article.ident_channels.index(n) for n in channels]
+    ident = article.identification
+    n_in = ident.model.n_in
+
+    def frf(f):
+        H = ident.frf(f)[:, rows]
+        return H if n_in == len(article.drives) else H[:, :, :len(article.drives)]
+    return frf
+
+
+def holdout_scatter(articles, channels) -> float | None:
+    """Test-to-test scatter of several articles on ``channels`` (:func:`calibration.scatter_sd`: their
+    measured lines against each other less the noise), the part of a pooled model's square deviation that
+    one parameter set for all of them cannot remove; None for one article."""
+    if len(articles) < 2:
+        return None
+    raw = [raw_data(a, channels) for a in articles]
+    expected = []
+    for a, r in zip(articles, raw):
+        se, _ = floor_std_error(a, channels)
+        if se is None:
+            expected = None
+            break
+        expected.append(expected_from_std_error(r.frf, se))
+    return scatter_sd([r.freq_hz for r in raw], [r.frf for r in raw], [ident_frf(a, channels) for a in articles],
+                      expected, [r.mask for r in raw])
+
+
 def raw_std_error(article: Article, channels):
     """The article's standard errors on ``channels`` (None without)."""
     if article.std_error is None:
@@ -693,13 +725,17 @@ class MemberValidation:
 
     ``articles``: with several refined articles, each article's own raw-line
     estimate started from the member's (dicts: article, p,
-    sd_raw_calibration, sd_holdout); else empty.
+    sd_raw_calibration, sd_holdout); else empty. ``scatter``: with several
+    articles, their test-to-test scatter on the hold-out channels
+    (:func:`holdout_scatter`), which one parameter set for all cannot remove;
+    None with one.
     """
 
     label: str
     validation: Validation | None
     articles: tuple = ()
     time_s: float = 0.0
+    scatter: float | None = None
 
 
 @dataclass(frozen=True)
@@ -756,7 +792,7 @@ def validate_stage(camp: Campaign, articles, cal: CalibrateResult, bounds, log=p
         arts = [articles[i] for i in m.articles]
         ref = m.refinement
         t = time.perf_counter()
-        val = None
+        val, scatter = None, None
         if camp.channels.holdout:
             raw = [raw_data(a, camp.channels.holdout) for a in arts]
             errs, src = floors_of(arts, camp.channels.holdout)
@@ -765,10 +801,15 @@ def validate_stage(camp: Campaign, articles, cal: CalibrateResult, bounds, log=p
                            std_error=errs, damping=None if ref is None else (ref.zeta, ref.p_zeta),
                            floor_source=src)
             log(f"[{m.label}] {val.summary()}")
+            scatter = holdout_scatter(arts, camp.channels.holdout)
+            if scatter is not None and val.sd_floor:
+                log(f"[{m.label}] hold-out floor of one parameter set for {len(arts)} articles: noise "
+                    f"{val.sd_floor:.2g} + their test-to-test scatter {scatter:.2g} (measured lines against each "
+                    f"other): {val.sd_calibrated / (val.sd_floor + scatter):.2g}x")
         rows = ()
         if ref is not None and len(arts) > 1:
             rows = _per_article(camp, cal.surrogate, m.surrogate, arts, m.p, band, lower, upper, log, m.label)
-        out.append(MemberValidation(m.label, val, rows, time.perf_counter() - t))
+        out.append(MemberValidation(m.label, val, rows, time.perf_counter() - t, scatter))
     return ValidationResult(tuple(out))
 
 

@@ -74,6 +74,9 @@ def print_result(camp, res) -> None:
             floor = f", floor ~{v['sd_floor']:.2g}{_source(v)} ({v['floor_ratio']:.1f}x)" if v.get("sd_floor") else ""
             print(f"hold-out SD (raw lines, identified damping)  {v['sd_nominal']:.4g} -> {v['sd_calibrated']:.4g}"
                   f"{floor}  ({v['verdict']})")
+            if v.get("scatter") is not None and v.get("floor_with_scatter_ratio") is not None:
+                print(f"  one parameter set for {len(m['articles'])} articles: floor ~{v['sd_floor']:.2g} noise + "
+                      f"{v['scatter']:.2g} test-to-test scatter ({v['floor_with_scatter_ratio']:.1f}x)")
         if m.get("sd_raw_calibration") is not None:
             fl = m.get("sd_raw_floor")
             print(f"raw calibration lines SD (identified damping)  {m['sd_raw_calibration_start']:.4g} -> "

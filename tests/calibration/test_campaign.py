@@ -150,6 +150,9 @@ def test_campaign_reports_identifiability_floor_and_per_article_damping(tmp_path
     assert v["sd_floor"] == pytest.approx(floor, rel=0.02)
     assert v["verdict"] == "improved" and "passed" not in v
     assert f"floor ~{v['sd_floor']:.2g} ({v['floor_ratio']:.1f}x)" in text
+    # two articles: their test-to-test scatter on the hold-out channels is reported beside the noise floor
+    assert v["scatter"] > 0 and "hold-out floor of one parameter set for 2 articles" in text
+    assert v["floor_with_scatter_ratio"] == pytest.approx(v["sd_calibrated"] / (v["sd_floor"] + v["scatter"]))
     # each article's hold-out lines were compared with its own identified damping
     assert [it["article"] for it in v["items"]] == ["SF1", "SF2"] and len(v["pairs_calibrated"]) == 2
     idf = m["identifiability"]
