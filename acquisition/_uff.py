@@ -233,6 +233,22 @@ def _read_records(path: Path, types_wanted=(58,)) -> list[tuple[int, dict]]:
         raise UffError(f"{path}: cannot parse as a universal file: {exc}") from None
 
 
+def _dataset_listing(path: Path) -> str:
+    """What a universal file holds, for an error: "it holds datasets 151 x1, 164 x1" or "it holds no dataset
+    pyuff can delimit (N bytes)" (a damaged or empty file, e.g. a binary one written record by record in
+    overwrite mode)."""
+    import pyuff
+
+    try:
+        types = [int(t) for t in pyuff.UFF(str(path)).get_set_types()]
+    except Exception:  # pyuff raises bare Exceptions on malformed files
+        types = []
+    if not types:
+        return f"it holds no dataset pyuff can delimit ({path.stat().st_size} bytes)"
+    counts = {t: types.count(t) for t in dict.fromkeys(types)}
+    return "it holds datasets " + ", ".join(f"{t} x{n}" for t, n in counts.items())
+
+
 def _file_units_scale(path: Path, units) -> float | None:
     """FRF factor to SI (force factor / length factor) of the file's units dataset 164, None without one.
 
@@ -400,7 +416,7 @@ def import_uff(path, out, *, article: str | None = None, overwrite: bool = False
     records = _read_records(path)
     plan = {"source": "uff58", "file": str(path)}
     if not records:
-        raise UffError(f"{path}: no UFF58 records")
+        raise UffError(f"{path}: no UFF58 records; {_dataset_listing(path)}")
     # records without unit labels are in the file's unit system (dataset 164), when it has one
     file_scale = _file_units_scale(path, _read_records(path, (164,)))
     # direction codes of nodes with a local displacement system (the test geometry's 2411/15 + 2420/18)

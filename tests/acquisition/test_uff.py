@@ -387,3 +387,19 @@ def test_a_unit_given_only_in_the_axis_label_is_used(tmp_path):
                                rtol=1e-12)
     _foreign(tmp_path / "x.uff", [(101, 3, 1, 3, data, {**blank, "ordinate_axis_lab": "Acceleration (X)"})])
     np.testing.assert_allclose(import_uff(tmp_path / "x.uff", tmp_path / "x.h5").frf[:, 0, 0], data, rtol=1e-12)
+
+
+def test_a_file_without_frf_records_says_what_it_holds(tmp_path):
+    """A universal file with no dataset 58 names the datasets it has, or says none could be delimited (a damaged
+    file, e.g. a binary one pyuff rewrote record by record in overwrite mode)."""
+    import pyuff
+
+    head = {"type": 151, "model_name": "m", "description": "d", "db_app": "a", "date_db_created": "x",
+            "time_db_created": "y", "version_db1": "1", "version_db2": "2", "file_type": 0, "date_db_saved": "x",
+            "time_db_saved": "y", "program": "p", "date_file_written": "x", "time_file_written": "y"}
+    pyuff.UFF(str(tmp_path / "h.uff")).write_sets([head], mode="overwrite")
+    with pytest.raises(UffError, match=r"h.uff: no UFF58 records; it holds datasets 151 x1"):
+        import_uff(tmp_path / "h.uff", tmp_path / "h.h5")
+    (tmp_path / "junk.uff").write_text("junk\n")
+    with pytest.raises(UffError, match=r"junk.uff: no UFF58 records; it holds no dataset pyuff can delimit"):
+        import_uff(tmp_path / "junk.uff", tmp_path / "junk.h5")
