@@ -576,16 +576,16 @@ def import_uff(path, out, *, article: str | None = None, overwrite: bool = False
         f, frf = f[~dc], frf[~dc]
         if f.size == 0:
             raise UffError(f"{path}: no line above 0 Hz")
+    if np.any(np.diff(f) < 0):  # distinct lines out of order: a run holds them ascending
+        order = np.argsort(f, kind="stable")
+        f, frf = f[order], frf[order]
     step = np.diff(f)
     if np.any(step == 0):
         k = int(np.flatnonzero(step == 0)[0])
         ascii_note = ("; an ASCII UFF58 keeps the abscissa to about 6 significant digits: write binary 58b or "
                       "space the lines wider" if not _is_binary(path) else "")
         raise UffError(f"{path}: line {f[k]!r} Hz appears {int(np.sum(f == f[k]))} times in the abscissa "
-                       f"(lines {k} and {k + 1}; {int(np.sum(step == 0))} repeated in all){ascii_note}")
-    if np.any(step < 0):  # distinct lines out of order: a run holds them ascending
-        order = np.argsort(f, kind="stable")
-        f, frf = f[order], frf[order]
+                       f"({int(np.sum(step == 0))} repeated in all){ascii_note}")
     w = create_run(out, article=article, sensors=sensors, drives=drives, quantity=quantity,
                    plan=plan, hardware={"source": "imported"}, overwrite=overwrite)
     nan_q = LineQuality(force_n=np.full(len(drives), np.nan), std_error=np.full((len(sensors), len(drives)), np.nan),

@@ -373,6 +373,11 @@ def test_repeated_lines_are_refused_at_import_and_unordered_ones_sorted(tmp_path
     run = import_uff(tmp_path / "unordered.uff", tmp_path / "unordered.h5")
     np.testing.assert_array_equal(run.frequency_hz, [5.0, 5.25, 5.5, 6.0])
     np.testing.assert_array_equal(run.frf[:, 0, 0], [1.0, 2.0, 3.0, 4.0])
+    # a repeat that only sorting brings side by side is found too
+    again = np.array([5.5, 5.0, 5.5, 6.0])
+    _foreign(tmp_path / "dup2.uff", [(101, 3, 1, 3, data, {"abscissa_spacing": 0, "x": again})])
+    with pytest.raises(UffError, match=r"dup2.uff: line 5.5 Hz appears 2 times"):
+        import_uff(tmp_path / "dup2.uff", tmp_path / "dup2.h5")
 
 
 def test_a_unit_given_only_in_the_axis_label_is_used(tmp_path):
