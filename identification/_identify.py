@@ -41,7 +41,9 @@ class Identification:
         Modal parameters of the poles labelled ``"physical"``.
     band_hz : (2,) analysed band [Hz].
     order : int
-        State dimension ``n``.
+        Order (state dimension) of the subspace model, as set or chosen.
+        After the modal refit the model holds more states (residual poles):
+        ``model.A.shape[0]``.
     fit_deviation : ndarray (n_out, n_in)
         Square deviation of log10 ratios (paper Eq. 2.5) per channel, model vs
         data, over the lines in band.
@@ -375,6 +377,7 @@ def identify(
     min_contribution: float = 0.05,
     min_importance: float = 1.0,
     refine: int = 1,
+    modal_refit: bool = False,
 ) -> Identification:
     """Frequency-domain subspace identification of a continuous-time model from FRFs.
 
@@ -428,6 +431,13 @@ def identify(
         ``"negligible"``: the data do not need them (noise modes, split poles).
     refine : int
         Rounds of alternating ``C, D`` / ``B, D`` least-squares refinement.
+    modal_refit : bool
+        Refit the model on its physical poles (refined) and fixed residual
+        poles outside the band that stand for the out-of-band modes (off by
+        default here; ``frfcal identify`` and the campaign use it)
+        (:mod:`identification._refit`); kept only where it lowers the
+        weighted residual. The record is ``settings["modal_refit"]``; the
+        subspace order is ``settings["subspace_order"]``.
 
     Returns
     -------
@@ -441,18 +451,53 @@ def identify(
     if order is None:
         from ._order import select_order
 
-        return select_order(
+        result = select_order(
             freq_hz, H, band_hz=band_hz, weights=weights, quantity=quantity, valid=valid, block_rows=block_rows,
             enforce_stability=enforce_stability, zeta_max=zeta_max, min_contribution=min_contribution,
             min_importance=min_importance, refine=refine,
         )
-    n = int(order)
-    if n < 1 or n != order:
-        raise IdentificationError(f"order must be a positive integer, got {order!r}")
-    data = prepare_data(freq_hz, H, band_hz=band_hz, weights=weights, valid=valid, quantity=quantity)
-    q = choose_block_rows(data, n, block_rows)
-    basis, sv = data_basis(data, q)
-    return identification_of_order(data, basis, sv, n, q, enforce_stability, zeta_max, min_contribution, min_importance, refine)
+        if not modal_refit:
+            return result
+        data = prepare_data(freq_hz, H, band_hz=band_hz, weights=weights, valid=valid, quantity=quantity)
+    else:
+        n = int(order)
+        if n < 1 or n != order:
+            raise IdentificationError(f"order must be a positive integer, got {order!r}")
+        data = prepare_data(freq_hz, H, band_hz=band_hz, weights=weights, valid=valid, quantity=quantity)
+        q = choose_block_rows(data, n, block_rows)
+        basis, sv = data_basis(data, q)
+        result = identification_of_order(data, basis, sv, n, q, enforce_stability, zeta_max, min_contribution,
+                                          min_importance, refine)
+        if not modal_refit:
+            return result
+    return refitted(data, result, enforce_stability, zeta_max, min_contribution, min_importance, refine)
+
+
+def refitted(data: _Data, result: Identification, enforce_stability, zeta_max, min_contribution, min_importance,
+             refine) -> Identification:
+    """``result`` after the modal refit (:func:`identification._refit.modal_refit`) when that fits better."""
+    from dataclasses import replace
+
+    from ._refit import modal_refit
+
+    settings = dict(result.settings, subspace_order=int(result.order))
+    out = modal_refit(data, result.poles.eigenvalues[result.poles.physical], zeta_max)
+    if out is None:
+        return replace(result, settings=dict(settings, modal_refit={"used": False, "reason": "no physical pole"}))
+    A, B, C, D, blocks, phys, info = out
+    old = result.model.transposed() if data.dual else result.model
+    ssr_old = weighted_ssr(data, old.A, old.B, old.C, old.D)
+    ssr_new = weighted_ssr(data, A, B, C, D)
+    info = dict(info, ssr_subspace=ssr_old, ssr=ssr_new, used=bool(ssr_new < ssr_old))
+    if not info["used"]:
+        return replace(result, settings=dict(settings, modal_refit=info))
+    labels = tuple("physical" if k else "out-of-band" for k in phys)
+    new = _assemble(data, result.singular_values, A.shape[0], int(result.settings["block_rows"]),
+                    (A, B, C, D, blocks, np.zeros(len(blocks), bool)), enforce_stability, zeta_max,
+                    min_contribution, min_importance, refine, labels=labels)
+    keep = {k: v for k, v in result.settings.items() if k not in new.settings}
+    return replace(new, order=result.order, order_selection=result.order_selection,
+                   settings=dict(new.settings, **keep, subspace_order=int(result.order), modal_refit=info))
 
 
 def identification_of_order(data, basis, sv, n, q, enforce_stability, zeta_max, min_contribution, min_importance, refine):
@@ -559,12 +604,13 @@ def with_pole(data: _Data, A, B, C, D, blocks, i: int, lam, refine: int):
 
 
 def _assemble(data, sv, n, q, fitted, enforce_stability, zeta_max, min_contribution, min_importance, refine,
-              confirmed=()):
+              confirmed=(), labels=None):
     """The Identification of fitted matrices: poles, labels, modal parameters, fit, settings.
 
     ``confirmed`` : block indices whose pole a local fit confirmed (:func:`local_pole_fit`); they are
     labelled "physical" unless unstable, real, overdamped, out of band or below ``min_contribution``
     (the global importance, measured against the residual of the whole band, is not asked of them).
+    ``labels`` : the labels of the blocks when already decided (the modal refit); none are computed then.
     """
     A, B, C, D, blocks, was_unstable = fitted
     lam = block_poles(A, blocks)
@@ -572,7 +618,9 @@ def _assemble(data, sv, n, q, fitted, enforce_stability, zeta_max, min_contribut
     sep = _separable(data.W)
     # the same weights as the B, D fit: per output when they factor, else per line
     imp = importance(data.omega, data.H, sep[0] if sep is not None else data.W, A, C, blocks)
-    labels = label_poles(lam, contrib, imp, was_unstable, data.band_hz, zeta_max, min_contribution, min_importance)
+    if labels is None:
+        labels = label_poles(lam, contrib, imp, was_unstable, data.band_hz, zeta_max, min_contribution,
+                             min_importance)
     if confirmed:
         labels = tuple("physical" if (k in confirmed and lab == "negligible" and contrib[k] >= min_contribution)
                        else lab for k, lab in enumerate(labels))
