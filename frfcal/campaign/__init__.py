@@ -16,7 +16,7 @@ from frfcal.campaign._diagnose import (
     overlay_figure,
     write_diagnosis,
 )
-from frfcal.campaign._identify import identify_lines, identify_run, line_weights, run_weights
+from frfcal.campaign._identify import identify_lines, identify_run, line_weights, relative_weights, run_weights
 from frfcal.campaign._report import json_default, member_figures, write_outputs
 from frfcal.campaign._front import LayoutResult, RunFiles, acquire_stage, campaign_plan, import_stage, pretest_stage
 from frfcal.campaign._run import (
@@ -125,6 +125,7 @@ __all__ = [
     "identified_articles",
     "identified_modes",
     "identify_lines",
+    "relative_weights",
     "identify_run",
     "identify_stage",
     "json_default",

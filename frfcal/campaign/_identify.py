@@ -76,7 +76,11 @@ def identify_lines(
     weights: Literal["std_error"] | None = "std_error",
     block_rows: int | None = None,
 ):
-    """Subspace identification of measured FRF lines (valid lines only).
+    """Subspace identification of measured FRF lines (valid lines only), then the modal refit.
+
+    The refit (``identification.identify(..., modal_refit=True)``) refines
+    the physical poles and stands the out-of-band modes in by residual poles
+    outside the band; ``result.settings["modal_refit"]`` records it.
 
     Parameters
     ----------
@@ -95,9 +99,12 @@ def identify_lines(
         State dimension; None chooses it automatically
         (:func:`identification.select_order`, record in
         ``result.order_selection``).
-    weights : {"std_error", None}
+    weights : {"std_error", "relative", None}
         ``"std_error"``: the standard errors when finite and > 0 on every
-        valid line, else output-RMS scaling; None: output-RMS scaling.
+        valid line, else relative weights; ``"relative"``: every value
+        weighted by 1 / (|H| + 1e-3 x its channel pair's RMS), i.e. errors
+        proportional to the FRF (what the log-FRF metric of the calibration
+        measures) above a floor; None: output-RMS scaling.
         ``result.settings["weights"]`` says which was used.
     block_rows : int, optional
         Block rows of the subspace data matrices (default automatic).
@@ -108,14 +115,32 @@ def identify_lines(
     """
     from identification import identify
 
-    if weights not in ("std_error", None):
-        raise CalibrationError(f"weights must be 'std_error' or None, got {weights!r}")
-    w = None
+    if weights not in ("std_error", "relative", None):
+        raise CalibrationError(f"weights must be 'std_error', 'relative' or None, got {weights!r}")
+    w, used = None, "output_rms"
     if weights == "std_error" and std_error is not None:
         w = line_weights(std_error, frf, valid)
+        used = "std_error" if w is not None else used
+    if w is None and weights in ("std_error", "relative"):
+        w, used = relative_weights(frf, valid), "relative"
     result = identify(frequency_hz, frf, order, band_hz=band_hz, weights=w, quantity=quantity, valid=valid,
-                      block_rows=block_rows)
-    return replace(result, settings=dict(result.settings, weights="std_error" if w is not None else "output_rms"))
+                      block_rows=block_rows, modal_refit=True)
+    return replace(result, settings=dict(result.settings, weights=used))
+
+
+def relative_weights(frf, valid, floor: float = 1e-3):
+    """Standard errors proportional to the FRF: ``|H| + floor x RMS`` of each channel pair over the valid lines.
+
+    Without measured standard errors this is the noise model of a swept
+    measurement (an error in proportion to the response, above a floor);
+    the log-FRF metric of the calibration weights its lines the same way.
+    Scaling every value by one constant does not change an identification.
+    """
+    H = np.asarray(frf)
+    v = np.asarray(valid, bool)
+    rms = np.sqrt(np.mean(np.abs(H[v]) ** 2, axis=0))
+    rms = np.where(rms > 0, rms, 1.0)
+    return np.abs(H) + floor * rms[None]
 
 
 def identify_run(
@@ -166,3 +191,16 @@ def identify_run(
         se = None if se is None else se[:, :, cols]
     return identify_lines(run.frequency_hz, H, run.valid, se, run.quantity, band_hz, order=order,
                           weights=weights, block_rows=block_rows)
+
+
+def refit_line(result) -> str:
+    """What the modal refit did, in one line."""
+    r = result.settings.get("modal_refit")
+    if not r:
+        return "modal refit: not run"
+    if not r.get("used"):
+        why = r.get("reason") or f"weighted residual {r['ssr']:.4g} not below the subspace model's {r['ssr_subspace']:.4g}"
+        return f"modal refit: not used ({why})"
+    return (f"modal refit: physical poles moved up to {100 * r['max_pole_shift_rel']:.2g} %, "
+            f"{len(r['residual_poles_hz'])} residual poles outside the band (rank {r['residual_rank']}), "
+            f"weighted residual {r['ssr_subspace']:.4g} -> {r['ssr']:.4g}")

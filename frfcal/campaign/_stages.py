@@ -49,7 +49,7 @@ from calibration._refine import ModalDampingObjective, Refinement, carried_dampi
 from calibration._surrogate import assembled, basis_layout
 from calibration._signal import signal_pairs
 from labdata._quantities import quantity_factor, quantity_power
-from frfcal.campaign._identify import identify_lines
+from frfcal.campaign._identify import identify_lines, refit_line
 from frfcal.campaign._schema import Campaign
 
 # ----------------------------------------------------------------------------- load
@@ -381,6 +381,7 @@ def identify_stage(camp: Campaign, articles, log=print) -> IdentifyResult:
         how = "set" if ident.order_selection is None else f"automatic: {ident.order_selection.reason}"
         log(f"{a.path.name}: identified order {ident.order} ({how}), {ident.modal.n_modes} modes in "
             f"{blo:.0f}-{bhi:.0f} Hz, weights {ident.settings['weights']} ({time.perf_counter() - t0:.1f} s)")
+        log(f"{a.path.name}: {refit_line(ident)}")
         idents.append(ident)
         chans.append(a.channels)
     return IdentifyResult(tuple(idents), tuple(chans))

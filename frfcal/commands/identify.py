@@ -48,6 +48,7 @@ def run(args: argparse.Namespace) -> int:
     import identification as idf
     from acquisition.runfile import read_run, write_analysis
     from frfcal.campaign import identify_run, run_weights
+    from frfcal.campaign._identify import refit_line
 
     path = Path(args.run)
     run_ = read_run(path)
@@ -97,6 +98,8 @@ def run(args: argparse.Namespace) -> int:
             ],
             "labels": labels,
             "fit_deviation": result.fit_deviation_total,
+            "n_states": int(result.model.A.shape[0]),
+            "modal_refit": result.settings.get("modal_refit"),
             "zeta0": args.zeta0,
             "stored": stored,
             "plots": plots,
@@ -108,6 +111,7 @@ def run(args: argparse.Namespace) -> int:
     if sel is not None:
         print(f"order chosen automatically: {sel.reason}")
     print("poles: " + ", ".join(f"{v} {k}" for k, v in labels.items()))
+    print(refit_line(result))
     print(f"{'mode':>4} {'f_n [Hz]':>11} {'zeta [%]':>9} {'importance':>11}")
     phys = np.flatnonzero(result.poles.physical)
     for i, (f, z, k) in enumerate(zip(m.frequency_hz, m.damping, phys), start=1):

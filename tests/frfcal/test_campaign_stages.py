@@ -164,7 +164,12 @@ def test_stages_compose_and_keep_the_final_basis(staged):
     # M-orthonormal basis of the reported surrogate at its basis point
     Mr = m.basis.T @ (model.M.at(m.surrogate.p_basis) @ m.basis)
     np.testing.assert_allclose(Mr, np.eye(m.surrogate.size), atol=1e-8)
-    np.testing.assert_allclose(m.p, [r["p"] for r in first["members"][0]["parameters"]], rtol=0.02, atol=2e-3)
+    # the same point where the data see it: the parameters the data cannot tell apart may end anywhere along
+    # their weak combination (fewer cycles stop earlier on it)
+    ref = first["members"][0]["parameters"]
+    seen = np.array([r["identifiable"] for r in ref])
+    assert seen.sum() >= 4
+    np.testing.assert_allclose(m.p[seen], [r["p"] for r in ref if r["identifiable"]], rtol=0.02, atol=2e-3)
 
 
 def _renamed_copy(src, dst, rename, move=None, flip=(), quantity=None):
