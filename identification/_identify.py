@@ -482,8 +482,8 @@ def refitted(data: _Data, result: Identification, enforce_stability, zeta_max, m
 
     settings = dict(result.settings, subspace_order=int(result.order))
     out = modal_refit(data, result.poles.eigenvalues[result.poles.physical], zeta_max)
-    if out is None:
-        return replace(result, settings=dict(settings, modal_refit={"used": False, "reason": "no physical pole"}))
+    if isinstance(out, str):
+        return replace(result, settings=dict(settings, modal_refit={"used": False, "reason": out}))
     A, B, C, D, blocks, phys, info = out
     old = result.model.transposed() if data.dual else result.model
     ssr_old = weighted_ssr(data, old.A, old.B, old.C, old.D)

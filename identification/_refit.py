@@ -23,7 +23,10 @@ The refit (a frequency-domain LSFD with variable projection):
    ``C, D`` and ``B, D`` refitted once more with the rank-one structure.
 
 The refit replaces the subspace model only where it lowers the weighted
-residual over the band; the record is ``Identification.settings["modal_refit"]``.
+residual over the band, and is not tried on fewer than 8 real values per
+channel pair and unknown (a 41-line stepped sine of one mode: the residual
+poles would fit its distortion and move the pole). The record is
+``Identification.settings["modal_refit"]``.
 """
 
 from __future__ import annotations
@@ -35,6 +38,7 @@ from ._subspace import fit_bd, fit_cd, real_modal_form
 UPPER = (1.02, 1.06, 1.15, 1.35, 1.8)
 LOWER = (0.4, 0.6, 0.8, 0.92)
 ZETA_RESIDUAL = 0.02
+MIN_LINES_PER_UNKNOWN = 8  # real values per channel pair over the unknowns of its least-squares fit
 
 
 def residual_poles(band_hz) -> np.ndarray:
@@ -165,16 +169,22 @@ def modal_refit(data, lam_phys, zeta_max: float = 0.2, max_iter: int = 30, tol: 
 
     Returns
     -------
-    (A, B, C, D, blocks, physical_mask, info) or None when there is no physical pole.
+    (A, B, C, D, blocks, physical_mask, info), or a string saying why no refit was made (no physical
+    pole; fewer than ``MIN_LINES_PER_UNKNOWN`` real values per channel pair and unknown).
     ``physical_mask`` marks the blocks of the refined physical poles; ``info``
     records the residual poles, the iterations and the weighted SSR.
     """
     lam_phys = np.asarray(lam_phys, complex)
     if lam_phys.size == 0:
-        return None
+        return "no physical pole"
     nf, p, m = data.H.shape
     rank = int(min(p, m, 3))
     lam_res = residual_poles(data.band_hz)
+    n_basis = 2 * (lam_phys.size + lam_res.size) + 1
+    if 2 * nf < MIN_LINES_PER_UNKNOWN * n_basis:
+        # on a handful of lines the residual poles would fit whatever the modes leave (distortion, noise)
+        return (f"too few lines: {nf} lines give {2 * nf} values per channel pair for {n_basis} unknowns "
+                f"(needs {MIN_LINES_PER_UNKNOWN}x)")
     proj = _Projection(1j * data.omega, data.H, data.W)
     band_omega = (2 * np.pi * data.band_hz[0], 2 * np.pi * data.band_hz[1])
     lam, ssr0, ssr, it = _lm(proj, lam_phys, lam_res, band_omega, zeta_max, max_iter, tol)

@@ -85,3 +85,16 @@ def test_refit_round_trips_through_storage_and_is_off_in_the_bare_library_call(t
     np.testing.assert_allclose(back.frf(f[::50]), r.frf(f[::50]), rtol=1e-12)
     assert back.settings["modal_refit"] == r.settings["modal_refit"]
     assert "modal_refit" not in identify(f, Hn, 44, band_hz=(32.0, 325.0)).settings
+
+
+def test_no_refit_on_a_handful_of_lines():
+    """A 41-line stepped sine of one mode (the bolted beam's shape): the residual poles would have fitted
+    whatever the mode leaves; the subspace model stays, and the record says why."""
+    f = np.linspace(78.0, 82.0, 41)
+    w, wr = 2 * np.pi * f, 2 * np.pi * 80.3
+    H = (1.0 / (wr**2 - w**2 + 2j * 0.002 * wr * w))[:, None, None]
+    r = identify_lines(f, H, np.ones(f.size, bool), None, "receptance", None, order=2)
+    rec = r.settings["modal_refit"]
+    assert rec["used"] is False and rec["reason"].startswith("too few lines: 41 lines")
+    assert r.model.A.shape == (2, 2)
+    np.testing.assert_allclose(r.modal.frequency_hz, [80.3], rtol=1e-6)
