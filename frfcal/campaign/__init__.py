@@ -16,7 +16,14 @@ from frfcal.campaign._diagnose import (
     overlay_figure,
     write_diagnosis,
 )
-from frfcal.campaign._identify import identify_lines, identify_run, line_weights, relative_weights, run_weights
+from frfcal.campaign._identify import (
+    estimated_weights,
+    identify_lines,
+    identify_run,
+    line_weights,
+    relative_weights,
+    run_weights,
+)
 from frfcal.campaign._report import json_default, member_figures, write_outputs
 from frfcal.campaign._front import LayoutResult, RunFiles, acquire_stage, campaign_plan, import_stage, pretest_stage
 from frfcal.campaign._run import (
@@ -126,6 +133,7 @@ __all__ = [
     "identified_modes",
     "identify_lines",
     "relative_weights",
+    "estimated_weights",
     "identify_run",
     "identify_stage",
     "json_default",

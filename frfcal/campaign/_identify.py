@@ -101,11 +101,11 @@ def identify_lines(
         ``result.order_selection``).
     weights : {"std_error", "relative", None}
         ``"std_error"``: the standard errors when finite and > 0 on every
-        valid line, else relative weights; ``"relative"``: every value
-        weighted by 1 / (|H| + 1e-3 x its channel pair's RMS), i.e. errors
-        proportional to the FRF (what the log-FRF metric of the calibration
-        measures) above a floor; None: output-RMS scaling.
-        ``result.settings["weights"]`` says which was used.
+        valid line, else standard errors estimated from the lines themselves
+        (:func:`estimated_weights`); ``"relative"``: every value weighted by
+        1 / (|H| + 1e-3 x its channel pair's RMS); None: output-RMS scaling.
+        ``result.settings["weights"]`` says which was used (``"std_error"``,
+        ``"estimated"``, ``"relative"`` or ``"output_rms"``).
     block_rows : int, optional
         Block rows of the subspace data matrices (default automatic).
 
@@ -121,11 +121,52 @@ def identify_lines(
     if weights == "std_error" and std_error is not None:
         w = line_weights(std_error, frf, valid)
         used = "std_error" if w is not None else used
-    if w is None and weights in ("std_error", "relative"):
+    if w is None and weights == "std_error":
+        w, used = estimated_weights(frequency_hz, frf, valid)
+    elif weights == "relative":
         w, used = relative_weights(frf, valid), "relative"
     result = identify(frequency_hz, frf, order, band_hz=band_hz, weights=w, quantity=quantity, valid=valid,
                       block_rows=block_rows, modal_refit=True)
     return replace(result, settings=dict(result.settings, weights=used))
+
+
+def estimated_weights(frequency_hz, frf, valid):
+    """Standard errors estimated from the lines themselves, and the name of what was used.
+
+    :func:`calibration.estimate_std_error` fits ``sigma^2 = a^2 |H|^2 + b^2``
+    per channel pair from local differences of log H: errors in proportion
+    to the response above a floor, each pair at its own level. A pair that
+    carries no signal (a vertical sensor under a lateral drive) gets
+    ``sigma ~ |H|`` and weighs no more than its noise; relative weights alone
+    gave such a pair 100x the weight of a measured one and left every mode
+    of an outside frame "negligible". Pairs the estimate cannot judge take
+    the median relative level of the others; when the lines cannot be judged
+    at all (too few, not ascending) the weights are :func:`relative_weights`.
+
+    Returns
+    -------
+    (weights (n_f, n_out, n_in), "estimated" or "relative")
+    """
+    from calibration import estimate_std_error
+
+    f = np.asarray(frequency_hz, float)
+    H = np.asarray(frf)
+    v = np.asarray(valid, bool)
+    try:
+        est = estimate_std_error(f[v], H[v])
+    except CalibrationError:
+        return relative_weights(frf, valid), "relative"
+    a, b = est.relative, est.absolute
+    ok = np.isfinite(a) & np.isfinite(b) & (a + b > 0)
+    if not ok.any():
+        return relative_weights(frf, valid), "relative"
+    if not ok.all():  # a pair the estimate could not judge: the others' median relative level, and a floor
+        a = np.where(ok, a, np.median(a[ok]))
+        rms = np.sqrt(np.mean(np.abs(H[v]) ** 2, axis=0))
+        b = np.where(ok, b, 1e-3 * a * rms)
+    sigma = np.sqrt((a[None] * np.abs(H)) ** 2 + b[None] ** 2)
+    sigma = np.where(np.isfinite(sigma) & (sigma > 0), sigma, 1.0)
+    return sigma, "estimated"
 
 
 def relative_weights(frf, valid, floor: float = 1e-3):

@@ -49,7 +49,7 @@ def test_refit_reaches_the_noise_floor_where_the_subspace_model_cannot(truth):
     a = (f > 40) & (f < 260)  # the analysis band inside the identification band
     floor = _sd(H[a], Hn[a])
     r = identify_lines(f, Hn, valid, None, "accelerance", band)
-    assert r.settings["weights"] == "relative" and r.settings["modal_refit"]["used"]
+    assert r.settings["weights"] == "estimated" and r.settings["modal_refit"]["used"]
     assert r.order == r.settings["subspace_order"] < r.model.A.shape[0]  # the order as chosen; more states
     fit = _sd(r.frf(f[a]), Hn[a])
     assert fit < 1.5 * floor  # at the noise floor of the lines
@@ -98,3 +98,4 @@ def test_no_refit_on_a_handful_of_lines():
     assert rec["used"] is False and rec["reason"].startswith("too few lines: 41 lines")
     assert r.model.A.shape == (2, 2)
     np.testing.assert_allclose(r.modal.frequency_hz, [80.3], rtol=1e-6)
+
