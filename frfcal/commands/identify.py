@@ -47,7 +47,7 @@ def run(args: argparse.Namespace) -> int:
 
     import identification as idf
     from acquisition.runfile import read_run, write_analysis
-    from frfcal.campaign import identify_run, run_weights
+    from frfcal.campaign import estimated_weights, identify_run, relative_weights, run_weights
     from frfcal.campaign._identify import refit_line
 
     path = Path(args.run)
@@ -55,7 +55,15 @@ def run(args: argparse.Namespace) -> int:
     band = tuple(args.band) if args.band else None
     result = identify_run(run_, band, order=args.order, weights=None if args.no_weights else "std_error",
                           block_rows=args.block_rows)
-    weights = run_weights(run_) if result.settings["weights"] == "std_error" else None
+    # the stabilization diagram (--plot) with the weights the identification used
+    used = result.settings["weights"]
+    weights = None
+    if used == "std_error":
+        weights = run_weights(run_)
+    elif used == "estimated":
+        weights = estimated_weights(run_.frequency_hz, run_.frf, run_.valid)[0]
+    elif used == "relative":
+        weights = relative_weights(run_.frf, run_.valid)
     sel = result.order_selection
     arrays, attrs = result.to_arrays()
     attrs["run"] = str(path.name)
