@@ -495,9 +495,8 @@ def refitted(data: _Data, result: Identification, enforce_stability, zeta_max, m
     new = _assemble(data, result.singular_values, A.shape[0], int(result.settings["block_rows"]),
                     (A, B, C, D, blocks, np.zeros(len(blocks), bool)), enforce_stability, zeta_max,
                     min_contribution, min_importance, refine, labels=labels)
-    keep = {k: v for k, v in result.settings.items() if k not in new.settings}
     return replace(new, order=result.order, order_selection=result.order_selection,
-                   settings=dict(new.settings, **keep, subspace_order=int(result.order), modal_refit=info))
+                   settings=dict(settings, **new.settings, modal_refit=info))
 
 
 def identification_of_order(data, basis, sv, n, q, enforce_stability, zeta_max, min_contribution, min_importance, refine):

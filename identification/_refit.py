@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ._identify import block_poles
 from ._subspace import fit_bd, fit_cd, real_modal_form
 
 UPPER = (1.02, 1.06, 1.15, 1.35, 1.8)
@@ -102,7 +103,8 @@ class _Projection:
 
 
 def _lm(proj, lam_phys, lam_res, band_omega, zeta_max, max_iter, tol):
-    """Levenberg-Marquardt on the physical poles; returns (lam_phys, ssr0, ssr, iterations)."""
+    """Levenberg-Marquardt on the physical poles; returns (lam_phys, per-pair coefficients there, ssr0, ssr,
+    iterations)."""
     n = lam_phys.size
 
     def params_to_lam(lam0, dp):
@@ -111,7 +113,7 @@ def _lm(proj, lam_phys, lam_res, band_omega, zeta_max, max_iter, tol):
         return sig + 1j * om
 
     lam = lam_phys.copy()
-    _, ssr0, JTJ, JTr = proj.solve(np.concatenate([lam, lam_res]), n)
+    xs, ssr0, JTJ, JTr = proj.solve(np.concatenate([lam, lam_res]), n)
     ssr, mu, it = ssr0, 1e-3, 0
     for it in range(1, max_iter + 1):
         d = np.sqrt(np.maximum(np.diag(JTJ), 1e-300))
@@ -129,38 +131,31 @@ def _lm(proj, lam_phys, lam_res, band_omega, zeta_max, max_iter, tol):
             z = -new.real / np.abs(new)
             f_ok = (new.imag >= band_omega[0]) & (new.imag <= band_omega[1])
             if np.all(f_ok) and np.all(z < zeta_max) and np.all(z > 0):
-                _, ssr_new, JTJn, JTrn = proj.solve(np.concatenate([new, lam_res]), n)
+                xs_new, ssr_new, JTJn, JTrn = proj.solve(np.concatenate([new, lam_res]), n)
                 if ssr_new < ssr:
                     dec = (ssr - ssr_new) / ssr
-                    lam, ssr, JTJ, JTr = new, ssr_new, JTJn, JTrn
+                    lam, xs, ssr, JTJ, JTr = new, xs_new, ssr_new, JTJn, JTrn
                     mu = max(mu / 3, 1e-9)
                     improved = True
                     break
             mu *= 4
         if not improved or dec < tol:
             break
-    return lam, ssr0, ssr, it
+    return lam, xs, ssr0, ssr, it
 
 
-def _realize(lam, residues, ranks, D):
-    """Real (A, B, C) of poles ``lam`` (Im > 0) with residue matrices ``residues`` (k, p, m) at the given
-    ranks (leading singular pairs), brought to the library's real modal form."""
-    p, m = residues.shape[1:]
-    Ab, Bb, Cb = [], [], []
-    for lm, R, rk in zip(lam, residues, ranks):
+def _realize(lam, residues):
+    """Real (A, B, C) of poles ``lam`` (Im > 0), each with its residue matrix (k, p, m) at rank one (the
+    leading singular pair), brought to the library's real modal form."""
+    k, p, m = residues.shape
+    A, B, C = np.zeros((2 * k, 2 * k)), np.zeros((2 * k, m)), np.zeros((p, 2 * k))
+    for j, (lm, R) in enumerate(zip(lam, residues)):
         U, S, Vh = np.linalg.svd(R)
-        for j in range(min(rk, S.size)):
-            c = U[:, j] * np.sqrt(S[j])
-            b = Vh[j, :] * np.sqrt(S[j])
-            Ab.append(np.array([[lm.real, -lm.imag], [lm.imag, lm.real]]))
-            Bb.append(np.vstack([b.real, b.imag]))
-            Cb.append(np.column_stack([2 * c.real, -2 * c.imag]))
-    n = 2 * len(Ab)
-    A = np.zeros((n, n))
-    for k, blk in enumerate(Ab):
-        A[2 * k : 2 * k + 2, 2 * k : 2 * k + 2] = blk
-    B = np.vstack(Bb) if Bb else np.zeros((0, m))
-    C = np.hstack(Cb) if Cb else np.zeros((p, 0))
+        c, b = U[:, 0] * np.sqrt(S[0]), Vh[0, :] * np.sqrt(S[0])
+        sl = slice(2 * j, 2 * j + 2)
+        A[sl, sl] = [[lm.real, -lm.imag], [lm.imag, lm.real]]  # z' = lam z + b u, y = 2 Re(c z)
+        B[sl] = np.vstack([b.real, b.imag])
+        C[:, sl] = np.column_stack([2 * c.real, -2 * c.imag])
     return real_modal_form(A, B, C)
 
 
@@ -187,15 +182,11 @@ def modal_refit(data, lam_phys, zeta_max: float = 0.2, max_iter: int = 30, tol: 
                 f"(needs {MIN_LINES_PER_UNKNOWN}x)")
     proj = _Projection(1j * data.omega, data.H, data.W)
     band_omega = (2 * np.pi * data.band_hz[0], 2 * np.pi * data.band_hz[1])
-    lam, ssr0, ssr, it = _lm(proj, lam_phys, lam_res, band_omega, zeta_max, max_iter, tol)
-    lam_all = np.concatenate([lam, lam_res])
-    xs, _, _, _ = proj.solve(lam_all)
-    k = lam_all.size
+    lam, xs, ssr0, ssr, it = _lm(proj, lam_phys, lam_res, band_omega, zeta_max, max_iter, tol)
+    k = lam.size + lam_res.size
     R = np.zeros((k, p, m), complex)
-    D = np.zeros((p, m))
-    for (o, i), x in zip(proj.pairs, xs):
+    for (o, i), x in zip(proj.pairs, xs):  # the constant (x[-1]) is refitted with D below
         R[:, o, i] = x[0 : 2 * k : 2] + 1j * x[1 : 2 * k : 2]
-        D[o, i] = x[-1]
     # a residual pole stands for several modes: its residue keeps ``rank`` singular pairs, each on a copy
     # of the pole 0.2 % apart (a real modal form needs distinct eigenvalues)
     lam_r, R_r = list(lam), list(R[: lam.size])
@@ -204,11 +195,10 @@ def modal_refit(data, lam_phys, zeta_max: float = 0.2, max_iter: int = 30, tol: 
         for j in range(min(rank, S.size)):
             lam_r.append(complex(lr.real * (1 + 0.002 * j), lr.imag * (1 + 0.002 * j)))
             R_r.append((U[:, j : j + 1] * S[j]) @ Vh[j : j + 1, :])
-    lam_all, Rg, ranks = np.array(lam_r), np.array(R_r), [1] * len(lam_r)
-    A, B, C, blocks = _realize(lam_all, Rg, ranks, D)
+    A, B, C, blocks = _realize(np.array(lam_r), np.array(R_r))
     C, D = fit_cd(data.omega, data.H, data.W, A, B)
     B, D = fit_bd(data.omega, data.H, data.W, A, C)
-    lam_blocks = np.array([complex(A[b.start, b.start], abs(A[b.start, b.start + 1])) for b in blocks])
+    lam_blocks = block_poles(A, blocks)
     phys = np.zeros(len(blocks), bool)
     for lp in lam:
         phys[int(np.argmin(np.abs(lam_blocks - lp)))] = True

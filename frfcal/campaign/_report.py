@@ -116,10 +116,8 @@ def write_outputs(camp, pm, articles, groups: GroupResult, cal: CalibrateResult,
             "validation": None if v.validation is None else {
                 **v.validation.to_dict(),
                 # several articles: their test-to-test scatter on the hold-out channels, beside the noise floor
-                **({} if getattr(v, "scatter", None) is None else {
-                    "scatter": v.scatter,
-                    "floor_with_scatter_ratio": (v.validation.sd_calibrated / (v.validation.sd_floor + v.scatter)
-                                                 if v.validation.sd_floor else None)})},
+                **({} if v.scatter is None else {"scatter": v.scatter,
+                                                  "floor_with_scatter_ratio": v.floor_with_scatter_ratio})},
             "crossvalidation": None if cv is None else cv.to_dict(),
             "timings": {"calibration_s": m.time_s, "validation_s": v.time_s, "crossvalidation_s": x.time_s},
         }

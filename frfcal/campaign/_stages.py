@@ -738,6 +738,14 @@ class MemberValidation:
     time_s: float = 0.0
     scatter: float | None = None
 
+    @property
+    def floor_with_scatter_ratio(self) -> float | None:
+        """Calibrated hold-out SD over noise floor + test-to-test scatter (None without both)."""
+        v = self.validation
+        if v is None or self.scatter is None or not v.sd_floor:
+            return None
+        return v.sd_calibrated / (v.sd_floor + self.scatter)
+
 
 @dataclass(frozen=True)
 class ValidationResult:
@@ -803,14 +811,15 @@ def validate_stage(camp: Campaign, articles, cal: CalibrateResult, bounds, log=p
                            floor_source=src)
             log(f"[{m.label}] {val.summary()}")
             scatter = holdout_scatter(arts, camp.channels.holdout)
-            if scatter is not None and val.sd_floor:
-                log(f"[{m.label}] hold-out floor of one parameter set for {len(arts)} articles: noise "
-                    f"{val.sd_floor:.2g} + their test-to-test scatter {scatter:.2g} (measured lines against each "
-                    f"other): {val.sd_calibrated / (val.sd_floor + scatter):.2g}x")
         rows = ()
         if ref is not None and len(arts) > 1:
             rows = _per_article(camp, cal.surrogate, m.surrogate, arts, m.p, band, lower, upper, log, m.label)
-        out.append(MemberValidation(m.label, val, rows, time.perf_counter() - t, scatter))
+        mv = MemberValidation(m.label, val, rows, time.perf_counter() - t, scatter)
+        if mv.floor_with_scatter_ratio is not None:
+            log(f"[{m.label}] hold-out floor of one parameter set for {len(arts)} articles: noise "
+                f"{val.sd_floor:.2g} + their test-to-test scatter {scatter:.2g} (measured lines against each "
+                f"other): {mv.floor_with_scatter_ratio:.2g}x")
+        out.append(mv)
     return ValidationResult(tuple(out))
 
 
