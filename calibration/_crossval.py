@@ -17,7 +17,7 @@ and when any realization pins it its CV is reported as not meaningful
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -96,8 +96,10 @@ def _realization(args):
     with single_thread():
         obj = _objective(sur, fit, zeta0, quantity, damping)  # run_start solves it compressed (same steps)
         out = run_start((obj, p_start, lower, upper, max_nfev, 1e-8))
-        sd_test = _objective(sur, test, zeta0, quantity, damping).sd(out.p)
-    return out.p, out.sd, sd_test
+        # both halves' SDs as the paper defines them (every value alike), whatever weights the fit used
+        sd_fit, sd_test = (_objective(sur, [replace(d, weights=None) for d in half], zeta0, quantity, damping).sd(out.p)
+                           for half in (fit, test))
+    return out.p, sd_fit, sd_test
 
 
 def cross_validate(

@@ -44,8 +44,8 @@ class FitData:
         Elements that take part (default all). Cross-validation splits use it.
     article : str
         Test article label, for reports.
-    weights : (n_f,) float, optional
-        Non-negative weight of each line in the square deviation (default 1).
+    weights : (n_f,) or (n_f, n_out, n_in) float, optional
+        Non-negative weight of each line, or of each value, in the square deviation (default 1).
         The deviation becomes sum(w |eps|^2) / sum(w); e.g.
         :func:`log_frequency_weights` turns an uneven line grid into the
         paper's fixed-samples-per-half-bandwidth measure.
@@ -89,9 +89,10 @@ class FitData:
             object.__setattr__(self, "mask", m)
         if self.weights is not None:
             w = np.asarray(self.weights, dtype=float)
-            if w.shape != f.shape or not np.all(np.isfinite(w)) or np.any(w < 0) or not np.any(w > 0):
+            if w.shape not in (f.shape, H.shape) or not np.all(np.isfinite(w)) or np.any(w < 0) or not np.any(w > 0):
                 raise CalibrationError(
-                    f"FitData {self.article}: weights must be {f.size} finite non-negative values, not all zero")
+                    f"FitData {self.article}: weights must be {f.size} (one per line) or {H.shape} (one per value) "
+                    "finite non-negative values, not all zero")
             object.__setattr__(self, "weights", w)
 
     @property
@@ -107,7 +108,8 @@ class FitData:
         """sqrt of the line weights spread over the values that take part (masked, raveled), or None."""
         if self.weights is None:
             return None
-        w = np.broadcast_to(np.sqrt(self.weights)[:, None, None], self.frf.shape)
+        w = np.sqrt(self.weights)
+        w = w if w.ndim == 3 else np.broadcast_to(w[:, None, None], self.frf.shape)
         return (w if self.mask is None else w[self.mask]).ravel()
 
 

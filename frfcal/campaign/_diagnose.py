@@ -970,14 +970,14 @@ def _refined(camp, pm, model, articles, m, fit, extended_terms, quantity, log):
     Returns (Refinement or None, hold-out SD or None, x, surrogate)."""
     from calibration import FRFModel, build_surrogate, refine
 
-    from frfcal.campaign._stages import raw_data
+    from frfcal.campaign._stages import fit_data
 
     c = camp.calibration
     if not c.refine:
         return None, None, fit.x, fit.surrogate
     band = (camp.band.low_hz, camp.band.high_hz)
     arts = [articles[i] for i in m.articles]
-    raw = [raw_data(a, camp.channels.calibrate) for a in arts]
+    raw = [fit_data(a, camp.channels.calibrate, c.refine_weights) for a in arts]
     modes = [identified_modes(a) for a in arts]
     idents = [(a.identification, a.ident_channels) for a in arts]
     opts = dict(quantity=quantity, mac_min=camp.validation.mac_min, band_hz=band, max_nfev=c.max_evaluations)
@@ -1020,9 +1020,9 @@ def effect_identifiability(camp, arts, sur, x, ref, lower, upper, names, quantit
     or at its upper bound to 1e-9 of the range) keeps that bound and is reported at it."""
     from calibration import ModalDampingObjective, identifiability
 
-    from frfcal.campaign._stages import raw_data
+    from frfcal.campaign._stages import fit_data
 
-    raw = [raw_data(a, camp.channels.calibrate) for a in arts]
+    raw = [fit_data(a, camp.channels.calibrate, camp.calibration.refine_weights) for a in arts]
     obj = ModalDampingObjective(sur, raw, ref.zeta, ref.p_zeta, 0.0, quantity)
     stride = raw[0].frf.shape[1] * raw[0].frf.shape[2]
     x = np.asarray(x, float)

@@ -183,6 +183,10 @@ class CalibrationSection(_Strict):
     refine_floors: list[float] = Field(
         default_factory=lambda: [1.0, 0.3, 0.1, 0.0],
         description="damping floors of the refinement stages as multiples of zeta0, decreasing, ending in 0")
+    refine_weights: Literal["noise", "uniform"] = Field(
+        "noise", description="weights of the raw-line fits: 1 / the variance of each log ratio from the standard "
+        "errors (the run's, else estimated from the lines), or every value alike as the paper's Eq. 2.23; the "
+        "reported SDs stay unweighted (docs/calibration.md)")
     refine_cycles: int = Field(2, ge=0, description="re-basis cycles of the raw-line stage after the refinement")
     rebasis_hold: float = Field(
         0.0, ge=0, description="in the raw stage after a re-basis, hold parameter combinations whose relative "

@@ -420,6 +420,34 @@ def ident_frf(article: Article, channels):
     return frf
 
 
+#: Relative error floor of the raw-line weights (:func:`fit_data`): a value's log ratio is never trusted
+#: beyond 0.1 % of |H|, whatever its standard error says (model error, not noise, rules there).
+REL_ERROR_FLOOR = 1e-3
+
+
+def noise_weights(article: Article, channels) -> np.ndarray | None:
+    """Per-value weights of the article's raw lines on ``channels``: 1 / variance of each log ratio,
+    ``|H|^2 / (sigma^2 + (REL_ERROR_FLOOR |H|)^2)`` with sigma the run's standard errors or, without them,
+    the estimate from the lines (:func:`floor_std_error`); None when neither is there."""
+    se, _ = floor_std_error(article, channels)
+    if se is None:
+        return None
+    rows = [article.channels.index(n) for n in channels]
+    a2 = np.abs(article.frf[:, rows]) ** 2
+    w = a2 / (np.asarray(se, float) ** 2 + REL_ERROR_FLOOR**2 * a2 + np.finfo(float).tiny)
+    return w if np.any(w > 0) else None
+
+
+def fit_data(article: Article, channels, weights: str = "noise") -> FitData:
+    """The raw lines on ``channels`` as the raw-line fits see them: with ``weights = "noise"`` each value
+    weighted by 1 / the variance of its log ratio (:func:`noise_weights`; the maximum-likelihood estimate
+    under the noise), with ``"uniform"`` every value alike (the paper's Eq. 2.23). Square deviations the
+    campaign reports stay unweighted (:func:`raw_data`)."""
+    d = raw_data(article, channels)
+    w = noise_weights(article, channels) if weights == "noise" else None
+    return d if w is None else replace(d, weights=w)
+
+
 def holdout_scatter(articles, channels) -> float | None:
     """Test-to-test scatter of several articles on ``channels`` (:func:`calibration.scatter_sd`: their
     measured lines against each other less the noise), the part of a pooled model's square deviation that
@@ -606,13 +634,14 @@ def _refined(camp: Campaign, model, arts, cyc, band, lower, upper, log, label):
     Returns (Refinement of the last cycle with every stage of all cycles, p, surrogate, its basis).
     """
     c = camp.calibration
-    raw = [raw_data(a, camp.channels.calibrate) for a in arts]
+    raw = [fit_data(a, camp.channels.calibrate, c.refine_weights) for a in arts]
     idents = [(a.identification, a.ident_channels) for a in arts]
     modes = [identified_modes(a) for a in arts]
     opts = dict(quantity=arts[0].quantity, mac_min=camp.validation.mac_min, band_hz=band,
                 max_nfev=c.max_evaluations)
     t0 = time.perf_counter()
-    ref = refine(cyc.surrogate, cyc.p, raw, idents, modes, lower, upper, c.zeta0, floors=c.refine_floors, **opts)
+    ref = refine(cyc.surrogate, cyc.p, raw, idents, modes, lower, upper, c.zeta0, floors=c.refine_floors,
+                 **opts)
     stages = list(ref.stages)
     log(f"[{label}] raw-line SD (identified damping) {ref.sd_raw_start:.4g} -> {ref.sd_raw:.4g} "
         f"after {len(ref.stages)} refinement stage(s), max |dp| {np.max(np.abs(ref.p - cyc.p)):.3g} "
@@ -670,7 +699,7 @@ def _identifiability(camp: Campaign, cyc, data, ref, p, sur, arts, lower, upper,
         obj = Objective(cyc.surrogate, data, camp.calibration.zeta0, arts[0].quantity)
         stride = data[0].frf.shape[1] * data[0].frf.shape[2]
     else:
-        raw = [raw_data(a, camp.channels.calibrate) for a in arts]
+        raw = [fit_data(a, camp.channels.calibrate, camp.calibration.refine_weights) for a in arts]
         obj = ModalDampingObjective(sur, raw, ref.zeta, ref.p_zeta, 0.0, arts[0].quantity)
         stride = raw[0].frf.shape[1] * raw[0].frf.shape[2]
     return identifiability(obj.jacobian(p), obj.residual(p), p, lower, upper, names, stride=stride)
@@ -766,7 +795,7 @@ def _per_article(camp: Campaign, sur0, sur, arts, p, band, lower, upper, log, la
     out = []
     for a in arts:
         modes = identified_modes(a)
-        r = refine(sur, p, [raw_data(a, camp.channels.calibrate)], [(a.identification, a.ident_channels)], [modes],
+        r = refine(sur, p, [fit_data(a, camp.channels.calibrate, c.refine_weights)], [(a.identification, a.ident_channels)], [modes],
                    lower, upper, c.zeta0, floors=(0.0,), quantity=a.quantity, mac_min=camp.validation.mac_min,
                    band_hz=band, max_nfev=c.max_evaluations)
         row = {"article": a.name, "p": r.p.tolist(), "sd_raw_calibration": r.sd_raw, "sd_holdout": None}
@@ -863,7 +892,8 @@ def crossvalidate_stage(camp: Campaign, articles, equalize: EqualizeResult, cal:
                 cv = cross_validate(m.cycle.surrogate, data, m.cycle.p, lower, upper, c.zeta0, xv.realizations,
                                     xv.seed, executor, arts[0].quantity, xv.max_evaluations)
             else:
-                cv = cross_validate(m.surrogate, [raw_data(a, camp.channels.calibrate) for a in arts], m.p,
+                cv = cross_validate(m.surrogate, [fit_data(a, camp.channels.calibrate, c.refine_weights)
+                                                  for a in arts], m.p,
                                     lower, upper, c.zeta0, xv.realizations, xv.seed, executor, arts[0].quantity,
                                     xv.max_evaluations, damping=(ref.zeta, ref.p_zeta))
             log(f"[{m.label}] cross-validation RSE {cv.rse:.4g} ({cv.p.shape[0]} realizations)")

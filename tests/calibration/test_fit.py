@@ -257,3 +257,21 @@ def test_dask_local_cluster_matches_serial(beam):
             remote = calibrate(sur, data, LO, HI, n_starts=2, seed=5, executor=ex, continuation=cont)
     for a, b in zip(serial.outcomes, remote.outcomes):
         np.testing.assert_allclose(a.p, b.p, atol=1e-10)
+
+
+def test_fit_data_takes_weights_per_line_or_per_value():
+    """Per-line weights spread over a line's values; per-value weights (the raw-line noise weights) kept as
+    they are, under the mask; any other shape is refused with the article named."""
+    from calibration import CalibrationError, FitData
+
+    f = np.array([10.0, 20.0, 30.0])
+    H = np.ones((3, 2, 1), complex)
+    mask = np.ones(H.shape, bool)
+    mask[1, 0, 0] = False
+    per_line = FitData(f, H, ("a", "b"), ("F",), mask=mask, weights=np.array([1.0, 4.0, 9.0]))
+    np.testing.assert_allclose(per_line.value_weights(), [1, 1, 2, 3, 3])
+    w = np.arange(1.0, 7.0).reshape(3, 2, 1)
+    per_value = FitData(f, H, ("a", "b"), ("F",), mask=mask, weights=w)
+    np.testing.assert_allclose(per_value.value_weights(), np.sqrt([1, 2, 4, 5, 6]))
+    with pytest.raises(CalibrationError, match="A7: weights must be 3 .* or \\(3, 2, 1\\)"):
+        FitData(f, H, ("a", "b"), ("F",), article="A7", weights=np.ones((3, 2)))

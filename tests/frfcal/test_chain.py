@@ -94,7 +94,8 @@ def test_frame_chain_reaches_the_noise_floor(frame_chain):
         floor_cal = sc.floor_sd(cal, BAND, [a])
         assert m["validation"]["sd_nominal"] > 100 * floor_hold  # there was something to calibrate
         assert m["validation"]["sd_calibrated"] < 2.0 * floor_hold, (a, m["validation"]["sd_calibrated"], floor_hold)
-        assert sc.model_sd(p, a, hold, BAND) < 2.0 * floor_hold
+        # with the truth's damping: measured 1.00x on both articles (1.01x and 1.31x with uniform raw-line weights)
+        assert sc.model_sd(p, a, hold, BAND) < 1.2 * floor_hold
         assert m["sd_raw_calibration"] < 2.0 * floor_cal
 
 
@@ -167,7 +168,7 @@ def shell_chain(tmp_path_factory):
         f'[model]\nparameters = "{ex.params}"\n[[run]]\npath = "{run}"\n'
         + f"[channels]\ncalibrate = {json.dumps(cal)}\nholdout = {json.dumps(hold)}\n"
         + f"[band]\nlow_hz = {SHELL_BAND[0]}\nhigh_hz = {SHELL_BAND[1]}\n"
-        + "[calibration]\nstarts = 6\n[crossvalidation]\nrealizations = 3\n[execution]\nworkers = 2\n"
+        + "[calibration]\nstarts = 6\n[crossvalidation]\nrealizations = 5\n[execution]\nworkers = 2\n"
         + f'[output]\ndir = "{tmp / "out"}"\nfigures = false\n'
     )
     assert main(["calibrate", str(camp), "--quiet"]) == 0
@@ -181,13 +182,17 @@ def test_shell_chain_reaches_the_floor_and_flags_what_it_cannot_tell_apart(shell
     floor_hold, floor_cal = sc.floor_sd(hold, SHELL_BAND), sc.floor_sd(cal, SHELL_BAND)
     assert m["validation"]["sd_nominal"] > 100 * floor_hold
     assert m["validation"]["sd_calibrated"] < 2.0 * floor_hold, (m["validation"]["sd_calibrated"], floor_hold)
+    # with the truth's damping: measured 1.00x (1.51x with uniform raw-line weights)
+    assert sc.model_sd(p, 0, hold, SHELL_BAND) < 1.3 * floor_hold
     assert m["sd_raw_calibration"] < 2.0 * floor_cal
     err = np.abs((1 + p) / (1 + sc.p_true[0]) - 1)
     ident = np.array([row["identifiable"] for row in m["parameters"]])
-    # 11 channels and the 7 modes of 100-400 Hz cannot separate the arm-region thicknesses and masses:
-    # they are flagged with the combination they lie in, and every parameter called identifiable is right
-    assert 6 <= ident.sum() < ident.size  # measured 7 of 17
-    assert err[ident].max() < 3 * SCATTER, dict(zip([r["name"] for r in m["parameters"]], np.round(100 * err, 3)))
+    # 11 channels and the 7 modes of 100-400 Hz see the arm-region thicknesses only in combinations at relative
+    # singular values of 5e-4..5e-3; the noise-weighted raw-line fit still finds every parameter (measured:
+    # all 17 within 0.18 %; with every value weighted alike the arm thicknesses came back 2.8-14 % off), and
+    # the 5 cross-validation refits clear all but two of the flagged ones (measured 15 of 17)
+    assert 10 <= ident.sum()
+    assert err.max() < 3 * SCATTER, dict(zip([r["name"] for r in m["parameters"]], np.round(100 * err, 3)))
     for row in m["parameters"]:
         if not row["identifiable"]:
             assert "combination" in row["identifiability"] or "bound" in row["identifiability"]
