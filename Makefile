@@ -7,7 +7,7 @@ EXTRAS ?= dev,visa,ni,dask,fast
 SUITESPARSE_INCLUDE ?= /usr/include/suitesparse
 STAMP  := $(VENV)/.installed-$(shell echo $(EXTRAS) | tr ',' '-')
 
-.PHONY: test test-all test-fallback demo bench lint clean venv
+.PHONY: test test-heavy test-all test-fallback demo bench lint clean venv
 
 venv: $(STAMP)
 
@@ -26,7 +26,11 @@ lint: $(STAMP)
 	$(VENV)/bin/lint-imports
 
 test: $(STAMP) lint
-	$(PY) -m pytest -q -m "not slow and not hardware"
+	$(PY) -m pytest -q -m "not slow and not heavy and not hardware"
+
+# The whole-chain and diagnosis evidence whose campaign fixtures take 30-60 s each (CI runs it after `make test`).
+test-heavy: $(STAMP)
+	$(PY) -m pytest -q -m "heavy and not slow and not hardware"
 
 # The SciPy-only path (SuperLU), with the fast backends installed but blocked.
 test-fallback: $(STAMP)

@@ -21,6 +21,8 @@ import femodel
 from frfcal.cli import main
 from frfcal.synth import SynthChannel, synthesize
 
+pytestmark = pytest.mark.heavy  # two campaign fixtures of ~30 s each: `make test-heavy`
+
 BAND = (60.0, 350.0)
 SCATTER = 0.003
 

@@ -126,6 +126,7 @@ def acquired(model, tmp_path_factory):
     return ex, pm, out, arts, runs, sensors
 
 
+@pytest.mark.heavy
 def test_runs_per_article_and_level(acquired):
     _, _, _, arts, runs, _ = acquired
     by = runs_by_level([r.path for r in runs])  # the levels come back from the run files' plans
@@ -140,6 +141,7 @@ def test_runs_per_article_and_level(acquired):
     assert eff == {"A1": 0.0, "A2": 1.0, "A3": 0.0}
 
 
+@pytest.mark.heavy
 def test_level_dependence_flags_the_loose_article_only(acquired):
     _, _, _, arts, runs, _ = acquired
     checks = level_checks(runs_by_level(runs), settle_tolerance=3e-3)
@@ -159,6 +161,7 @@ def test_level_dependence_flags_the_loose_article_only(acquired):
     assert near and all(abs(n - loose_hz) < 1e-6 * loose_hz for n in near), (loose_hz, where, fm)
 
 
+@pytest.mark.heavy
 def test_reduced_campaign_calibrates_to_the_noise_floor(acquired):
     """acquire -> calibrate on the in-class article A1 (1 N): hold-out SD within a few x its noise floor."""
     from frfcal.campaign import run_campaign

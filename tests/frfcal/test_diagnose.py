@@ -162,6 +162,7 @@ def lumped_mass(tmp_path_factory):
     return pm, effects, json.loads((tmp / "out" / "diagnosis.json").read_text()), sc, hold
 
 
+@pytest.mark.heavy
 def test_an_unmodelled_mass_is_significant_and_ranks_first(lumped_mass):
     pm, effects, d, _, _ = lumped_mass
     (eff,) = effects
@@ -252,6 +253,7 @@ def test_bolted_beam_is_nonlinear_and_no_linear_effect_is_accepted(tmp_path, cap
     assert "verdict: NONLINEAR" in text and "level dependence at mode 1" in text
 
 
+@pytest.mark.heavy
 def test_the_unmodelled_mass_is_accepted_and_brings_the_holdout_to_the_floor(lumped_mass):
     pm, effects, d, sc, hold = lumped_mass
     (eff,) = effects

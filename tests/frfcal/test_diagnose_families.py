@@ -47,7 +47,7 @@ def _xfail(request, family, test):
         request.applymarker(pytest.mark.xfail(strict=True, reason=reason))
 
 
-@pytest.fixture(scope="module", params=[pytest.param(f, marks=pytest.mark.slow) if f in _SLOW else f
+@pytest.fixture(scope="module", params=[pytest.param(f, marks=pytest.mark.slow if f in _SLOW else pytest.mark.heavy)
                                         for f in FAMILIES])
 def case(request, tmp_path_factory):
     family = request.param

@@ -166,6 +166,7 @@ def shell_control(tmp_path_factory):
     return json.loads((tmp / "out" / "diagnosis.json").read_text()), sc.floor_sd(channels=hold)
 
 
+@pytest.mark.heavy
 def test_shell_control_without_an_effect_accepts_nothing(shell_control):
     d, _ = shell_control
     m = d["members"][0]
