@@ -108,7 +108,12 @@ def write_outputs(camp, pm, articles, groups: GroupResult, cal: CalibrateResult,
             "sd_calibration_definition": "equalized identified test model at zeta0 on the half-bandwidth grid",
             "sd_raw_calibration": None if cyc.refinement is None else cyc.refinement.sd_raw,
             "sd_raw_calibration_start": None if cyc.refinement is None else cyc.refinement.sd_raw_start,
-            "sd_raw_definition": "raw calibration lines, model with identified damping mapped by MAC",
+            "sd_raw_definition": "raw calibration lines, every value alike (Eq. 2.23); model with the identified "
+                                 "damping mapped by MAC, then estimated per mode",
+            # how the raw-line fit weighted the values (the reported SDs are unweighted either way)
+            "raw_fit_weights": None if cyc.refinement is None else (
+                "uniform" if camp.calibration.refine_weights == "uniform" or raw_src is None
+                else f"noise: 1 / variance of each log ratio ({raw_src})"),
             "sd_raw_floor": raw_floor,
             "sd_raw_floor_source": raw_src,
             "identifiability": idf.to_dict(),

@@ -428,14 +428,24 @@ REL_ERROR_FLOOR = 1e-3
 def noise_weights(article: Article, channels) -> np.ndarray | None:
     """Per-value weights of the article's raw lines on ``channels``: 1 / variance of each log ratio,
     ``|H|^2 / (sigma^2 + (REL_ERROR_FLOOR |H|)^2)`` with sigma the run's standard errors or, without them,
-    the estimate from the lines (:func:`floor_std_error`); None when neither is there."""
+    the estimate from the lines (:func:`floor_std_error`); None when neither is there. A value whose standard
+    error is zero (not measured there, e.g. one average) takes its pair's median relative error instead of
+    the largest weight."""
     se, _ = floor_std_error(article, channels)
     if se is None:
         return None
     rows = [article.channels.index(n) for n in channels]
-    a2 = np.abs(article.frf[:, rows]) ** 2
-    w = a2 / (np.asarray(se, float) ** 2 + REL_ERROR_FLOOR**2 * a2 + np.finfo(float).tiny)
-    return w if np.any(w > 0) else None
+    a = np.abs(article.frf[:, rows])
+    rel = np.asarray(se, float) / np.where(a > 0, a, np.inf)
+    measured = rel > 0
+    if not measured.all():
+        pos = np.where(measured, rel, np.nan)
+        any_pair = measured.any(axis=0)
+        med = np.full(rel.shape[1:], np.nanmedian(pos) if measured.any() else REL_ERROR_FLOOR)
+        med[any_pair] = np.nanmedian(pos[:, any_pair], axis=0)  # per pair where it has measured values
+        rel = np.where(measured, rel, med[None])
+    w = 1.0 / (rel**2 + REL_ERROR_FLOOR**2)
+    return np.where(a > 0, w, 0.0)
 
 
 def fit_data(article: Article, channels, weights: str = "noise") -> FitData:
@@ -640,8 +650,7 @@ def _refined(camp: Campaign, model, arts, cyc, band, lower, upper, log, label):
     opts = dict(quantity=arts[0].quantity, mac_min=camp.validation.mac_min, band_hz=band,
                 max_nfev=c.max_evaluations)
     t0 = time.perf_counter()
-    ref = refine(cyc.surrogate, cyc.p, raw, idents, modes, lower, upper, c.zeta0, floors=c.refine_floors,
-                 **opts)
+    ref = refine(cyc.surrogate, cyc.p, raw, idents, modes, lower, upper, c.zeta0, floors=c.refine_floors, **opts)
     stages = list(ref.stages)
     log(f"[{label}] raw-line SD (identified damping) {ref.sd_raw_start:.4g} -> {ref.sd_raw:.4g} "
         f"after {len(ref.stages)} refinement stage(s), max |dp| {np.max(np.abs(ref.p - cyc.p)):.3g} "
@@ -795,9 +804,9 @@ def _per_article(camp: Campaign, sur0, sur, arts, p, band, lower, upper, log, la
     out = []
     for a in arts:
         modes = identified_modes(a)
-        r = refine(sur, p, [fit_data(a, camp.channels.calibrate, c.refine_weights)], [(a.identification, a.ident_channels)], [modes],
-                   lower, upper, c.zeta0, floors=(0.0,), quantity=a.quantity, mac_min=camp.validation.mac_min,
-                   band_hz=band, max_nfev=c.max_evaluations)
+        r = refine(sur, p, [fit_data(a, camp.channels.calibrate, c.refine_weights)],
+                   [(a.identification, a.ident_channels)], [modes], lower, upper, c.zeta0, floors=(0.0,),
+                   quantity=a.quantity, mac_min=camp.validation.mac_min, band_hz=band, max_nfev=c.max_evaluations)
         row = {"article": a.name, "p": r.p.tolist(), "sd_raw_calibration": r.sd_raw, "sd_holdout": None}
         if camp.channels.holdout:
             errs, src = floors_of([a], camp.channels.holdout)
