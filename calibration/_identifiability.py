@@ -53,8 +53,10 @@ Thresholds (keyword arguments, module constants as defaults):
     weighting every value alike; with the noise weights of the campaign
     (``refine_weights = "noise"``) the same arm thicknesses come back within
     0.2 % at a formal std of 0.15-0.54 %, so the rule now flags parameters the
-    data do hold: :func:`with_spread` clears them when the cross-validation
-    refits agree (15 of 17 on that case with 5 refits).
+    data do hold: the reason then says the formal std is small (within
+    ``correlated_std_range`` of the range) and that the cross-validation refits
+    decide, and :func:`with_spread` clears them when they agree (15 of 17 on
+    that case with 5 refits).
 ``NULL_RATIO = 1e-8``
     below this relative singular value a combination has no influence at all;
     parameters taking part get an infinite standard deviation.
@@ -342,7 +344,9 @@ def identifiability(
         if flat.size and n > 1 and not unresolved[j]:
             kk = flat[np.argmin(rel[flat])]
             why.append(f"in weak combination {combination_text(D[:, kk], names)} "
-                       f"(relative singular value {rel[kk]:.1e}: the data hardly see it)")
+                       f"(relative singular value {rel[kk]:.1e}: the data hardly see it)"
+                       + (f"; its formal std {100 * std[j]:.2g} % is small, so the cross-validation refits decide "
+                          "(identifiable when they agree)" if std[j] <= correlated_std_range * span[j] else ""))
         elif part.size and n > 1 and abs(c[k]) > max_correlation and not std[j] <= correlated_std_range * span[j]:
             kk = part[np.argmin(rel[part])]
             why.append(f"in weak combination {combination_text(D[:, kk], names)} "

@@ -108,6 +108,9 @@ def test_refits_that_agree_readmit_a_parameter_of_a_weak_combination():
     idf = identifiability(J, r, np.zeros(4), LO, HI, NAMES)
     assert idf.identifiable.tolist() == [False, False, True, True]
     assert idf.reasons[0].startswith("in weak combination") and np.all(idf.std < 0.03)
+    # the verdict says the formal std is small where it is (<= 1 % of the range) and who decides then
+    small = idf.std <= 0.01 * (HI - LO)
+    assert all(("the cross-validation refits decide" in why) == bool(s) for why, s in zip(idf.reasons[:2], small[:2]))
     P = 1e-4 * np.random.default_rng(2).standard_normal((10, 4))
     out = with_spread(idf, P)
     assert out.identifiable.all() and out.reasons[:2] == ("", "")
