@@ -37,7 +37,7 @@ FAMILIES = {
 #: (family, test) -> measured reason the criterion is not met (strict xfail: a fix turns it into a failure)
 XFAIL: dict = {}
 
-#: the two fastest cases run by default, the others with -m slow
+#: the two fastest cases run in `make test-heavy` (CI), the others with -m slow
 _SLOW = ("shaker_attachment", "ground_spring")
 
 
