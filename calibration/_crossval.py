@@ -96,9 +96,12 @@ def _realization(args):
     with single_thread():
         obj = _objective(sur, fit, zeta0, quantity, damping)  # run_start solves it compressed (same steps)
         out = run_start((obj, p_start, lower, upper, max_nfev, 1e-8))
-        # both halves' SDs as the paper defines them (every value alike), whatever weights the fit used
-        sd_fit, sd_test = (_objective(sur, [replace(d, weights=None) for d in half], zeta0, quantity, damping).sd(out.p)
-                           for half in (fit, test))
+        # both halves' SDs as the paper defines them (every value alike), whatever weights the fit used;
+        # an unweighted fit's own SD is already that
+        plain = all(d.weights is None for d in fit)
+        sd_fit = out.sd if plain else _objective(sur, [replace(d, weights=None) for d in fit], zeta0, quantity,
+                                                 damping).sd(out.p)
+        sd_test = _objective(sur, [replace(d, weights=None) for d in test], zeta0, quantity, damping).sd(out.p)
     return out.p, sd_fit, sd_test
 
 

@@ -43,11 +43,16 @@ def line_weights(std_error, frf, valid):
     return None
 
 
+def run_std_error(run):
+    """The run's per-line standard errors as an array like its FRFs, or None (the run has none)."""
+    se = np.asarray(run.std_error, dtype=float)
+    return se if se.shape == np.asarray(run.frf).shape else None
+
+
 def run_weights(run, rows=None, cols=None):
     """The run's per-line standard errors (``[:, rows][:, :, cols]``) as weights, or None (see :func:`line_weights`)."""
-    se = np.asarray(run.std_error, dtype=float)
-    H = np.asarray(run.frf)
-    if se.shape != H.shape:
+    se, H = run_std_error(run), np.asarray(run.frf)
+    if se is None:
         return None
     if rows is not None:
         se, H = se[:, rows], H[:, rows]
@@ -115,19 +120,27 @@ def identify_lines(
     """
     from identification import identify
 
-    if weights not in ("std_error", "relative", None):
-        raise CalibrationError(f"weights must be 'std_error', 'relative' or None, got {weights!r}")
-    w, used = None, "output_rms"
-    if weights == "std_error" and std_error is not None:
-        w = line_weights(std_error, frf, valid)
-        used = "std_error" if w is not None else used
-    if w is None and weights == "std_error":
-        w, used = estimated_weights(frequency_hz, frf, valid)
-    elif weights == "relative":
-        w, used = relative_weights(frf, valid), "relative"
+    w, used = identification_weights(frequency_hz, frf, valid, std_error, weights)
     result = identify(frequency_hz, frf, order, band_hz=band_hz, weights=w, quantity=quantity, valid=valid,
                       block_rows=block_rows, modal_refit=True)
     return replace(result, settings=dict(result.settings, weights=used))
+
+
+def identification_weights(frequency_hz, frf, valid, std_error, weights):
+    """The weights :func:`identify_lines` identifies with, and their name (its ``weights`` argument).
+
+    Returns
+    -------
+    (weights (n_f, n_out, n_in) or None, "std_error" | "estimated" | "relative" | "output_rms")
+    """
+    if weights not in ("std_error", "relative", None):
+        raise CalibrationError(f"weights must be 'std_error', 'relative' or None, got {weights!r}")
+    if weights == "relative":
+        return relative_weights(frf, valid), "relative"
+    if weights is None:
+        return None, "output_rms"
+    w = None if std_error is None else line_weights(std_error, frf, valid)
+    return (w, "std_error") if w is not None else estimated_weights(frequency_hz, frf, valid)
 
 
 def estimated_weights(frequency_hz, frf, valid):
@@ -220,10 +233,7 @@ def identify_run(
     path = getattr(run, "path", "run")
     rows = None if channels is None else _index(list(channels), [s.name for s in run.sensors], "channels", path)
     cols = None if drives is None else _index(list(drives), [d.name for d in run.drives], "drives", path)
-    H = np.asarray(run.frf)
-    se = np.asarray(run.std_error, dtype=float)
-    if se.shape != H.shape:
-        se = None
+    H, se = np.asarray(run.frf), run_std_error(run)
     if rows is not None:
         H = H[:, rows]
         se = None if se is None else se[:, rows]

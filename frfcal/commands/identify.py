@@ -47,23 +47,14 @@ def run(args: argparse.Namespace) -> int:
 
     import identification as idf
     from acquisition.runfile import read_run, write_analysis
-    from frfcal.campaign import estimated_weights, identify_run, relative_weights, run_weights
-    from frfcal.campaign._identify import refit_line
+    from frfcal.campaign import identify_run
+    from frfcal.campaign._identify import identification_weights, refit_line, run_std_error
 
     path = Path(args.run)
     run_ = read_run(path)
     band = tuple(args.band) if args.band else None
-    result = identify_run(run_, band, order=args.order, weights=None if args.no_weights else "std_error",
-                          block_rows=args.block_rows)
-    # the stabilization diagram (--plot) with the weights the identification used
-    used = result.settings["weights"]
-    weights = None
-    if used == "std_error":
-        weights = run_weights(run_)
-    elif used == "estimated":
-        weights = estimated_weights(run_.frequency_hz, run_.frf, run_.valid)[0]
-    elif used == "relative":
-        weights = relative_weights(run_.frf, run_.valid)
+    mode = None if args.no_weights else "std_error"
+    result = identify_run(run_, band, order=args.order, weights=mode, block_rows=args.block_rows)
     sel = result.order_selection
     arrays, attrs = result.to_arrays()
     attrs["run"] = str(path.name)
@@ -82,6 +73,8 @@ def run(args: argparse.Namespace) -> int:
         out = Path(args.plot)
         out.mkdir(parents=True, exist_ok=True)
         orders = _stabilization_orders(result.order)
+        # the stabilization diagram with the weights the identification used
+        weights, _ = identification_weights(run_.frequency_hz, run_.frf, run_.valid, run_std_error(run_), mode)
         kw = dict(band_hz=result.band_hz, weights=weights, quantity=run_.quantity, valid=run_.valid,
                   block_rows=args.block_rows)
         stab = idf.stabilization(run_.frequency_hz, run_.frf, orders, **kw)
