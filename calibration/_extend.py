@@ -155,9 +155,45 @@ def extended_surrogate(
         F = np.zeros((n, 0))
     X = solve(F) if F.shape[1] else F
     t2 = time.perf_counter()
-    # M-orthonormalize against T (twice: T is M-orthonormal at p_b), then among themselves
-    for _ in range(2):
+    Kr, Mr, inputs, outputs, Te, k = bordered(sur, T, model, X, p_b, M0, vector_rtol, with_basis=with_basis)
+    t3 = time.perf_counter()
+    timings = dict(sur.timings_s)
+    timings.update({"extend: factor": t1 - t0, "extend: statics": t2 - t1,
+                    "extend: orthonormalize and project": t3 - t2})
+    out = replace(
+        sur,
+        K=Kr,
+        M=Mr,
+        inputs=inputs,
+        outputs=outputs,
+        p_basis=p_b,
+        n_static=sur.n_static + k,
+        parameter_names=tuple(model.parameter_names),
+        timings_s=timings,
+    )
+    return out, Te
+
+
+def bordered(sur: Surrogate, T: np.ndarray, model: FRFModel, X: np.ndarray, p_b, M0, vector_rtol: float,
+             *, with_basis: bool = True, column_scaled: bool = False, min_novelty: float = 0.0):
+    """The reduced model on [T, W]: ``X`` (n, k) made M-orthonormal against ``T`` and among itself, every term
+    of ``model`` projected on the new columns only (the T-T blocks are the surrogate's; terms beyond the
+    surrogate's are projected whole).
+
+    ``T`` is M-orthonormal at ``p_b`` (``M0`` = M(p_b)). ``vector_rtol`` cuts the eigenvalues of the new
+    columns' Gram matrix relative to the largest; with ``column_scaled`` each column is first scaled to unit
+    M-norm (so the cut is per direction, not dominated by the largest column), and columns that keep less
+    than ``min_novelty`` of their M-norm after the projection off T are dropped (they lie in T already).
+
+    Returns (Kr, Mr, inputs, outputs, basis [T, W'] or None, k) with k the number of columns added.
+    """
+    before = np.sqrt(np.einsum("ij,ij->j", X, M0 @ X)) if column_scaled and X.shape[1] else None
+    for _ in range(2):  # twice: T is M-orthonormal at p_b
         X = X - T @ (T.T @ (M0 @ X))
+    if X.shape[1] and column_scaled:
+        after = np.sqrt(np.einsum("ij,ij->j", X, M0 @ X))
+        novel = after > min_novelty * np.maximum(before, np.finfo(float).tiny)
+        X = X[:, novel] / after[novel]
     if X.shape[1]:
         G = _sym(X.T @ (M0 @ X))
         w, V = np.linalg.eigh(G)
@@ -166,7 +202,6 @@ def extended_surrogate(
     else:
         W = X
     k = W.shape[1]
-    t3 = time.perf_counter()
 
     def extend(A, Ar):
         """[T, W]^T A_k [T, W] for every term, the T-T block from the old surrogate.
@@ -196,22 +231,7 @@ def extended_surrogate(
         inputs = np.vstack([sur.inputs, np.asarray(Wn.T @ B)])
         outputs = np.hstack([sur.outputs, np.asarray(C @ Wn)])
         Te = np.hstack([T, Wn]) if with_basis else None
-    t4 = time.perf_counter()
-    timings = dict(sur.timings_s)
-    timings.update({"extend: factor": t1 - t0, "extend: statics": t2 - t1, "extend: orthonormalize": t3 - t2,
-                    "extend: project": t4 - t3})
-    out = replace(
-        sur,
-        K=Kr,
-        M=Mr,
-        inputs=inputs,
-        outputs=outputs,
-        p_basis=p_b,
-        n_static=sur.n_static + k,
-        parameter_names=tuple(model.parameter_names),
-        timings_s=timings,
-    )
-    return out, Te
+    return Kr, Mr, inputs, outputs, Te, k
 
 
 def _new_columns_orthonormalized(Kr, Mr, T: np.ndarray, W: np.ndarray, p, tol: float = 1e-12):

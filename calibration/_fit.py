@@ -596,10 +596,12 @@ class CycleOptions(FitOptions):
         times the half-power bandwidth 2 zeta0 f (eta <= 4 basis_tol zeta0):
         a new basis would give the same surrogate there up to that. None:
         re-basis whenever p moved by more than ``tol``.
-    rebasis : {"iterated", "kept", "solved"}
+    rebasis : {"iterated", "kept", "solved", "corrected"}
         The enrichment of a refreshed basis (:func:`calibration.build_surrogate`):
         the inverse-iterated old basis, the old enrichment columns, or new
-        derivative solves at p.
+        derivative solves at p; or "corrected": no rebuild, the old basis plus
+        the solved residuals of its modes and static solutions at p
+        (:func:`calibration._correct.corrected_surrogate`).
     """
 
     max_cycles: int = 4
@@ -787,7 +789,8 @@ def calibrate_cycles(
     CycleResult
         Keeps the final surrogate and its basis.
     """
-    from calibration._surrogate import basis_layout, basis_residuals, build_surrogate
+    from calibration._correct import rebased
+    from calibration._surrogate import basis_residuals, build_surrogate
 
     if len(positional) > len(_CYCLE_POSITIONAL):
         raise TypeError(f"calibrate_cycles() takes at most {6 + len(_CYCLE_POSITIONAL)} positional arguments")
@@ -822,15 +825,17 @@ def calibrate_cycles(
             if chk.adequate:
                 break
         ta = time.perf_counter()
-        surrogate, basis = build_surrogate(model, p, band_hz, o.basis_factor, enrich=o.enrich,
-                                           previous_basis=basis if o.refresh else None, rebasis=o.rebasis,
-                                           previous_layout=basis_layout(surrogate))
+        surrogate, basis, corr = rebased(model, surrogate, basis, p, band_hz, o.basis_factor, o.enrich, o.rebasis,
+                                         o.refresh)
         tb = time.perf_counter()
+        if corr is not None:
+            say(f"cycle {k}: basis corrected at p: {corr.describe()}")
         sub = calibrate(surrogate, data, lower, upper, zeta0, replace(fit, n_starts=0), p_start=p)
         tc = time.perf_counter()
         dp = float(np.max(np.abs(sub.p - p)))
         cycles.append({"cycle": k, "p": sub.p.tolist(), "sd": sub.sd, "basis_size": surrogate.size,
-                       "basis_s": tb - ta, "fit_s": tc - tb, "max_dp": dp})
+                       "basis_s": tb - ta, "fit_s": tc - tb, "max_dp": dp,
+                       **({} if corr is None else {"correction": corr.to_dict()})})
         say(f"cycle {k}: sd {sub.sd:.4g}, max |dp| {dp:.2e}")
         p, sd = sub.p, sub.sd
         if dp < o.tol:

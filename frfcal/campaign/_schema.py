@@ -191,10 +191,11 @@ class CalibrationSection(_Strict):
     rebasis_hold: float = Field(
         0.0, ge=0, description="in the raw stage after a re-basis, hold parameter combinations whose relative "
         "singular value is far below this at their value before the re-basis (0 = off; docs/calibration.md)")
-    rebasis: Literal["iterated", "kept", "solved"] = Field(
-        "iterated", description="enrichment of a rebuilt basis: the inverse-iterated old basis, the old "
-        "parameter-derivative columns kept as they are, or new derivative solves at the new point "
-        "(docs/calibration.md)")
+    rebasis: Literal["iterated", "kept", "solved", "corrected"] = Field(
+        "iterated", description="how a cycle re-makes the basis at its end point: rebuilt with the enrichment "
+        "of the inverse-iterated old basis, the old parameter-derivative columns kept as they are, or new "
+        "derivative solves; or 'corrected': not rebuilt, the old basis plus the solved residuals of its modes "
+        "and static solutions at the new point (no new factorization; docs/calibration.md)")
     ensemble: Literal["all", "article", "group"] = Field("all", description="calibrate on all articles, each, or each group")
     n_groups: int | None = Field(None, ge=1, description="number of article groups (default: largest gap)")
 

@@ -45,8 +45,9 @@ from calibration import (
     expected_from_std_error,
     scatter_sd,
 )
+from calibration._correct import rebased
 from calibration._refine import ModalDampingObjective, Refinement, carried_damping, refine
-from calibration._surrogate import assembled, basis_layout
+from calibration._surrogate import assembled
 from calibration._signal import signal_pairs
 from labdata._quantities import quantity_factor, quantity_power
 from frfcal.campaign._identify import identify_lines, refit_line
@@ -669,8 +670,9 @@ def _refined(camp: Campaign, model, arts, cyc, band, lower, upper, log, label):
                 break
         t0 = time.perf_counter()
         old_sur, old_basis = sur, basis
-        sur, basis = build_surrogate(model, ref.p, band, c.basis_factor, enrich=c.enrich, previous_basis=basis,
-                                     rebasis=c.rebasis, previous_layout=basis_layout(sur))
+        sur, basis, corr = rebased(model, sur, basis, ref.p, band, c.basis_factor, c.enrich, c.rebasis)
+        if corr is not None:
+            log(f"[{label}] raw-line re-basis {k + 1}: basis corrected at the refined point: {corr.describe()}")
         carry = {}
         if old_basis is not None:  # start where the last raw stage ended (its damping, carried to the new modes)
             zeta, fit = carried_damping(old_sur, old_basis, ref.zeta, ref.fit_modes, ref.p_zeta, sur, basis,

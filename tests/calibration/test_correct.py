@@ -1,0 +1,65 @@
+"""The re-basis by residual correction (rebasis = "corrected"): the basis point's factorization corrects the
+basis at a new point, against the full model there."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from calibration import build_surrogate, full_order_frf, surrogate_frf
+from calibration._correct import corrected_surrogate, rebased
+from tests.calibration._models import beam_model
+
+BAND = (20.0, 400.0)
+ZETA = 0.01
+
+
+@pytest.fixture(scope="module")
+def beam():
+    """Beam of 1603 DOF (above the dense limit: the sparse path), nominal basis, a point 0.2 away."""
+    model, _ = beam_model(n_el=800)
+    sur, T = build_surrogate(model, np.zeros(model.n_params), BAND)
+    p = 0.2 * np.random.default_rng(7).choice([-1.0, 1.0], model.n_params)
+    f = np.linspace(BAND[0], BAND[1], 400)
+    return model, sur, T, p, f, full_order_frf(model, p, f, ZETA)
+
+
+def _error(H, ref):
+    return float(np.abs(np.log(H / ref)).max())
+
+
+def test_each_round_shrinks_the_residuals_and_the_frf_error(beam):
+    """Measured (before each round): Ritz residual 3.3e-3 -> 1.6e-6 -> 3.2e-11, static energy error 6.2e-7 ->
+    6.3e-11; largest FRF log error against the full model after rounds 1-3: 3.6e-5, 5.1e-5, 4.0e-5, where the
+    nominal basis gives 8.1e-3 and a cold build at p 4.4e-5 (the Eq. 2.14 damping of the modes above the basis,
+    which the reference has and no surrogate does)."""
+    model, sur, T, p, f, ref = beam
+    fixed = _error(surrogate_frf(sur, p, f, ZETA), ref)
+    cold, _ = build_surrogate(model, p, BAND)
+    floor = _error(surrogate_frf(cold, p, f, ZETA), ref)
+    s, B = build_surrogate(model, np.zeros(model.n_params), BAND)  # the nominal basis and factorization again
+    errs, infos = [], []
+    for _ in range(3):
+        s, B, info = corrected_surrogate(model, s, B, p, BAND)
+        infos.append(info)
+        errs.append(_error(surrogate_frf(s, p, f, ZETA), ref))
+    assert infos[1].eta_max < infos[0].eta_max / 30 and infos[2].eta_max < infos[1].eta_max / 30
+    assert infos[1].static_max < infos[0].static_max / 30
+    assert errs[0] < fixed / 20
+    assert errs[1] < 1.5 * floor + 1e-4, (errs, floor)
+    assert s.size == sur.size + sum(i.added for i in infos)
+    assert np.array_equal(s.p_basis, sur.p_basis)
+    # M-orthonormal at the basis point, and the reduced terms are the projections of the full ones
+    M0 = model.M.at(sur.p_basis)
+    np.testing.assert_allclose(B.T @ (M0 @ B), np.eye(B.shape[1]), atol=1e-9)
+    np.testing.assert_allclose(s.K.at(p), B.T @ (model.K.at(p) @ B), rtol=1e-8, atol=1e-6 * np.abs(s.K.at(p)).max())
+
+
+def test_rebased_corrects_or_rebuilds(beam):
+    model, sur, T, p, f, ref = beam
+    build_surrogate(model, np.zeros(model.n_params), BAND)  # keep the nominal factorization
+    new, B, info = rebased(model, sur, T, p, BAND, rebasis="corrected")
+    assert info is not None and new.size > sur.size and np.array_equal(new.p_basis, sur.p_basis)
+    model.factor_cache.clear()  # nothing kept: the basis is rebuilt at p (inverse iteration)
+    new, B, info = rebased(model, sur, T, p, BAND, rebasis="corrected")
+    assert info is None and np.array_equal(new.p_basis, p) and B.shape == (model.K.shape[0], new.size)
