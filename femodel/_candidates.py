@@ -1350,6 +1350,30 @@ def zoom_candidates(ctx: CandidateContext, screened, best: Candidate, n: int | N
 
 
 
+def candidate_pairs(candidate: Candidate) -> tuple:
+    """The (grid a, grid b) pairs of a ``contact_spring`` candidate, in its order (one per pair, whatever
+    the components)."""
+    if candidate.family != "contact_spring":
+        raise ParameterError(f"candidate_pairs: {candidate.name!r} is of family {candidate.family!r}, "
+                             "not contact_spring")
+    return tuple(dict.fromkeys((int(a), int(b)) for a, _, b, _ in candidate.term.dofs))
+
+
+def contact_on_pairs(ctx: CandidateContext, like: Candidate, pairs, name: str) -> Candidate | None:
+    """A ``contact_spring`` candidate between ``like``'s parts on the grid pairs ``pairs`` ((grid a, grid b),
+    side a first, as :func:`candidate_pairs` gives them): one common rate, its scale from those pairs' stiffness
+    (as the family's own candidates). None when no pair has a free, stiff component."""
+    pairs = [(int(a), int(b)) for a, b in pairs]
+    if not pairs:
+        raise ParameterError(f"contact_on_pairs: no grid pairs for {name!r}")
+    if name in ctx.used_names:
+        raise ParameterError(f"contact_on_pairs: term name {name!r} is already used")
+    sel = np.column_stack([ctx.grid_index([a for a, _ in pairs]), ctx.grid_index([b for _, b in pairs])])
+    cos_tol = math.cos(math.radians(ctx.options.contact_axis_deg))
+    return _contact_candidate(ctx, sel, like.parts[0], like.parts[-1], name, None, ctx.stiffness_diagonal, cos_tol,
+                              oriented=True)
+
+
 def register_family(name: str, generator, *, replace: bool = False, point: PointFamily | None = None,
                     region=None) -> None:
     """Add a candidate family to :data:`CANDIDATE_FAMILIES`.

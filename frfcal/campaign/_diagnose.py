@@ -698,6 +698,7 @@ def _accept_member(camp, load, pm, model, articles, m, check, rows, ctx, quantit
         if best is None:
             break
         best = _tied_places(camp, articles, m, model, pm, ctx, accepted, best, trials, quantity, log)
+        best = _contact_shape(camp, articles, m, model, pm, ctx, accepted, best, trials, quantity, log)
         r, ha, fit, trial = best
         new = list(r.get("members", [r["name"]]))
         check_try = member_residual(camp, load, articles, m, model=(fit.surrogate, fit.x, None))[0]
@@ -858,6 +859,98 @@ def _tied_places(camp, articles, m, model, pm, ctx, accepted, best, trials, quan
         f"lowest hold-out SD: {best[0]['name']} ({best[1]:.4g}; {r['name']} {ha:.4g})")
     best[0]["tied"] = [{"name": n, "grids": list(cands[n].grids), "holdout_after": h} for n, h in out]
     return best
+
+
+def _contact_shape(camp, articles, m, model, pm, ctx, accepted, best, trials, quantity, log,
+                   keep_fraction: float = 0.2, gain: float = 0.9):
+    """Which pairs of the best trial's contact candidate touch: a rate per pair, fitted together, and the
+    pairs that carry one as one candidate, kept when its hold-out SD is lower.
+
+    The contact family offers cells, windows and unions of a patch size (several element sizes); a gap that
+    closes on fewer pairs (a line of a few) is then best matched by a window that also holds pairs that do
+    not touch, and the fit stays above the floor. A shape zoom by the linear score cannot tell the shapes
+    apart (docs/diagnosis.md: the score at c = 0 of an effect that moves modes by many bandwidths), so the
+    shape is fitted: each pair of the best candidate (3 to 2 ``zoom_grids`` pairs) becomes its own spring
+    term (scale from its own stiffness), all fitted with the existing parameters and the accepted effects
+    (``fit_with`` from the best trial's point, rates >= 0: a non-negative fit, which leaves the pairs that
+    do not touch at zero); the pairs whose rate exceeds ``keep_fraction`` of the largest make one candidate
+    (one common rate, ``<name>_shape``; pairs an accepted contact holds are left out), recalibrated as the acceptance's trials (from the member's point
+    through the continuation stages). It replaces the best when its hold-out SD is below ``gain`` times the
+    best's (a subset of a contact that closes everywhere must not win on the noise); the row then
+    carries ``shaped_from`` and the per-pair rates (``pair_rates``). Every fit is appended to ``trials``.
+    """
+    from calibration import fit_with
+    from femodel import candidate_pairs, contact_on_pairs
+
+    r, ha, fit, trial = best
+    cctx = ctx.get("cctx")
+    if "members" in r or cctx is None or r["family"] != "contact_spring":
+        return best
+    cands = {cd.name: cd for cd in ctx["cands"]}
+    me = cands[r["name"]]
+    # the pairs an accepted contact holds already are not fitted again (two terms on one pair: one rate)
+    held = {pr for a in accepted if cands[a["name"]].family == "contact_spring"
+            for pr in candidate_pairs(cands[a["name"]])}
+    pairs = [pr for pr in candidate_pairs(me) if pr not in held]
+    if not 3 <= len(pairs) <= 2 * cctx.options.zoom_grids:
+        return best
+    taken = set(cctx.used_names) | set(cands)
+    singles = [cd for k, pr in enumerate(pairs) if f"{me.name}_pair{k + 1}" not in taken
+               for cd in [contact_on_pairs(cctx, me, [pr], f"{me.name}_pair{k + 1}")] if cd is not None]
+    name = next(f"{me.name}_shape{'' if k == 0 else k + 1}" for k in range(len(taken) + 1)
+                if f"{me.name}_shape{'' if k == 0 else k + 1}" not in taken)
+    if len(singles) < 3:
+        return best
+    cfg, c = camp.diagnosis, camp.calibration
+    shift = max(camp.band.low_hz / 4.0, camp.band.high_hz / 50.0)
+    by_name = {t.name: t for t in ctx["terms"]}
+    acc_names = [a["name"] for a in accepted]
+    acc_terms = [by_name[n] for n in acc_names]
+    t0 = time.perf_counter()
+    rate = float(fit.c[-1]) * float(me.term.scale)  # the best's rate per pair (N/m)
+    f_all = fit_with(ctx["sur"], ctx["T"], model, acc_terms + [candidate_term(pm, cd, m.p) for cd in singles],
+                     ctx["data"], c.zeta0, pm.lower, pm.upper, p0=fit.p,
+                     c0=[a["c"] for a in accepted] + [rate / float(cd.term.scale) for cd in singles],
+                     quantity=quantity, shift_hz=shift, max_nfev=cfg.max_evaluations)
+    rates = np.asarray(f_all.c[len(accepted):], float) * np.array([float(cd.term.scale) for cd in singles])
+    pair_rates = [{"pair": list(candidate_pairs(cd)[0]), "rate_N_per_m": float(k)} for cd, k in zip(singles, rates)]
+    h_all, _ = _holdout(camp, articles, m, f_all.surrogate, f_all.x, quantity)
+    trials.append({"names": acc_names + [cd.name for cd in singles], "c": f_all.c.tolist(), "sd_equalized": f_all.sd,
+                   "holdout_before": trial["holdout_before"], "holdout_after": h_all, "shape_of": r["name"],
+                   "pair_rates": pair_rates})
+    keep = rates > keep_fraction * rates.max() if rates.max() > 0 else np.zeros(rates.size, bool)
+    if keep.all() or not keep.any():
+        log(f"[{m.label}] {r['name']}: per-pair rates fitted over its {len(singles)} pairs "
+            f"({time.perf_counter() - t0:.1f} s): {'every pair carries' if keep.all() else 'no pair carries'} "
+            "the contact; kept as it is")
+        return best
+    new = contact_on_pairs(cctx, me, [candidate_pairs(cd)[0] for cd, k in zip(singles, keep) if k], name)
+    if new is None:
+        return best
+    t_new = candidate_term(pm, new, m.p)
+    f2 = fit_with(ctx["sur"], ctx["T"], model, acc_terms + [t_new], ctx["data"], c.zeta0, pm.lower, pm.upper,
+                  p0=m.p, c0=[a["c"] for a in accepted] + [float(rates[keep].mean()) / float(new.term.scale)],
+                  continuation=ctx["cont"], quantity=quantity, shift_hz=shift, max_nfev=cfg.max_evaluations)
+    h2, _ = _holdout(camp, articles, m, f2.surrogate, f2.x, quantity)
+    t2 = {"names": acc_names + [new.name], "c": f2.c.tolist(), "sd_equalized": f2.sd,
+          "holdout_before": trial["holdout_before"], "holdout_after": h2, "shape_of": r["name"]}
+    if "screened_after" in trial:
+        t2["screened_after"] = trial["screened_after"]
+    trials.append(t2)
+    log(f"[{m.label}] {r['name']}: per-pair rates fitted over its {len(singles)} pairs, {int(keep.sum())} carry "
+        f"the contact ({', '.join(f'{a}-{b}' for (a, b), k in zip([candidate_pairs(cd)[0] for cd in singles], keep) if k)}); "
+        f"as one candidate hold-out SD {h2:.4g} against {ha:.4g} ({time.perf_counter() - t0:.1f} s)"
+        + (": it replaces it" if h2 < gain * ha else ": kept as it is"))
+    if not h2 < gain * ha:
+        return best
+    ctx["cands"].append(new)
+    ctx["terms"].append(t_new)
+    cval = float(f2.c[-1])
+    value, unit, words = _physical(new.term, cval)
+    row = dict(r, name=new.name, grids=list(new.grids), center=[float(x) for x in new.center],
+               element_size=float(new.size), description=new.description, c=cval, value=value, unit=unit,
+               size=words, shaped_from=r["name"], pair_rates=pair_rates)
+    return row, h2, f2, t2
 
 
 def _compounds(ctx, scr, tried) -> list:

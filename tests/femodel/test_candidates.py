@@ -646,3 +646,32 @@ def test_a_contact_straddling_two_cells_has_a_window_of_its_own(tmp_path):
     around = [n for n, g in places.items() if w4 < g]
     assert sorted(around) == ["contact_PSHELL1_PSHELL2_join1", "contact_PSHELL1_PSHELL2_w3"]
     assert all(sets[n] > closed for n in around) and len(sets["contact_PSHELL1_PSHELL2_join1"]) == 12
+
+
+def test_a_contact_on_chosen_pairs_of_a_candidate(tmp_path):
+    # the acceptance's per-pair fit (frfcal/campaign/_diagnose.py _contact_shape) makes one spring term per
+    # pair of a contact candidate and then one candidate on the pairs that carry the contact
+    from femodel import candidate_pairs, contact_on_pairs
+    from tests.frfcal import outside2_case as oc
+
+    path = tmp_path / "floor.bdf"
+    path.write_text(oc.deck_text(oc.NOMINAL))
+    fe = read_bdf(path, units="mm-t-s")
+    ctx = candidate_context(fe)
+    cands = generate_candidates(fe, families=["contact_spring"], context=ctx)
+    (union,) = [c for c in cands if c.name == "contact_PSHELL1_PSHELL2_join1"]
+    pairs = candidate_pairs(union)
+    assert len(pairs) == 12 and {(min(a, b), max(a, b)) for a, b in pairs} == _contact_pairs(union)
+    one = contact_on_pairs(ctx, union, [pairs[4]], "one_pair")
+    assert candidate_pairs(one) == (pairs[4],) and one.parts == union.parts and one.family == "contact_spring"
+    assert one.term.dofs == tuple(d for d in union.term.dofs if (d[0], d[2]) == pairs[4])
+    some = contact_on_pairs(ctx, union, pairs[2:7], "five_pairs")
+    assert candidate_pairs(some) == pairs[2:7] and "5 grid pairs" in some.description
+    # the scale is the family's rule on these pairs: a fraction of the median stiffness of the sprung DOF
+    kd = [min(ctx.stiffness_diagonal[fe.grid_index([a])[0], c - 1], ctx.stiffness_diagonal[fe.grid_index([b])[0], c - 1])
+          for a, c, b, _ in some.term.dofs]
+    assert some.term.scale == pytest.approx(ctx.options.contact_fraction * np.median(kd), rel=1e-12)
+    with pytest.raises(ParameterError, match="no grid pairs"):
+        contact_on_pairs(ctx, union, [], "none")
+    with pytest.raises(ParameterError, match="not contact_spring"):
+        candidate_pairs(next(c for c in generate_candidates(fe, families=["lumped_mass"], context=ctx)))
