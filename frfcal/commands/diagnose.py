@@ -85,6 +85,12 @@ def print_diagnosis(d: dict, out) -> None:
                 print(f"  place: the lowest hold-out SD of {len(a['tied'])} places the screening could not tell "
                       "apart: " + ", ".join(f"grid {'/'.join(map(str, x['grids']))} {x['holdout_after']:.4g}"
                                             for x in sorted(a["tied"], key=lambda x: x["holdout_after"])), file=out)
+            if a.get("shaped_from"):
+                rates = sorted(a.get("pair_rates", ()), key=lambda x: -x["rate_N_per_m"])
+                print(f"  shape: {len(a['grids']) // 2} of the {len(rates)} pairs of {a['shaped_from']} carry the "
+                      "contact in a rate fitted per pair (largest: "
+                      + ", ".join(f"{x['pair'][0]}-{x['pair'][1]} {x['rate_N_per_m']:.3g} N/m" for x in rates[:4])
+                      + ")", file=out)
         for a in (m["sd"].get("after") or {}).get("negligible", []):
             z = a["refined_effect"]
             print(f"NEGLIGIBLE, dropped: {a['description']}: accepted, then refined to {a['size']}: without it the "
