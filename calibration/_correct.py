@@ -5,12 +5,12 @@ fixed basis T is then re-made at p. :func:`calibration.build_surrogate` does
 that by refactorizing K(p) + s M(p) and one block inverse iteration of T
 (about 10 s at 200k DOF, most of it the factorization and the block solve
 of every basis column). :func:`corrected_surrogate` keeps T and adds, with
-the factorization already made at p_b, the corrections of what T gets wrong
-at p:
+the factorization an earlier build left (usually at p_b), the corrections
+of what T gets wrong at p:
 
 * for each mode of the surrogate at p up to the basis cut-off (Ritz pair
   lambda, phi = T x), the residual r = K(p) phi - lambda M(p) phi, solved
-  with (K(p_b) + s M(p_b))^-1: a preconditioned (Davidson) correction, one
+  with that (K + s M)^-1: a preconditioned (Davidson) correction, one
   step of inverse iteration on phi with the basis point's operator;
 * for each drive and sensor load b, the residual of the reduced static
   solution x = T (K_r(p) + s M_r(p))^-1 T^T b, r = (K(p) + s M(p)) x - b,
@@ -23,8 +23,9 @@ the surrogate stays exact in p on the larger basis and its basis point stays
 p_b. The sizes of the residuals in the norm of the solver come with it:
 ``eta`` (about the relative eigenvalue error of each Ritz mode, as
 :func:`calibration._surrogate.basis_residuals`) and the relative energy
-error of each static solution; a second round halves neither when the
-first already met its tolerances.
+error of each static solution, both measured before the round (what it
+corrects). Each round adds its vectors: the basis grows from cycle to cycle
+(docs/calibration.md, "a re-basis without a new factorization").
 """
 
 from __future__ import annotations
@@ -138,10 +139,10 @@ def rebased(model: FRFModel, sur: Surrogate, basis: np.ndarray | None, p, band_h
 
     ``rebasis="corrected"`` adds one round of residual corrections
     (:func:`corrected_surrogate`, no new factorization; the basis grows by
-    those vectors); the other kinds, and "corrected" when the model keeps no
-    factorization from an earlier build, rebuild the
-    basis at ``p`` (:func:`calibration.build_surrogate`, "corrected" then as
-    "iterated"; ``refresh=False``: a cold build).
+    those vectors). The other kinds, and "corrected" when the model keeps no
+    factorization from an earlier build, rebuild the basis at ``p``
+    (:func:`calibration.build_surrogate`; "corrected" then as "iterated";
+    ``refresh=False``: a cold build).
     """
     from calibration._surrogate import basis_layout, build_surrogate
 
