@@ -873,11 +873,12 @@ def _contact_shape(camp, articles, m, model, pm, ctx, accepted, best, trials, qu
     shape is fitted: each pair of the best candidate (3 to 2 ``zoom_grids`` pairs) becomes its own spring
     term (scale from its own stiffness), all fitted with the existing parameters and the accepted effects
     (``fit_with`` from the best trial's point, rates >= 0: a non-negative fit, which leaves the pairs that
-    do not touch at zero); the pairs whose rate exceeds ``keep_fraction`` of the largest make one candidate
-    (one common rate, ``<name>_shape``; pairs an accepted contact holds are left out), recalibrated as the acceptance's trials (from the member's point
-    through the continuation stages). It replaces the best when its hold-out SD is below ``gain`` times the
-    best's (a subset of a contact that closes everywhere must not win on the noise); the row then
-    carries ``shaped_from`` and the per-pair rates (``pair_rates``). Every fit is appended to ``trials``.
+    do not touch at zero; pairs an accepted contact holds are left out); the pairs whose rate exceeds
+    ``keep_fraction`` of the largest make one candidate (one common rate, ``<name>_shape``), recalibrated
+    as the acceptance's trials (from the member's point through the continuation stages). It replaces the
+    best when its hold-out SD is below ``gain`` times the best's (a subset of a contact that closes
+    everywhere must not win on the noise); the row then carries ``shaped_from`` and the per-pair rates
+    (``pair_rates``). Every fit is appended to ``trials``.
     """
     from calibration import fit_with
     from femodel import candidate_pairs, contact_on_pairs
@@ -937,10 +938,10 @@ def _contact_shape(camp, articles, m, model, pm, ctx, accepted, best, trials, qu
     if "screened_after" in trial:
         t2["screened_after"] = trial["screened_after"]
     trials.append(t2)
+    kept = ", ".join(f"{a}-{b}" for (a, b), k in zip([candidate_pairs(cd)[0] for cd in singles], keep) if k)
     log(f"[{m.label}] {r['name']}: per-pair rates fitted over its {len(singles)} pairs, {int(keep.sum())} carry "
-        f"the contact ({', '.join(f'{a}-{b}' for (a, b), k in zip([candidate_pairs(cd)[0] for cd in singles], keep) if k)}); "
-        f"as one candidate hold-out SD {h2:.4g} against {ha:.4g} ({time.perf_counter() - t0:.1f} s)"
-        + (": it replaces it" if h2 < gain * ha else ": kept as it is"))
+        f"the contact ({kept}); as one candidate hold-out SD {h2:.4g} against {ha:.4g} "
+        f"({time.perf_counter() - t0:.1f} s)" + (": it replaces it" if h2 < gain * ha else ": kept as it is"))
     if not h2 < gain * ha:
         return best
     ctx["cands"].append(new)

@@ -87,8 +87,8 @@ def print_diagnosis(d: dict, out) -> None:
                                             for x in sorted(a["tied"], key=lambda x: x["holdout_after"])), file=out)
             if a.get("shaped_from"):
                 rates = sorted(a.get("pair_rates", ()), key=lambda x: -x["rate_N_per_m"])
-                print(f"  shape: {len(a['grids']) // 2} of the {len(rates)} pairs of {a['shaped_from']} carry the "
-                      "contact in a rate fitted per pair (largest: "
+                print(f"  shape: {len(a['grids']) // 2} of the {len(rates)} pairs of {a['shaped_from']} carry "
+                      "the contact in a rate fitted per pair (largest: "
                       + ", ".join(f"{x['pair'][0]}-{x['pair'][1]} {x['rate_N_per_m']:.3g} N/m" for x in rates[:4])
                       + ")", file=out)
         for a in (m["sd"].get("after") or {}).get("negligible", []):

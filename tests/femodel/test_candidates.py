@@ -668,8 +668,8 @@ def test_a_contact_on_chosen_pairs_of_a_candidate(tmp_path):
     some = contact_on_pairs(ctx, union, pairs[2:7], "five_pairs")
     assert candidate_pairs(some) == pairs[2:7] and "5 grid pairs" in some.description
     # the scale is the family's rule on these pairs: a fraction of the median stiffness of the sprung DOF
-    kd = [min(ctx.stiffness_diagonal[fe.grid_index([a])[0], c - 1], ctx.stiffness_diagonal[fe.grid_index([b])[0], c - 1])
-          for a, c, b, _ in some.term.dofs]
+    kd = [min(ctx.stiffness_diagonal[fe.grid_index([a])[0], c - 1],
+              ctx.stiffness_diagonal[fe.grid_index([b])[0], c - 1]) for a, c, b, _ in some.term.dofs]
     assert some.term.scale == pytest.approx(ctx.options.contact_fraction * np.median(kd), rel=1e-12)
     with pytest.raises(ParameterError, match="no grid pairs"):
         contact_on_pairs(ctx, union, [], "none")
