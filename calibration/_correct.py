@@ -38,7 +38,7 @@ import scipy.sparse as sp
 
 from calibration._errors import CalibrationError
 from calibration._extend import bordered
-from calibration._surrogate import FRFModel, Surrogate, assembled, reduced_modes
+from calibration._surrogate import FRFModel, Surrogate, assembled, basis_layout, build_surrogate, reduced_modes
 
 
 @dataclass(frozen=True)
@@ -144,8 +144,6 @@ def rebased(model: FRFModel, sur: Surrogate, basis: np.ndarray | None, p, band_h
     (:func:`calibration.build_surrogate`; "corrected" then as "iterated";
     ``refresh=False``: a cold build).
     """
-    from calibration._surrogate import basis_layout, build_surrogate
-
     if rebasis == "corrected" and basis is not None:
         got = corrected_surrogate(model, sur, basis, p, band_hz, basis_factor)
         if got is not None:

@@ -187,15 +187,17 @@ def bordered(sur: Surrogate, T: np.ndarray, model: FRFModel, X: np.ndarray, p_b,
 
     Returns (Kr, Mr, inputs, outputs, basis [T, W'] or None, k) with k the number of columns added.
     """
-    before = np.sqrt(np.einsum("ij,ij->j", X, M0 @ X)) if column_scaled and X.shape[1] else None
+    MX = M0 @ X
+    before = np.sqrt(np.einsum("ij,ij->j", X, MX)) if column_scaled else None
     for _ in range(2):  # twice: T is M-orthonormal at p_b
-        X = X - T @ (T.T @ (M0 @ X))
+        X = X - T @ (T.T @ MX)
+        MX = M0 @ X
     if X.shape[1] and column_scaled:
-        after = np.sqrt(np.einsum("ij,ij->j", X, M0 @ X))
+        after = np.sqrt(np.einsum("ij,ij->j", X, MX))
         novel = after > min_novelty * np.maximum(before, np.finfo(float).tiny)
-        X = X[:, novel] / after[novel]
+        X, MX = X[:, novel] / after[novel], MX[:, novel] / after[novel]
     if X.shape[1]:
-        G = _sym(X.T @ (M0 @ X))
+        G = _sym(X.T @ MX)
         w, V = np.linalg.eigh(G)
         keep = w > vector_rtol * max(w.max(initial=0.0), np.finfo(float).tiny)
         W = X @ (V[:, keep] / np.sqrt(w[keep]))

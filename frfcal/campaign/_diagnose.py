@@ -896,8 +896,10 @@ def _contact_shape(camp, articles, m, model, pm, ctx, accepted, best, trials, qu
     if not 3 <= len(pairs) <= 2 * cctx.options.zoom_grids:
         return best
     taken = set(cctx.used_names) | set(cands)
-    singles = [cd for k, pr in enumerate(pairs) if f"{me.name}_pair{k + 1}" not in taken
+    singles = [(pr, cd) for k, pr in enumerate(pairs) if f"{me.name}_pair{k + 1}" not in taken
                for cd in [contact_on_pairs(cctx, me, [pr], f"{me.name}_pair{k + 1}")] if cd is not None]
+    fitted = [pr for pr, _ in singles]  # the pairs with a term of their own
+    singles = [cd for _, cd in singles]
     name = next(f"{me.name}_shape{'' if k == 0 else k + 1}" for k in range(len(taken) + 1)
                 if f"{me.name}_shape{'' if k == 0 else k + 1}" not in taken)
     if len(singles) < 3:
@@ -914,7 +916,7 @@ def _contact_shape(camp, articles, m, model, pm, ctx, accepted, best, trials, qu
                      c0=[a["c"] for a in accepted] + [rate / float(cd.term.scale) for cd in singles],
                      quantity=quantity, shift_hz=shift, max_nfev=cfg.max_evaluations)
     rates = np.asarray(f_all.c[len(accepted):], float) * np.array([float(cd.term.scale) for cd in singles])
-    pair_rates = [{"pair": list(candidate_pairs(cd)[0]), "rate_N_per_m": float(k)} for cd, k in zip(singles, rates)]
+    pair_rates = [{"pair": list(pr), "rate_N_per_m": float(k)} for pr, k in zip(fitted, rates)]
     h_all, _ = _holdout(camp, articles, m, f_all.surrogate, f_all.x, quantity)
     trials.append({"names": acc_names + [cd.name for cd in singles], "c": f_all.c.tolist(), "sd_equalized": f_all.sd,
                    "holdout_before": trial["holdout_before"], "holdout_after": h_all, "shape_of": r["name"],
@@ -925,7 +927,7 @@ def _contact_shape(camp, articles, m, model, pm, ctx, accepted, best, trials, qu
             f"({time.perf_counter() - t0:.1f} s): {'every pair carries' if keep.all() else 'no pair carries'} "
             "the contact; kept as it is")
         return best
-    new = contact_on_pairs(cctx, me, [candidate_pairs(cd)[0] for cd, k in zip(singles, keep) if k], name)
+    new = contact_on_pairs(cctx, me, [pr for pr, k in zip(fitted, keep) if k], name)
     if new is None:
         return best
     t_new = candidate_term(pm, new, m.p)
@@ -938,7 +940,7 @@ def _contact_shape(camp, articles, m, model, pm, ctx, accepted, best, trials, qu
     if "screened_after" in trial:
         t2["screened_after"] = trial["screened_after"]
     trials.append(t2)
-    kept = ", ".join(f"{a}-{b}" for (a, b), k in zip([candidate_pairs(cd)[0] for cd in singles], keep) if k)
+    kept = ", ".join(f"{a}-{b}" for (a, b), k in zip(fitted, keep) if k)
     log(f"[{m.label}] {r['name']}: per-pair rates fitted over its {len(singles)} pairs, {int(keep.sum())} carry "
         f"the contact ({kept}); as one candidate hold-out SD {h2:.4g} against {ha:.4g} "
         f"({time.perf_counter() - t0:.1f} s)" + (": it replaces it" if h2 < gain * ha else ": kept as it is"))
