@@ -164,10 +164,22 @@ def _to_aset(assembly, amap, m_g, drop_zeros: bool = False) -> sp.csr_matrix:
     ``drop_zeros``); otherwise the matrix is reduced.
     """
     n_a = assembly.T.shape[1]
+    row_len = np.diff(m_g.indptr)
+    nz = np.flatnonzero(row_len)
+    if 64 * nz.size < m_g.shape[0]:
+        # a few rows (a spring, a lumped mass): their entries mapped one by one, not O(n) work per row of T
+        ar = np.repeat(amap[nz], row_len[nz])
+        ac = amap[m_g.indices]
+        if np.all(ar >= -1) and np.all(ac >= -1):  # unit selections (one a-set DOF per g-set DOF) or empty
+            keep = (ar >= 0) & (ac >= 0)
+            if drop_zeros:
+                keep &= m_g.data != 0.0
+            m = sp.coo_matrix((m_g.data[keep], (ar[keep], ac[keep])), shape=(n_a, n_a)).tocsr()
+            m.sort_indices()
+            return m
     kept_rows = np.flatnonzero(amap >= 0)
     if kept_rows.size and np.all(np.diff(amap[kept_rows]) > 0):
         # order-keeping selection: a row's kept entries stay sorted, rows keep their order
-        row_len = np.diff(m_g.indptr)
         if np.all(amap[row_len > 0] >= -1):
             ac = amap.astype(np.int32)[m_g.indices] if n_a < 2**31 else amap[m_g.indices]
             if ac.size == 0 or ac.min() >= -1:
