@@ -256,6 +256,15 @@ def _checked(candidates, basis, sur) -> list:
 
 # ----------------------------------------------------------------------------- extension by candidates
 
+#: Relative singular-value cut of a candidate's loads (``dK T``, ``dM T``) in its extension: the static
+#: corrections of the weaker load directions change the reduced FRF below any noise. Measured on the
+#: 200,000-DOF example subframe (docs/diagnosis.md, "Extension size"): for its 390-pair gap at 10 and 100x
+#: the true contact rate, a cut of 1e-4 keeps 23 of 58 new vectors (time 4 -> 2 s), the in-band frequencies
+#: within 1e-5 of the full-order model's and the reduced FRF within a square log deviation of 1e-7 of the
+#: 1e-8 cut's (the data's floor there: 2e-4). The final answer of a diagnosis is refined on the exact
+#: extended deck with its own basis (``refine_cycles``), not on this extension.
+CANDIDATE_LOAD_RTOL = 1e-4
+
 
 def _with_linear_terms(A, new_mats: list, n_new: int):
     """An ExtendedAffineMatrix: the terms of ``A`` (any affine kind) then ``c_j * D_j`` for (D_j, j) in new_mats."""
@@ -352,15 +361,26 @@ def extended_model(model: FRFModel, candidates) -> FRFModel:
 
 
 def shifted_solver(model: FRFModel, p, shift_hz: float):
-    """``solve(F) = (K(p) + s M(p))^-1 F``, s = (2 pi shift_hz)^2: one factorization to share between extensions."""
+    """``solve(F) = (K(p) + s M(p))^-1 F``, s = (2 pi shift_hz)^2: one factorization to share between extensions.
+
+    The model keeps its last factorization (``factor_cache["last_solve"]``, as :func:`calibration.build_surrogate`
+    leaves it): at the same point and shift it is returned, not formed again (2-3 s at 200,000 DOF)."""
     if not shift_hz > 0:
         raise CalibrationError(f"shift_hz must be > 0, got {shift_hz}")
     s = (2 * np.pi * float(shift_hz)) ** 2
-    return _factor(_shifted(model.stiffness(p), model.mass(p), s, model.factor_cache), model.factor_cache)
+    p = np.asarray(p, float)
+    kept = model.factor_cache.get("last_solve")
+    if kept is not None and kept[1] == s and np.array_equal(kept[0], p):
+        return kept[2]
+    model.factor_cache.pop("last_solve", None)  # the previous point's factor: freed before the new one is made
+    solve = _factor(_shifted(model.stiffness(p), model.mass(p), s, model.factor_cache), model.factor_cache)
+    model.factor_cache["last_solve"] = (p.copy(), s, solve)
+    return solve
 
 
 def extend_with_candidates(sur: Surrogate, basis, model, candidates, *, shift_hz: float | None = None,
-                           solve=None, with_basis: bool = True) -> tuple[Surrogate, np.ndarray]:
+                           solve=None, with_basis: bool = True,
+                           load_rtol: float = CANDIDATE_LOAD_RTOL) -> tuple[Surrogate, np.ndarray]:
     """Extend a surrogate by candidate terms (the static corrections of their loads), for a re-fit of [p, c].
 
     Parameters
@@ -379,6 +399,8 @@ def extend_with_candidates(sur: Surrogate, basis, model, candidates, *, shift_hz
         e.g. from :func:`shifted_solver`, is shared between calls).
     with_basis : bool
         False: None in place of the basis (:func:`calibration.extended_surrogate`).
+    load_rtol : float
+        Relative singular-value cut of each candidate's loads (:data:`CANDIDATE_LOAD_RTOL`).
 
     Returns
     -------
@@ -388,11 +410,16 @@ def extend_with_candidates(sur: Surrogate, basis, model, candidates, *, shift_hz
     """
     cands = list(candidates)
     if model.n_params == sur.n_params:
+        if solve is None and shift_hz is not None and shift_hz > 0:
+            # K + s M of the base model at the basis point (the new magnitudes are 0 there): its factorization
+            # is cached on the model and shared by every extension, not formed again for each
+            solve = shifted_solver(model, sur.p_basis, shift_hz)
         model = extended_model(model, cands)
     elif model.n_params != sur.n_params + len(cands):
         raise CalibrationError(f"model has {model.n_params} parameters: expected the surrogate's {sur.n_params} "
                                f"or {sur.n_params + len(cands)} with the {len(cands)} candidates")
-    return extended_surrogate(sur, basis, model, shift_hz=shift_hz, solve=solve, with_basis=with_basis)
+    return extended_surrogate(sur, basis, model, shift_hz=shift_hz, solve=solve, with_basis=with_basis,
+                              load_rtol=load_rtol)
 
 
 # ----------------------------------------------------------------------------- screening
@@ -415,6 +442,8 @@ class CandidateCheck:
     time_s : float, extension and fit
     explained_linear : float, the candidate's linear (first-order) explained fraction
     continued : int, further rounds of the last stage run because the fit had not converged
+    surrogate : Surrogate or None, the extended surrogate the check fitted on (kept in this process so that
+        :func:`fit_with` going on from the check does not build it again; not in :meth:`to_dict`)
     """
 
     name: str
@@ -427,6 +456,7 @@ class CandidateCheck:
     time_s: float
     explained_linear: float = 0.0
     continued: int = 0
+    surrogate: Surrogate | None = field(default=None, repr=False, compare=False)
 
     @property
     def score(self) -> float:
@@ -878,7 +908,8 @@ def screen(
                     outs[k][1] += spent if executor is None else share
                     outs[k][2] += 1
             return [replace(_checked_fit(cands[i], i, out, lin[-1].sd, t_ext), explained_linear=float(explained[i]),
-                            continued=n_more) for i, (out, t_ext, n_more) in zip(idx, outs)]
+                            continued=n_more, surrogate=job[0][0][-1].sur)
+                    for i, (out, t_ext, n_more), job in zip(idx, outs, jobs)]
 
         checks += run(top, [c_lin[i] for i in top])
         if extra:
@@ -1016,7 +1047,7 @@ class CandidateFit:
     sd : float, square deviation on the fitted data at (p, c)
     sd_start : float, square deviation at the start (c = c0)
     surrogate : Surrogate, the extended surrogate (parameters [p, c])
-    basis : (n, r + m) ndarray, its basis (for refine, validation, cross-validation)
+    basis : (n, r + m) ndarray or None, its basis (None when fitted ``with_basis=False``)
     lower, upper : (n_p + k,) bounds of [p, c]
     converged : bool ; time_s : float
     """
@@ -1066,6 +1097,7 @@ def fit_with(
     max_nfev: int = 100,
     xtol: float = 1e-10,
     warm: CandidateCheck | None = None,
+    with_basis: bool = True,
 ) -> CandidateFit:
     """Recalibrate the existing parameters with chosen candidates (one or several together).
 
@@ -1092,7 +1124,13 @@ def fit_with(
         stages: the check ran them from (p0, c*) on the same data and the same
         extension, so its end point is already in the final stage's basin;
         only the final stage runs on, to ``xtol``. Otherwise (not converged,
-        other candidates) it is ignored.
+        other candidates) it is ignored. With ``with_basis=False`` its extended
+        surrogate (:attr:`CandidateCheck.surrogate`) is used as it is: the
+        extension is not built again.
+    with_basis : bool
+        False: the fit's ``basis`` is None (a caller that needs only the
+        surrogate, for hold-out and cross-validation, saves the (n, r + k)
+        copy and, going on from a check, the extension).
 
     Returns
     -------
@@ -1112,13 +1150,20 @@ def fit_with(
     if c0.shape != (len(cands),):
         raise CalibrationError(f"fit_with: c0 has shape {c0.shape}, expected ({len(cands)},)")
     x0 = np.clip(np.r_[np.asarray(p0, float), c0], lo, hi)
+    sur_e = None
     if (warm is not None and warm.converged and len(cands) == 1 and warm.name == cands[0].name
             and warm.p.shape == (sur.n_params,)):
         x0 = np.clip(np.r_[warm.p, warm.c], lo, hi)
         continuation = ()
-    if solve is None and not (shift_hz is not None and shift_hz > 0):
-        raise CalibrationError("fit_with needs shift_hz > 0 (the basis build's) or solve")
-    sur_e, basis_e = extend_with_candidates(sur, basis, model, cands, shift_hz=shift_hz, solve=solve)
+        kept = warm.surrogate
+        if (not with_basis and kept is not None
+                and tuple(kept.parameter_names) == tuple(sur.parameter_names) + (cands[0].name,)):
+            sur_e, basis_e = kept, None
+    if sur_e is None:
+        if solve is None and not (shift_hz is not None and shift_hz > 0):
+            raise CalibrationError("fit_with needs shift_hz > 0 (the basis build's) or solve")
+        sur_e, basis_e = extend_with_candidates(sur, basis, model, cands, shift_hz=shift_hz, solve=solve,
+                                                with_basis=with_basis)
     objs = [Objective(sur_e, d, z, quantity) for z, d in continuation] + [Objective(sur_e, data, zeta, quantity)]
     out = run_start((objs, x0, lo, hi, max_nfev, xtol))
     n_p = sur.n_params

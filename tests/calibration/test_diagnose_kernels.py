@@ -35,6 +35,7 @@ from calibration import (
     rank_separating,
     screen,
     separating_effect,
+    shifted_solver,
 )
 from femodel import AddedMass, AddedSpring, ElementFactor, parametric_model
 from tests.calibration._models import frame_sensor_model
@@ -611,6 +612,30 @@ def test_fit_with_warm_from_its_converged_check_ends_where_the_cold_fit_ends(fra
     other = next(c for c in s.checks if c.name != "f13")
     again = fit_with(sur, T, model, [cand], data, ZETA, pm.lower, pm.upper, warm=other, **kw)
     np.testing.assert_array_equal(again.x, cold.x)
+    # without its basis the fit goes on on the check's own extension (not built again): the same optimum
+    assert chk.surrogate is not None and chk.surrogate.n_params == sur.n_params + 1
+    kept = fit_with(sur, T, model, [cand], data, ZETA, pm.lower, pm.upper, warm=chk, with_basis=False, **kw)
+    assert kept.surrogate is chk.surrogate and kept.basis is None
+    np.testing.assert_allclose(kept.x, warm.x, atol=1e-6)
+    assert kept.sd == pytest.approx(warm.sd, rel=1e-6)
+    assert "surrogate" not in chk.to_dict()
+
+
+def test_the_shifted_solver_is_formed_once_per_point(frame):
+    """shifted_solver keeps the model's last factorization: the same point and shift return it, another point
+    forms (and keeps) a new one; both solve their own K + s M."""
+    pm, model, sur, T, terms, cands = frame
+    p0 = np.zeros(pm.n_params)
+    a = shifted_solver(model, p0, SHIFT_HZ)
+    assert shifted_solver(model, p0.copy(), SHIFT_HZ) is a
+    p1 = np.full(pm.n_params, 0.05)
+    b = shifted_solver(model, p1, SHIFT_HZ)
+    assert b is not a and shifted_solver(model, p1, SHIFT_HZ) is b
+    s = (2 * np.pi * SHIFT_HZ) ** 2
+    F = np.random.default_rng(0).standard_normal((model.K.shape[0], 2))
+    for p, solve in ((p0, shifted_solver(model, p0, SHIFT_HZ)), (p1, b)):
+        A = model.stiffness(p) + s * model.mass(p)
+        np.testing.assert_allclose(A @ solve(F), F, atol=1e-8 * np.abs(F).max())
 
 
 def test_a_region_takes_one_check_and_its_enclosing_union_is_checked_with_it(frame):
