@@ -684,7 +684,7 @@ def _accept_member(camp, load, pm, model, articles, m, check, rows, ctx, quantit
             warm = ctx["screening"].check(r["name"]) if not accepted and "members" not in r else None
             fit = fit_with(sur, T, model, [by_name[n] for n in names], data, c.zeta0, pm.lower, pm.upper,
                            p0=p0, c0=c0, continuation=cont, quantity=quantity, shift_hz=shift,
-                           max_nfev=cfg.max_evaluations, warm=warm)
+                           max_nfev=cfg.max_evaluations, warm=warm, with_basis=False)
             ha, _ = _holdout(camp, articles, m, fit.surrogate, fit.x, quantity)
             trial = {"names": names, "c": fit.c.tolist(), "sd_equalized": fit.sd, "holdout_before": base["holdout"],
                      "holdout_after": ha}
@@ -844,7 +844,8 @@ def _tied_places(camp, articles, m, model, pm, ctx, accepted, best, trials, quan
         # the best's fitted point, where the parameters absorbed part of the effect at its place, favours it)
         f2 = fit_with(ctx["sur"], ctx["T"], model, [by_name[n] for n in acc_names + [name]], ctx["data"], c.zeta0,
                       pm.lower, pm.upper, p0=m.p, c0=[a["c"] for a in accepted] + [float(scr.c_linear[k])],
-                      continuation=ctx["cont"], quantity=quantity, shift_hz=shift, max_nfev=cfg.max_evaluations)
+                      continuation=ctx["cont"], quantity=quantity, shift_hz=shift, max_nfev=cfg.max_evaluations,
+                      with_basis=False)
         h2, _ = _holdout(camp, articles, m, f2.surrogate, f2.x, quantity)
         t2 = {"names": acc_names + [name], "c": f2.c.tolist(), "sd_equalized": f2.sd,
               "holdout_before": trial["holdout_before"], "holdout_after": h2, "tied_with": r["name"]}
@@ -914,7 +915,7 @@ def _contact_shape(camp, articles, m, model, pm, ctx, accepted, best, trials, qu
     f_all = fit_with(ctx["sur"], ctx["T"], model, acc_terms + [candidate_term(pm, cd, m.p) for cd in singles],
                      ctx["data"], c.zeta0, pm.lower, pm.upper, p0=fit.p,
                      c0=[a["c"] for a in accepted] + [rate / float(cd.term.scale) for cd in singles],
-                     quantity=quantity, shift_hz=shift, max_nfev=cfg.max_evaluations)
+                     quantity=quantity, shift_hz=shift, max_nfev=cfg.max_evaluations, with_basis=False)
     rates = np.asarray(f_all.c[len(accepted):], float) * np.array([float(cd.term.scale) for cd in singles])
     pair_rates = [{"pair": list(pr), "rate_N_per_m": float(k)} for pr, k in zip(fitted, rates)]
     h_all, _ = _holdout(camp, articles, m, f_all.surrogate, f_all.x, quantity)
@@ -933,7 +934,8 @@ def _contact_shape(camp, articles, m, model, pm, ctx, accepted, best, trials, qu
     t_new = candidate_term(pm, new, m.p)
     f2 = fit_with(ctx["sur"], ctx["T"], model, acc_terms + [t_new], ctx["data"], c.zeta0, pm.lower, pm.upper,
                   p0=m.p, c0=[a["c"] for a in accepted] + [float(rates[keep].mean()) / float(new.term.scale)],
-                  continuation=ctx["cont"], quantity=quantity, shift_hz=shift, max_nfev=cfg.max_evaluations)
+                  continuation=ctx["cont"], quantity=quantity, shift_hz=shift, max_nfev=cfg.max_evaluations,
+                  with_basis=False)
     h2, _ = _holdout(camp, articles, m, f2.surrogate, f2.x, quantity)
     t2 = {"names": acc_names + [new.name], "c": f2.c.tolist(), "sd_equalized": f2.sd,
           "holdout_before": trial["holdout_before"], "holdout_after": h2, "shape_of": r["name"]}
@@ -1022,7 +1024,7 @@ def _rescreen(camp, model, m, ctx, fit, accepted, quantity, executor, log):
     Returns (checked rows of the new ranking (:func:`ranked_table`), {name: (p, c) start of its
     recalibration together with the accepted effects: the check's point}).
     """
-    from calibration import extended_model, screen
+    from calibration import extend_with_candidates, extended_model, screen, shifted_solver
     from femodel import candidate_regions
 
     cfg, c = camp.diagnosis, camp.calibration
@@ -1036,8 +1038,13 @@ def _rescreen(camp, model, m, ctx, fit, accepted, quantity, executor, log):
     if not rest:
         return [], {}
     t0 = time.perf_counter()
-    scr = screen(fit.surrogate, fit.basis, fit.x, ctx["data"], c.zeta0, rest, fit.lower, fit.upper,
+    sur_f, T_f = fit.surrogate, fit.basis
+    if T_f is None:  # fitted without its basis (the acceptance's trials): the same extension, with it
+        sur_f, T_f = extend_with_candidates(ctx["sur"], ctx["T"], model, [by_name[a] for a in accepted],
+                                            shift_hz=shift)
+    scr = screen(sur_f, T_f, fit.x, ctx["data"], c.zeta0, rest, fit.lower, fit.upper,
                  quantity=quantity, model=extended_model(model, [by_name[a] for a in accepted]), n_check=cfg.top_n,
+                 solve=shifted_solver(model, ctx["sur"].p_basis, shift),  # the accepted magnitudes are 0 there
                  shift_hz=shift, continuation=ctx["cont"], max_nfev=cfg.max_evaluations, executor=executor,
                  groups=[family[t.name] for t in rest], zoom=ctx["zoom"], zoom_rounds=ctx["zoom_rounds"],
                  regions=candidate_regions([cand[t.name] for t in rest]))
