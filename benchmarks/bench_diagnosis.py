@@ -23,11 +23,12 @@ Timed, the diagnosis stages (wall and process CPU time each):
    (``frfcal.campaign._diagnose.point_zoom``, its own time and CPU in the
    table; ``--no-zoom`` without), nonlinear re-fits of the ``--n-check`` best);
 4. acceptance: ``calibration.fit_with`` of the ``--top`` best singly (from
-   their converged nonlinear checks, ``fit_with(warm=...)``; ``--no-warm``:
-   from the baseline through the continuation stages) and the top two combined, hold-out SD (the target's
-   hold-out channels) and
-   ``calibration.cross_validate`` (same splits) before and after, and
-   ``calibration.accept``.
+   their converged nonlinear checks, ``fit_with(warm=...)``, on the check's own extension; ``--no-warm``:
+   from the baseline through the continuation stages) and the best of them together with the best-ranked
+   candidate that acts on other DOF (two on common DOF, a gap and a window of it, are one effect twice),
+   hold-out SD (the target's hold-out channels) of each and, as the diagnose stage decides, for the single one
+   with the lowest hold-out SD and for the combination ``calibration.cross_validate`` (same splits) before
+   and after and ``calibration.accept``.
 
 The target (``--target``, default the campaign default ``[diagnosis] target = "debiased"``): what the
 screening, the fits and the hold-out compare the model with, as the diagnose stage builds it
@@ -274,6 +275,15 @@ def main(argv=None) -> int:
         pool.close()
 
 
+def touched(term) -> set:
+    """The DOF (rows) a candidate term changes: two candidates on common DOF (a gap and a window of it) are
+    one effect twice, and their combination is degenerate."""
+    import scipy.sparse as sp
+
+    return {int(i) for D in (term.dK, term.dM) if D is not None
+            for i in np.flatnonzero(np.diff(sp.csr_matrix(D).indptr))}
+
+
 def _diagnose(args, ex, sc, effects, camp, model, articles, eq, cal, pool, sensors, drives, hold_ch, prep, load0,
               malloc_tuned) -> int:
     import femodel
@@ -348,26 +358,36 @@ def _diagnose(args, ex, sc, effects, camp, model, articles, eq, cal, pool, senso
         chk = s.check(name)
         return chk.c if chk is not None else s.c_linear[by_name[name]]
 
-    def trial(names_, before_h, before_cv, n_added):
+    def trial(names_):
         fit = fit_with(sur, basis, model, [terms[by_name[n]] for n in names_], data, zeta, pm.lower, pm.upper,
                        p0=p_b, c0=[start_c(n) for n in names_], continuation=cont, quantity=quantity,
-                       solve=solve, warm=s.check(names_[0]) if len(names_) == 1 and args.warm else None)
+                       solve=solve, warm=s.check(names_[0]) if len(names_) == 1 and args.warm else None,
+                       with_basis=False)
         fits[tuple(names_)] = fit
         h = float(np.mean([holdout_sd(fit.surrogate, fit.x, d, zeta, quantity) for d in hold]))
-        cv = cross_validate(fit.surrogate, data, fit.x, fit.lower, fit.upper, zeta, **cvo).sd_test
-        a = accept(before_h, h, before_cv, cv, floor, n_added, n_ind)
         return {"candidates": list(names_), "c": fit.c.tolist(), "sd_fit": fit.sd, "holdout_sd": h,
-                "cv_test_mean": float(np.mean(cv)), "accepted": bool(a.accepted), "stop": bool(a.stop),
-                "reason": a.reason, "time_s": fit.time_s}, cv
+                "cv_test_mean": None, "accepted": False, "stop": False, "time_s": fit.time_s,
+                "reason": "not cross-validated: the acceptance decides on the lowest hold-out SD"}
+
+    def decide(r, before_h, before_cv, n_added):
+        """Cross-validation and ``accept`` of one trial, as the diagnose stage decides on its best trial."""
+        fit = fits[tuple(r["candidates"])]
+        cv = cross_validate(fit.surrogate, data, fit.x, fit.lower, fit.upper, zeta, **cvo).sd_test
+        a = accept(before_h, r["holdout_sd"], before_cv, cv, floor, n_added, n_ind)
+        r.update(cv_test_mean=float(np.mean(cv)), accepted=bool(a.accepted), stop=bool(a.stop), reason=a.reason)
+        return cv
 
     top = [s.names[i] for i in s.order[:args.top]]
-    trials, cvs, fits = [], {}, {}
-    for n in top:
-        r, cvs[n] = trial([n], h_before, cv_before, 1)
-        trials.append(r)
-    if len(top) >= 2:  # the top two together, against the better single one
-        best1 = min(trials, key=lambda r: r["holdout_sd"])
-        r, _ = trial(top[:2], best1["holdout_sd"], cvs[best1["candidates"][0]], 1)
+    trials, fits = [], {}
+    for n in top:  # singly: each recalibrated, the lowest hold-out SD decided on
+        trials.append(trial([n]))
+    best1 = min(trials, key=lambda r: r["holdout_sd"])
+    cv_best = decide(best1, h_before, cv_before, 1)
+    other = next((s.names[i] for i in s.order[:max(args.top, 10)]
+                  if not touched(terms[by_name[best1["candidates"][0]]]) & touched(terms[i])), None)
+    if other is not None:  # the best single one with the best-ranked candidate acting elsewhere, against it
+        r = trial(best1["candidates"] + [other])
+        decide(r, best1["holdout_sd"], cv_best, 1)
         r["against"] = best1["candidates"]
         trials.append(r)
     clock.stop("acceptance (fit_with, hold-out, cross-validation, accept)", t0)
@@ -467,7 +487,7 @@ def _diagnose(args, ex, sc, effects, camp, model, articles, eq, cal, pool, senso
               " (estimated damping)")
         if "size_identifiable" in refined:
             sd = refined["size_std_percent"]
-            print(f"  its size as the raw lines resolve it: "
+            print("  its size as the raw lines resolve it: "
                   + (f"s.d. from the noise {sd:.3g} %" if sd is not None else "s.d. not resolved")
                   + f", {refined['size_identifiability']}; largest correlation {refined['size_max_correlation']}")
     print()
@@ -477,9 +497,10 @@ def _diagnose(args, ex, sc, effects, camp, model, articles, eq, cal, pool, senso
     for r in trials:
         lab = " + ".join(r["candidates"]) + (f" (vs {r['against'][0]})" if "against" in r else "")
         cs = ", ".join(f"{c:.3g}" for c in r["c"])
+        cvm = "-" if r["cv_test_mean"] is None else f"{r['cv_test_mean']:.4g}"
+        verdict = "-" if r["cv_test_mean"] is None else "ACCEPT" if r["accepted"] else "reject"
         print(f"{lab[:51]:<52}{cs:>18}{r['holdout_sd']:>13.4g}{r['holdout_sd'] / floor:>8.2f}"
-              f"{r['cv_test_mean']:>11.4g}  {'ACCEPT' if r['accepted'] else 'reject'}"
-              f"{' stop' if r['stop'] else ''}: {r['reason']}")
+              f"{cvm:>11}  {verdict}{' stop' if r['stop'] else ''}: {r['reason']}")
     print(f"floor (hold-out raw lines, truth vs its noise): {floor:.4g}")
     for k, v in sd_model.items():
         print(f"hold-out SD with truth damping, {k}: {v:.4g} ({v / floor:.2f} x floor)")
