@@ -383,8 +383,8 @@ def _diagnose(args, ex, sc, effects, camp, model, articles, eq, cal, pool, senso
         trials.append(trial([n]))
     best1 = min(trials, key=lambda r: r["holdout_sd"])
     cv_best = decide(best1, h_before, cv_before, 1)
-    other = next((s.names[i] for i in s.order[:max(args.top, 10)]
-                  if not touched(terms[by_name[best1["candidates"][0]]]) & touched(terms[i])), None)
+    on_best = touched(terms[by_name[best1["candidates"][0]]])
+    other = next((s.names[i] for i in s.order[:max(args.top, 10)] if not on_best & touched(terms[i])), None)
     if other is not None:  # the best single one with the best-ranked candidate acting elsewhere, against it
         r = trial(best1["candidates"] + [other])
         decide(r, best1["holdout_sd"], cv_best, 1)
@@ -501,6 +501,8 @@ def _diagnose(args, ex, sc, effects, camp, model, articles, eq, cal, pool, senso
         verdict = "-" if r["cv_test_mean"] is None else "ACCEPT" if r["accepted"] else "reject"
         print(f"{lab[:51]:<52}{cs:>18}{r['holdout_sd']:>13.4g}{r['holdout_sd'] / floor:>8.2f}"
               f"{cvm:>11}  {verdict}{' stop' if r['stop'] else ''}: {r['reason']}")
+    if not any("against" in r for r in trials):
+        print("(no combination trial: none of the 10 best candidates acts off the best single one's DOF)")
     print(f"floor (hold-out raw lines, truth vs its noise): {floor:.4g}")
     for k, v in sd_model.items():
         print(f"hold-out SD with truth damping, {k}: {v:.4g} ({v / floor:.2f} x floor)")
