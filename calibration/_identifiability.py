@@ -99,7 +99,7 @@ SHOWN_COMPONENT = 0.1
 def combination_text(vector, names, min_component: float = SHOWN_COMPONENT) -> str:
     """A unit vector over parameters in words, largest components first: ``"+0.71 E -0.70 rho"``."""
     v = np.asarray(vector, float)
-    order = np.argsort(-np.abs(v))
+    order = np.argsort(-np.round(np.abs(v), 9), kind="stable")  # ties to round-off: in parameter order
     parts = [f"{v[j]:+.2f} {names[j]}" for j in order if abs(v[j]) >= min_component]
     return " ".join(parts) if parts else "(none)"
 
@@ -310,10 +310,12 @@ def identifiability(
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = C / np.outer(std_resolved, std_resolved)
     corr[~np.isfinite(corr)] = np.nan
-    # directions in p (relative parameter changes), unit length, sign: largest component positive
+    # directions in p (relative parameter changes), unit length, sign: largest component positive; of components
+    # equal in size to round-off (a +-0.71 pair), the first parameter's, so the words do not follow LAPACK's sign
     D = V / scale[:, None]
     D = D / np.linalg.norm(D, axis=0)
-    D = D * np.sign(D[np.argmax(np.abs(D), axis=0), np.arange(n)])
+    big = np.abs(D) >= (1 - 1e-9) * np.abs(D).max(axis=0, initial=0.0)
+    D = D * np.where(D[np.argmax(big, axis=0), np.arange(n)] < 0, -1.0, 1.0)
     # parameters sharing a null combination: the limit of the covariance as its singular value -> 0
     for k in np.flatnonzero(null):
         idx = np.flatnonzero(np.abs(V[:, k]) >= SHOWN_COMPONENT)
