@@ -173,10 +173,9 @@ class CalibrationSection(_Strict):
     max_cycles: int = Field(3, ge=1, description="re-basis cycles (1 = keep the nominal basis)")
     cycle_tol: float = Field(1e-3, gt=0, description="stop cycling when max |dp| is below this")
     basis_tol: float = Field(
-        0.0, ge=0, lt=1, description="re-basis only when the basis is inadequate at the new point: a Ritz "
-        "frequency error of an in-band mode (from its energy-norm residual) above this fraction of the half-power "
-        "bandwidth 2 zeta f of the stage's least damped mode, e.g. 0.05 (0, the default: whenever p moved by "
-        "more than cycle_tol; docs/calibration.md)")
+        0.05, ge=0, lt=1, description="equalized stage: re-basis only when the basis is inadequate at the new "
+        "point: a Ritz frequency error of an in-band mode (from its energy-norm residual) above this fraction of "
+        "the half-power bandwidth 2 zeta0 f (0: whenever p moved by more than cycle_tol; docs/calibration.md)")
     max_evaluations: int = Field(100, ge=5, description="residual evaluations per start and stage")
     refine: bool = Field(True, description="refine the equalized optimum on the raw calibration lines "
                          "(damping continuation down to the identified damping; see docs/calibration.md)")
@@ -188,6 +187,10 @@ class CalibrationSection(_Strict):
         "errors (the run's, else estimated from the lines), or every value alike as the paper's Eq. 2.23; the "
         "reported SDs stay unweighted (docs/calibration.md)")
     refine_cycles: int = Field(2, ge=0, description="re-basis cycles of the raw-line stage after the refinement")
+    refine_basis_tol: float = Field(
+        0.0, ge=0, lt=1, description="raw-line stage: as basis_tol, against the half-power bandwidth of the least "
+        "damped estimated mode (0, the default: re-basis whenever p moved by more than cycle_tol; "
+        "docs/calibration.md)")
     rebasis_hold: float = Field(
         0.0, ge=0, description="in the raw stage after a re-basis, hold parameter combinations whose relative "
         "singular value is far below this at their value before the re-basis (0 = off; docs/calibration.md)")

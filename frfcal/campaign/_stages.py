@@ -659,10 +659,10 @@ def _refined(camp: Campaign, model, arts, cyc, band, lower, upper, log, label):
     sur, basis = cyc.surrogate, cyc.basis
     checks = []
     for k in range(c.refine_cycles):
-        if c.basis_tol and basis is not None:
-            # Ritz frequency errors up to basis_tol x the half-power bandwidth 2 zeta f of the least damped mode
+        if c.refine_basis_tol and basis is not None:
+            # Ritz frequency errors up to refine_basis_tol x the half-power bandwidth of the least damped mode
             zeta_min = max(min(float(np.min(z)) for z in ref.zeta), 1e-5)
-            chk = basis_residuals(model, sur, basis, ref.p, band, 4 * c.basis_tol * zeta_min)
+            chk = basis_residuals(model, sur, basis, ref.p, band, 4 * c.refine_basis_tol * zeta_min)
             checks.append(chk.to_dict())
             log(f"[{label}] raw-line re-basis {k + 1}: basis at the refined point (damping down to "
                 f"{100 * zeta_min:.3g} %): {chk.describe()}" + (": kept" if chk.adequate else ""))
@@ -689,10 +689,10 @@ def _refined(camp: Campaign, model, arts, cyc, band, lower, upper, log, label):
         if dp < c.cycle_tol:
             break
     else:
-        if c.basis_tol and c.refine_cycles and basis is not None:
+        if c.refine_basis_tol and c.refine_cycles and basis is not None:
             # the cycles ran out: say how well the final basis holds the reported point (a diagnostic only)
             zeta_min = max(min(float(np.min(z)) for z in ref.zeta), 1e-5)
-            chk = basis_residuals(model, sur, basis, ref.p, band, 4 * c.basis_tol * zeta_min)
+            chk = basis_residuals(model, sur, basis, ref.p, band, 4 * c.refine_basis_tol * zeta_min)
             checks.append({**chk.to_dict(), "final": True})
             log(f"[{label}] raw-line re-basis cycles used up; final basis at the final point: {chk.describe()}")
     return replace(ref, stages=tuple(stages), basis_checks=tuple(checks)), ref.p, sur, basis

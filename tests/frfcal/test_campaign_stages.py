@@ -260,3 +260,21 @@ def test_a_run_in_another_quantity_with_a_sensor_mounted_the_other_way_is_conver
         assert any(f"{quantity} converted to accelerance" in ln for ln in lines), lines
         assert any("sensor 'acc2' is 'acc2 upside down' here" in ln and "its FRF is negated" in ln
                    for ln in lines), lines
+
+
+def test_the_equalized_stage_rebases_only_where_its_basis_fails_and_the_raw_stage_whenever_p_moves(staged):
+    """Defaults: ``basis_tol = 0.05`` checks the basis at each equalized optimum before re-basing (the cycles end
+    where it holds); ``refine_basis_tol = 0`` leaves the raw-line re-basis to the p-move trigger (no checks)."""
+    camp, first = staged
+    assert camp.calibration.basis_tol == 0.05 and camp.calibration.refine_basis_tol == 0.0
+    cal = first["members"][0]["calibration"]
+    cycles = cal["cycles"]
+    checked = [c for c in cycles if "basis_check" in c]
+    assert checked, "no basis check in the equalized cycles"
+    for c, nxt in zip(cycles, cycles[1:]):  # a cycle that follows a check follows a failed one
+        if "basis_check" in c:
+            assert not c["basis_check"]["adequate"]
+    last = cycles[-1]
+    if len(cycles) < camp.calibration.max_cycles:  # ended early: on an adequate basis or on a small step
+        assert last.get("basis_check", {}).get("adequate", False) or last["max_dp"] < camp.calibration.cycle_tol
+    assert not (cal.get("refinement") or {}).get("basis_checks")
