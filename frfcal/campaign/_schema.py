@@ -199,6 +199,11 @@ class CalibrationSection(_Strict):
         "of the inverse-iterated old basis, the old parameter-derivative columns kept as they are, or new "
         "derivative solves; or 'corrected': not rebuilt, the old basis plus the solved residuals of its modes "
         "and static solutions at the new point (no new factorization; docs/calibration.md)")
+    refine_rebasis: Literal["iterated", "kept", "solved", "corrected"] = Field(
+        "iterated", description="how the raw-line stage's second and later re-basis cycles re-make the basis "
+        "(the first one, after the refinement's large step, as rebasis); 'corrected' adds the solved residuals "
+        "of the basis at the new point with the kept factorization: a faster calibration, a larger final basis "
+        "(docs/calibration.md)")
     ensemble: Literal["all", "article", "group"] = Field("all", description="calibrate on all articles, each, or each group")
     n_groups: int | None = Field(None, ge=1, description="number of article groups (default: largest gap)")
 

@@ -278,3 +278,35 @@ def test_the_equalized_stage_rebases_only_where_its_basis_fails_and_the_raw_stag
     if len(cycles) < camp.calibration.max_cycles:  # ended early: on an adequate basis or on a small step
         assert last.get("basis_check", {}).get("adequate", False) or last["max_dp"] < camp.calibration.cycle_tol
     assert not (cal.get("refinement") or {}).get("basis_checks")
+
+
+def test_a_corrected_second_raw_line_rebasis_lands_where_a_rebuilt_one_does(staged):
+    """``refine_rebasis = "corrected"``: the raw-line stage's second re-basis adds the solved residuals of the basis
+    (no new factorization; the basis grows) instead of rebuilding it; the parameters the data see end where the
+    default run put them."""
+    from calibration import SerialExecutor
+    from frfcal.campaign import build_model, calibrate_stage, equalize_stage, group_stage, identify_stage, load_stage
+
+    camp, first = staged
+    camp = camp.model_copy(update={"calibration": camp.calibration.model_copy(
+        update={"refine_rebasis": "corrected", "refine_cycles": 2, "cycle_tol": 1e-12})})
+    quiet = lambda m: None  # noqa: E731
+    lines = []
+    load = load_stage(camp, quiet)
+    pm, model = build_model(camp, load, quiet)
+    assert model.K.shape[0] > 1500  # the sparse path (below it every re-basis is a dense cold solution)
+    arts = identify_stage(camp, load.articles, quiet).attached(load.articles)
+    eq = equalize_stage(camp, arts)
+    cal = calibrate_stage(camp, model, arts, eq, group_stage(camp, arts, eq, quiet), SerialExecutor(), lines.append)
+    m = cal.members[0]
+    # two raw-line re-bases ran (cycle_tol 1e-12): the second grew the first one's basis instead of rebuilding it
+    assert len(m.refinement.stages) == len(camp.calibration.refine_floors) + 2
+    assert [x for x in lines if "raw-line re-basis 2: basis corrected" in x], lines
+    assert not [x for x in lines if "raw-line re-basis 1: basis corrected" in x]
+    assert m.basis.shape == (model.K.shape[0], m.surrogate.size)
+    Mr = m.basis.T @ (model.M.at(m.surrogate.p_basis) @ m.basis)
+    np.testing.assert_allclose(Mr, np.eye(m.surrogate.size), atol=1e-8)
+    ref = first["members"][0]["parameters"]
+    seen = np.array([r["identifiable"] for r in ref])
+    assert seen.sum() >= 4
+    np.testing.assert_allclose(m.p[seen], [r["p"] for r in ref if r["identifiable"]], rtol=0.02, atol=2e-3)
