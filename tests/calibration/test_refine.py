@@ -309,7 +309,9 @@ def test_cross_validation_recalibration_on_the_compressed_problem(chain):
     assert abs(comp.evaluations - dense.evaluations) <= 0.25 * dense.evaluations
     np.testing.assert_allclose(comp.p, dense.p, rtol=0, atol=1e-6)
     assert comp.sd == pytest.approx(dense.sd, rel=1e-9) and comp.sd_start == pytest.approx(dense.sd_start, rel=1e-12)
-    assert comp.jacobian_rank == dense.jacobian_rank and comp.condition == pytest.approx(dense.condition, rel=1e-6)
+    # the condition number is taken at the end point, which round-off moves (above): 4e-6 relative seen on a
+    # run that took 14 steps against 13; 1e-4 still tells one Jacobian from another
+    assert comp.jacobian_rank == dense.jacobian_rank and comp.condition == pytest.approx(dense.condition, rel=1e-4)
 
 
 def test_equalized_objective_compressed_is_its_normal_equations(chain):

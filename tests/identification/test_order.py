@@ -3,13 +3,12 @@
 from __future__ import annotations
 
 import json
-import time
 
 import numpy as np
 import pytest
 
 from acquisition._driver import ChannelSpec
-from acquisition.runfile import LineQuality, create_run, read_analysis, read_run
+from acquisition.runfile import LineQuality, create_run, read_run
 from frfcal.cli import main
 from identification import Identification, IdentificationError, OrderSelection, identify, mac, select_order
 from tests.identification.synthetic import free_free, planar_frame, ring
@@ -32,9 +31,7 @@ def freefree():
 
 @pytest.fixture(scope="module")
 def auto(freefree):
-    t0 = time.process_time()
-    r = identify(freefree.freq_hz, freefree.H, band_hz=(80, 688), weights=freefree.sigma)
-    return r, time.process_time() - t0
+    return identify(freefree.freq_hz, freefree.H, band_hz=(80, 688), weights=freefree.sigma)
 
 
 def test_a_weakly_excited_in_plane_mode_is_kept_and_no_spurious_pole_with_it():
@@ -43,9 +40,7 @@ def test_a_weakly_excited_in_plane_mode_is_kept_and_no_spurious_pole_with_it():
     # evaluated order (its subspace estimate off the resonance, or its importance judged against the whole
     # band's residual) and left out. The stable pole is refitted on its own lines and kept.
     f, Hn, _, fi, zi, fo, zo = planar_frame(seed=0)
-    t0 = time.process_time()
     r = identify(f, Hn, band_hz=(32, 375))
-    cpu = time.process_time() - t0
     fm, zm = r.modal.frequency_hz, r.modal.damping
     k = int(np.argmin(np.abs(fm - 83.6)))
     assert abs(fm[k] / 83.6 - 1) < 5e-4 and abs(zm[k] / zi[1] - 1) < 0.05, (fm[k], zm[k], zi[1])
@@ -59,11 +54,10 @@ def test_a_weakly_excited_in_plane_mode_is_kept_and_no_spurious_pole_with_it():
     assert len(ref) == 1 and abs(ref[0]["to_hz"] - 83.6) < 0.05 and ref[0]["local_ratio"] < 0.1
     assert "refitted on its lines to 83.60 Hz" in r.order_selection.reason
     assert OrderSelection.from_dict(json.loads(json.dumps(r.order_selection.to_dict()))).refined == ref
-    assert cpu < 10.0, f"{cpu:.1f} s CPU"
 
 
 def test_auto_order_recovers_exactly_the_in_band_modes(freefree, auto):
-    r, cpu = auto
+    r = auto
     t = freefree
     assert t.zeta.min() < 7e-4 and t.zeta.max() > 2.5e-3  # really mode-dependent light damping
     sel = r.order_selection
@@ -81,7 +75,6 @@ def test_auto_order_recovers_exactly_the_in_band_modes(freefree, auto):
     # out-of-band modes (84 Hz, 618 Hz) just outside the data are never physical
     f_phys = r.modal.frequency_hz
     assert f_phys.min() > 100 and f_phys.max() < 590
-    assert cpu < 15.0, f"automatic order took {cpu:.1f} s CPU"
 
 
 def test_auto_order_at_one_percent_noise(freefree):
@@ -100,7 +93,7 @@ def test_auto_order_on_close_modes_with_output_scaling():
 
 
 def test_band_is_clipped_to_the_valid_lines(freefree, auto):
-    r, _ = auto
+    r = auto
     assert r.band_hz == (90.0, 600.0)
     assert r.settings["requested_band_hz"] == [80.0, 688.0] and r.settings["band_clipped"] is True
     # a mode at 618 Hz lies in the requested band but beyond the data: it must not be physical
@@ -116,7 +109,7 @@ def test_band_is_clipped_to_the_valid_lines(freefree, auto):
 
 
 def test_order_selection_round_trip_and_errors(freefree, auto):
-    r, _ = auto
+    r = auto
     back = Identification.from_arrays(*r.to_arrays())
     assert back.order_selection.order == r.order and back.order_selection.reason == r.order_selection.reason
     np.testing.assert_allclose(back.order_selection.stable_eigenvalues, r.order_selection.stable_eigenvalues)
