@@ -275,15 +275,6 @@ def main(argv=None) -> int:
         pool.close()
 
 
-def touched(term) -> set:
-    """The DOF (rows) a candidate term changes: two candidates on common DOF (a gap and a window of it) are
-    one effect twice, and their combination is degenerate."""
-    import scipy.sparse as sp
-
-    return {int(i) for D in (term.dK, term.dM) if D is not None
-            for i in np.flatnonzero(np.diff(sp.csr_matrix(D).indptr))}
-
-
 def _diagnose(args, ex, sc, effects, camp, model, articles, eq, cal, pool, sensors, drives, hold_ch, prep, load0,
               malloc_tuned) -> int:
     import femodel
@@ -383,8 +374,10 @@ def _diagnose(args, ex, sc, effects, camp, model, articles, eq, cal, pool, senso
         trials.append(trial([n]))
     best1 = min(trials, key=lambda r: r["holdout_sd"])
     cv_best = decide(best1, h_before, cv_before, 1)
-    on_best = touched(terms[by_name[best1["candidates"][0]]])
-    other = next((s.names[i] for i in s.order[:max(args.top, 10)] if not on_best & touched(terms[i])), None)
+    # two candidates on common DOF (a gap and a window of it) are one effect twice: the partner acts elsewhere
+    on_best = terms[by_name[best1["candidates"][0]]].rows
+    n_partner = max(args.top, 10)
+    other = next((s.names[i] for i in s.order[:n_partner] if not np.intersect1d(on_best, terms[i].rows).size), None)
     if other is not None:  # the best single one with the best-ranked candidate acting elsewhere, against it
         r = trial(best1["candidates"] + [other])
         decide(r, best1["holdout_sd"], cv_best, 1)
@@ -502,7 +495,7 @@ def _diagnose(args, ex, sc, effects, camp, model, articles, eq, cal, pool, senso
         print(f"{lab[:51]:<52}{cs:>18}{r['holdout_sd']:>13.4g}{r['holdout_sd'] / floor:>8.2f}"
               f"{cvm:>11}  {verdict}{' stop' if r['stop'] else ''}: {r['reason']}")
     if not any("against" in r for r in trials):
-        print("(no combination trial: none of the 10 best candidates acts off the best single one's DOF)")
+        print(f"(no combination trial: none of the {n_partner} best candidates acts off the best single one's DOF)")
     print(f"floor (hold-out raw lines, truth vs its noise): {floor:.4g}")
     for k, v in sd_model.items():
         print(f"hold-out SD with truth damping, {k}: {v:.4g} ({v / floor:.2f} x floor)")
