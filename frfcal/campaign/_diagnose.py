@@ -1073,7 +1073,7 @@ def _refined(camp, pm, model, articles, m, fit, extended_terms, quantity, log):
     Returns (Refinement or None, hold-out SD or None, x, surrogate)."""
     from calibration import FRFModel, build_surrogate, refine
 
-    from frfcal.campaign._stages import fit_data
+    from frfcal.campaign._stages import fit_data, raw_basis_check
 
     c = camp.calibration
     if not c.refine:
@@ -1093,7 +1093,14 @@ def _refined(camp, pm, model, articles, m, fit, extended_terms, quantity, log):
                         input_names=model.input_names, output_names=model.output_names,
                         parameter_names=tuple(ext.names), parametric=ext)
         basis = None
-        for _ in range(c.refine_cycles):
+        for k in range(c.refine_cycles):
+            tol = c.refine_basis_tol or c.basis_tol
+            if k and tol:  # as the calibrate stage: a later re-basis only where the last basis fails at p
+                chk, _ = raw_basis_check(mext, sur, basis, ref, band, tol)
+                log(f"[{m.label}] extended model, re-basis {k + 1}: {chk.describe()}"
+                    + (": kept" if chk.adequate else ""))
+                if chk.adequate:
+                    break
             sur, basis = build_surrogate(mext, ref.p, band, c.basis_factor, enrich=c.enrich, previous_basis=basis)
             nxt = refine(sur, ref.p, raw, idents, modes, fit.lower, fit.upper, c.zeta0, floors=(0.0,), **opts)
             dp = float(np.max(np.abs(nxt.p - ref.p)))

@@ -175,7 +175,8 @@ class CalibrationSection(_Strict):
     basis_tol: float = Field(
         0.05, ge=0, lt=1, description="equalized stage: re-basis only when the basis is inadequate at the new "
         "point: a Ritz frequency error of an in-band mode (from its energy-norm residual) above this fraction of "
-        "the half-power bandwidth 2 zeta0 f (0: whenever p moved by more than cycle_tol; docs/calibration.md)")
+        "the half-power bandwidth 2 zeta0 f (0: whenever p moved by more than cycle_tol); also gates the raw-line "
+        "stage's second and later re-bases, against the least damped estimated mode (docs/calibration.md)")
     max_evaluations: int = Field(100, ge=5, description="residual evaluations per start and stage")
     refine: bool = Field(True, description="refine the equalized optimum on the raw calibration lines "
                          "(damping continuation down to the identified damping; see docs/calibration.md)")
@@ -189,8 +190,8 @@ class CalibrationSection(_Strict):
     refine_cycles: int = Field(2, ge=0, description="re-basis cycles of the raw-line stage after the refinement")
     refine_basis_tol: float = Field(
         0.0, ge=0, lt=1, description="raw-line stage: as basis_tol, against the half-power bandwidth of the least "
-        "damped estimated mode (0, the default: re-basis whenever p moved by more than cycle_tol; "
-        "docs/calibration.md)")
+        "damped estimated mode, for every re-basis including the first (0, the default: the first re-basis "
+        "always, the later ones gated by basis_tol; docs/calibration.md)")
     rebasis_hold: float = Field(
         0.0, ge=0, description="in the raw stage after a re-basis, hold parameter combinations whose relative "
         "singular value is far below this at their value before the re-basis (0 = off; docs/calibration.md)")

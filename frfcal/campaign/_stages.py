@@ -639,8 +639,16 @@ class CalibrateResult:
     basis_s: float = 0.0
 
 
+def raw_basis_check(model, sur, basis, ref, band, tol: float):
+    """(BasisCheck, zeta_min): the Ritz-residual check of ``basis`` at the raw-line refinement ``ref``'s point,
+    against Ritz frequency errors of ``tol`` x the half-power bandwidth of its least damped estimated mode."""
+    zeta_min = max(min(float(np.min(z)) for z in ref.zeta), 1e-5)
+    return basis_residuals(model, sur, basis, ref.p, band, 4 * tol * zeta_min), zeta_min
+
+
 def _refined(camp: Campaign, model, arts, cyc, band, lower, upper, log, label):
-    """Refine the equalized optimum on the raw lines, then re-basis the raw-line stage until p settles.
+    """Refine the equalized optimum on the raw lines, then re-basis the raw-line stage: once after the
+    refinement's step, again (up to ``refine_cycles``) while p moves and the last basis fails its check at p.
 
     Returns (Refinement of the last cycle with every stage of all cycles, p, surrogate, its basis).
     """
@@ -659,11 +667,12 @@ def _refined(camp: Campaign, model, arts, cyc, band, lower, upper, log, label):
     sur, basis = cyc.surrogate, cyc.basis
     checks = []
     for k in range(c.refine_cycles):
-        if c.refine_basis_tol and basis is not None:
-            # Ritz frequency errors up to refine_basis_tol x the half-power bandwidth of the least damped mode
-            zeta_min = max(min(float(np.min(z)) for z in ref.zeta), 1e-5)
-            chk = basis_residuals(model, sur, basis, ref.p, band, 4 * c.refine_basis_tol * zeta_min)
-            checks.append(chk.to_dict())
+        # the first re-basis follows the refinement's large step (gated only by refine_basis_tol); a later one
+        # only where the last basis fails at the new point (refine_basis_tol, else basis_tol; 0 and 0: p moved)
+        tol = c.refine_basis_tol if k == 0 else (c.refine_basis_tol or c.basis_tol)
+        if tol and basis is not None:
+            chk, zeta_min = raw_basis_check(model, sur, basis, ref, band, tol)
+            checks.append({**chk.to_dict(), "cycle": k + 1})
             log(f"[{label}] raw-line re-basis {k + 1}: basis at the refined point (damping down to "
                 f"{100 * zeta_min:.3g} %): {chk.describe()}" + (": kept" if chk.adequate else ""))
             if chk.adequate:
@@ -692,10 +701,10 @@ def _refined(camp: Campaign, model, arts, cyc, band, lower, upper, log, label):
         if dp < c.cycle_tol:
             break
     else:
-        if c.refine_basis_tol and c.refine_cycles and basis is not None:
+        tol = c.refine_basis_tol or c.basis_tol
+        if tol and c.refine_cycles and basis is not None:
             # the cycles ran out: say how well the final basis holds the reported point (a diagnostic only)
-            zeta_min = max(min(float(np.min(z)) for z in ref.zeta), 1e-5)
-            chk = basis_residuals(model, sur, basis, ref.p, band, 4 * c.refine_basis_tol * zeta_min)
+            chk, _ = raw_basis_check(model, sur, basis, ref, band, tol)
             checks.append({**chk.to_dict(), "final": True})
             log(f"[{label}] raw-line re-basis cycles used up; final basis at the final point: {chk.describe()}")
     return replace(ref, stages=tuple(stages), basis_checks=tuple(checks)), ref.p, sur, basis

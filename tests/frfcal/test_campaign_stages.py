@@ -265,11 +265,14 @@ def test_a_run_in_another_quantity_with_a_sensor_mounted_the_other_way_is_conver
                    for ln in lines), lines
 
 
-def test_the_equalized_stage_rebases_only_where_its_basis_fails_and_the_raw_stage_whenever_p_moves(staged):
+def test_each_stage_rebases_only_where_its_basis_fails_the_raw_stage_once_unchecked(staged):
     """Defaults: ``basis_tol = 0.05`` checks the basis at each equalized optimum before re-basing (the cycles end
-    where it holds); ``refine_basis_tol = 0`` leaves the raw-line re-basis to the p-move trigger (no checks)."""
+    where it holds); with ``refine_basis_tol = 0`` the raw-line stage re-bases once after the refinement's step
+    unchecked, and again only where that basis fails its check (``basis_tol``, against the least damped mode)
+    at the point the re-based stage reached."""
     camp, first = staged
-    assert camp.calibration.basis_tol == 0.05 and camp.calibration.refine_basis_tol == 0.0
+    c = camp.calibration
+    assert c.basis_tol == 0.05 and c.refine_basis_tol == 0.0 and c.refine_cycles == 2
     cal = first["members"][0]["calibration"]
     cycles = cal["cycles"]
     checked = [c for c in cycles if "basis_check" in c]
@@ -280,7 +283,14 @@ def test_the_equalized_stage_rebases_only_where_its_basis_fails_and_the_raw_stag
     last = cycles[-1]
     if len(cycles) < camp.calibration.max_cycles:  # ended early: on an adequate basis or on a small step
         assert last.get("basis_check", {}).get("adequate", False) or last["max_dp"] < camp.calibration.cycle_tol
-    assert not (cal.get("refinement") or {}).get("basis_checks")
+    ref = cal["refinement"]
+    rebased = len(ref["stages"]) - len(c.refine_floors)  # one re-based raw stage per re-basis
+    assert rebased >= 1
+    checks = ref["basis_checks"]
+    assert all(b.get("final") or b["cycle"] >= 2 for b in checks), checks  # never before the first re-basis
+    for b in checks:
+        if not b.get("final"):  # a check before re-basis k: passed = no more re-basis
+            assert rebased == (b["cycle"] - 1 if b["adequate"] else rebased), (b, rebased)
 
 
 def test_a_corrected_second_raw_line_rebasis_lands_where_a_rebuilt_one_does(staged):
@@ -292,7 +302,7 @@ def test_a_corrected_second_raw_line_rebasis_lands_where_a_rebuilt_one_does(stag
 
     camp, first = staged
     camp = camp.model_copy(update={"calibration": camp.calibration.model_copy(
-        update={"refine_rebasis": "corrected", "refine_cycles": 2, "cycle_tol": 1e-12})})
+        update={"refine_rebasis": "corrected", "refine_cycles": 2, "cycle_tol": 1e-12, "basis_tol": 0.0})})
     quiet = lambda m: None  # noqa: E731
     lines = []
     load = load_stage(camp, quiet)
