@@ -117,10 +117,11 @@ def derivative_factor(u: np.ndarray, v: np.ndarray, G: np.ndarray, D: np.ndarray
     zw : (m,) :func:`damping_factor`
     """
     n, m = D.shape[:2]
-    UG = np.einsum("om,jmk->jko", u, G)  # (j, k, o): (u G_j)_ok
-    GV = np.einsum("jlk,li->jki", G, v)  # (j, k, i): (G_j^T v)_ki
+    # stacked matrix products (BLAS per parameter), not einsum: its C loops took 3-4x longer (stop 30)
+    UG = np.matmul(u, G).transpose(0, 2, 1)  # (j, k, o): (u G_j)_ok
+    GV = np.matmul(G.transpose(0, 2, 1), v)  # (j, k, i): (G_j^T v)_ki
     P = UG[:, :, :, None] * v[None, :, None, :] + u.T[None, :, :, None] * GV[:, :, None, :]  # (j, k, o, i)
-    UD = np.einsum("om,jmk->jko", u, D)  # (j, k, o): d lambda_jk u_ok, plus a degenerate group's coupling
+    UD = np.matmul(u, D).transpose(0, 2, 1)  # (j, k, o): d lambda_jk u_ok, plus a degenerate group's coupling
     D1 = UD[:, :, :, None] * v[None, :, None, :]
     R = np.concatenate([P.reshape(n, m, -1), -D1.reshape(n, m, -1), -(zw[None, :, None, None] * D1).reshape(n, m, -1)],
                        axis=1)
