@@ -289,8 +289,12 @@ def test_each_stage_rebases_only_where_its_basis_fails_the_raw_stage_once_unchec
     checks = ref["basis_checks"]
     assert all(b.get("final") or b["cycle"] >= 2 for b in checks), checks  # never before the first re-basis
     for b in checks:
-        if not b.get("final"):  # a check before re-basis k: passed = no more re-basis
-            assert rebased == (b["cycle"] - 1 if b["adequate"] else rebased), (b, rebased)
+        if b.get("final"):
+            continue
+        if b["adequate"]:  # a check before re-basis k passed: no re-basis k, and none after it
+            assert rebased == b["cycle"] - 1, (b, rebased)
+        else:  # it failed: re-basis k ran
+            assert rebased >= b["cycle"], (b, rebased)
 
 
 def test_a_corrected_second_raw_line_rebasis_lands_where_a_rebuilt_one_does(staged):
@@ -302,6 +306,7 @@ def test_a_corrected_second_raw_line_rebasis_lands_where_a_rebuilt_one_does(stag
 
     camp, first = staged
     camp = camp.model_copy(update={"calibration": camp.calibration.model_copy(
+        # basis_tol 0: the second raw-line re-basis runs whatever its check would say (p-move trigger only)
         update={"refine_rebasis": "corrected", "refine_cycles": 2, "cycle_tol": 1e-12, "basis_tol": 0.0})})
     quiet = lambda m: None  # noqa: E731
     lines = []
