@@ -900,11 +900,10 @@ def reduced_modes(sur: Surrogate, p) -> tuple[np.ndarray, np.ndarray]:
 
 def reduced_term_stack(A: AffineMatrix) -> np.ndarray:
     """The dense reduced terms of ``A`` as one (n_terms, r, r) array (kept in ``A.cache``)."""
-    cached = A.cache.get("calibration.stack")
-    if cached is None:
-        cached = np.stack([np.asarray(m) for m in A.matrices])
-        A.cache["calibration.stack"] = cached
-    return cached
+    stack = A.dense_stack()
+    if stack is None:
+        raise CalibrationError("a surrogate's terms are dense (reduced) matrices, these are sparse")
+    return stack
 
 
 def quantity_factor(w: np.ndarray, quantity: str) -> np.ndarray:

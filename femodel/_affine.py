@@ -87,7 +87,20 @@ class AffineMatrix:
         c = self.coefficients(p)
         return c[:, None] * self.exponents / (1.0 + p)[None, :]
 
+    def dense_stack(self) -> np.ndarray | None:
+        """The terms as one (n_terms, n, n) array when they are dense (kept in ``cache``), else None."""
+        if sp.issparse(self.matrices[0]):
+            return None
+        stack = self.cache.get("femodel.dense_stack")
+        if stack is None:
+            stack = np.stack([np.asarray(m, dtype=float) for m in self.matrices])
+            self.cache["femodel.dense_stack"] = stack
+        return stack
+
     def _combine(self, weights: np.ndarray):
+        stack = self.dense_stack()
+        if stack is not None:  # one BLAS contraction instead of a Python sum of n_terms scaled copies
+            return np.tensordot(np.asarray(weights, dtype=float), stack, axes=1)
         out = None
         for w, m in zip(weights, self.matrices):
             if w == 0.0:
