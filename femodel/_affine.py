@@ -88,14 +88,12 @@ class AffineMatrix:
         return c[:, None] * self.exponents / (1.0 + p)[None, :]
 
     def dense_stack(self) -> np.ndarray | None:
-        """The terms as one (n_terms, n, n) array when they are dense (kept in ``cache``), else None."""
-        if sp.issparse(self.matrices[0]):
-            return None
-        stack = self.cache.get("femodel.dense_stack")
-        if stack is None:
-            stack = np.stack([np.asarray(m, dtype=float) for m in self.matrices])
-            self.cache["femodel.dense_stack"] = stack
-        return stack
+        """The terms as one (n_terms, n, n) array when every one is dense, else None (either kept in ``cache``)."""
+        if "femodel.dense_stack" not in self.cache:
+            dense = not any(sp.issparse(m) for m in self.matrices)
+            self.cache["femodel.dense_stack"] = (np.stack([np.asarray(m, dtype=float) for m in self.matrices])
+                                                 if dense else None)
+        return self.cache["femodel.dense_stack"]
 
     def _combine(self, weights: np.ndarray):
         stack = self.dense_stack()

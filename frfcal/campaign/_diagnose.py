@@ -1073,7 +1073,7 @@ def _refined(camp, pm, model, articles, m, fit, extended_terms, quantity, log):
     Returns (Refinement or None, hold-out SD or None, x, surrogate)."""
     from calibration import FRFModel, build_surrogate, refine
 
-    from frfcal.campaign._stages import fit_data, raw_basis_check
+    from frfcal.campaign._stages import fit_data, raw_basis_check, raw_rebasis_tol
 
     c = camp.calibration
     if not c.refine:
@@ -1094,8 +1094,8 @@ def _refined(camp, pm, model, articles, m, fit, extended_terms, quantity, log):
                         parameter_names=tuple(ext.names), parametric=ext)
         basis = None
         for k in range(c.refine_cycles):
-            tol = c.refine_basis_tol or c.basis_tol
-            if k and tol:  # as the calibrate stage: a later re-basis only where the last basis fails at p
+            tol = raw_rebasis_tol(c, k)
+            if k and tol:  # as the calibrate stage (the first build has no full basis to check)
                 chk, _ = raw_basis_check(mext, sur, basis, ref, band, tol)
                 log(f"[{m.label}] extended model, re-basis {k + 1}: {chk.describe()}"
                     + (": kept" if chk.adequate else ""))

@@ -639,6 +639,13 @@ class CalibrateResult:
     basis_s: float = 0.0
 
 
+def raw_rebasis_tol(c, cycle: int | None) -> float:
+    """The basis-check tolerance before raw-line re-basis ``cycle`` (0-based; None: the check at the reported
+    point once the cycles ran out): the first re-basis follows the refinement's large step and is gated only by
+    ``refine_basis_tol``; later ones by it, else by ``basis_tol`` (0: no check, the p-move trigger alone)."""
+    return c.refine_basis_tol if cycle == 0 else (c.refine_basis_tol or c.basis_tol)
+
+
 def raw_basis_check(model, sur, basis, ref, band, tol: float):
     """(BasisCheck, zeta_min): the Ritz-residual check of ``basis`` at the raw-line refinement ``ref``'s point,
     against Ritz frequency errors of ``tol`` x the half-power bandwidth of its least damped estimated mode."""
@@ -667,9 +674,7 @@ def _refined(camp: Campaign, model, arts, cyc, band, lower, upper, log, label):
     sur, basis = cyc.surrogate, cyc.basis
     checks = []
     for k in range(c.refine_cycles):
-        # the first re-basis follows the refinement's large step (gated only by refine_basis_tol); a later one
-        # only where the last basis fails at the new point (refine_basis_tol, else basis_tol; 0 and 0: p moved)
-        tol = c.refine_basis_tol if k == 0 else (c.refine_basis_tol or c.basis_tol)
+        tol = raw_rebasis_tol(c, k)  # a later re-basis only where the last basis fails at the new point
         if tol and basis is not None:
             chk, zeta_min = raw_basis_check(model, sur, basis, ref, band, tol)
             checks.append({**chk.to_dict(), "cycle": k + 1})
@@ -701,7 +706,7 @@ def _refined(camp: Campaign, model, arts, cyc, band, lower, upper, log, label):
         if dp < c.cycle_tol:
             break
     else:
-        tol = c.refine_basis_tol or c.basis_tol
+        tol = raw_rebasis_tol(c, None)
         if tol and c.refine_cycles and basis is not None:
             # the cycles ran out: say how well the final basis holds the reported point (a diagnostic only)
             chk, _ = raw_basis_check(model, sur, basis, ref, band, tol)
