@@ -103,15 +103,118 @@ def _local_subset_terms(assembly, params: ParameterSet, factor, amap):
     # the full assembly's choice (see _grouped_terms): drop exact zeros unless T is a plain selection
     drop = assembly.selection is None or (assembly.dependent is not None and assembly.dependent.size > 0)
 
+    return _subset_terms_on(local, params, factor, drop_zeros=drop), _lifter(gcols, n_a)
+
+
+def _local_subset_batch(assembly, params: ParameterSet, factors, amap) -> list:
+    """:func:`_local_subset_terms` of many element subsets of one kind in ONE assembly pass.
+
+    Each subset keeps its own copy of the grids its elements touch (renumbered
+    1, 2, ... subset after subset), so no two subsets share a DOF: the
+    assembled matrices are block diagonal, one block per subset, and each
+    block holds exactly the entries the subset assembled alone would have
+    (the same elements; the coefficients of a block's pieces are those of
+    its own pieces). A few hundred element clusters cost one pass over their
+    elements instead of a few hundred passes of fixed per-call overhead.
+
+    Returns
+    -------
+    list
+        Per factor: (pieces, lift) with ``pieces`` = (mats, a, b, ratio) of the
+        combined assembly and ``block`` (offset, size) of the subset in its
+        local DOF, i.e. ``((mats, a, b, ratio), (offset, size), lift)``; None
+        where :func:`_local_subset_terms` would return None or the submodel
+        cannot be formed (the caller takes the one-by-one path, which also
+        raises the error that names the fault).
+    """
+    from femodel._model import Table
+
+    fe = assembly.model
+    n_a = int(assembly.T.shape[1])
+    todo = []  # (index, g, kept, gcols, sub)
+    for i, factor in enumerate(factors):
+        try:
+            sub = factor.submodel(fe)
+        except (ParameterError, ValueError):
+            continue
+        grids = [np.asarray(t["nodes"]).ravel() for t in sub.elements.values() if len(t) and "nodes" in t.fields]
+        grids = np.unique(np.concatenate(grids)) if grids else np.zeros(0, np.int64)
+        grids = grids[grids > 0]
+        if grids.size == 0:
+            continue
+        try:
+            g = fe.grid_index(grids, what=f"ElementFactor {factor.name!r} grid")
+        except ValueError:
+            continue
+        am = amap[(6 * g[:, None] + np.arange(6)[None, :]).ravel()]
+        kept = am >= 0
+        gcols = am[kept]
+        if np.any(am < -1) or np.any(np.diff(gcols) <= 0):
+            continue
+        todo.append((i, g, kept, gcols, sub))
+    out: list = [None] * len(factors)
+    if not todo:
+        return out
+    g_all = np.concatenate([g for _, g, _, _, _ in todo])
+    new_ids = np.arange(1, g_all.size + 1, dtype=np.int64)
+    tables: dict = {}
+    base = 0
+    for _, g, _, _, sub in todo:
+        old = fe.grid_ids[g]  # increasing (np.unique), so a searchsorted maps a node id to its copy
+        for card, tab in sub.elements.items():
+            if not len(tab):
+                continue
+            fields = dict(tab.fields)
+            if "nodes" in fields:
+                nodes = np.asarray(fields["nodes"])
+                pos = np.searchsorted(old, np.where(nodes > 0, nodes, old[0]))
+                fields["nodes"] = np.where(nodes > 0, base + pos + 1, nodes).astype(nodes.dtype)
+            tables.setdefault(card, []).append((tab.ids, fields))
+        base += g.size
+    elements = {}
+    for card, parts in tables.items():
+        keys = parts[0][1].keys()
+        elements[card] = Table(card, np.concatenate([ids for ids, _ in parts]),
+                               {k: np.concatenate([np.asarray(f[k]) for _, f in parts]) for k in keys})
+    local_model = replace(fe, elements=elements, grid_ids=new_ids, xyz=fe.xyz[g_all], cp=fe.cp[g_all],
+                          cd=fe.cd[g_all], ps=fe.ps[g_all], rbe2=(), rbe3=(), mpc=(),
+                          spc_grid=np.zeros(0, np.int64), spc_component=np.zeros(0, np.int8))
+    kept_all = np.concatenate([k for _, _, k, _, _ in todo])
+    sel = np.flatnonzero(kept_all)
+    n_l = int(sel.size)
+    T = sp.csr_matrix((np.ones(n_l), (sel, np.arange(n_l))), shape=(kept_all.size, n_l))
+    local = replace(assembly, model=local_model, terms=_element_terms(local_model), T=T, selection=sel,
+                    dependent=np.zeros(0, np.int64), dependent_rows=None)
+    drop = assembly.selection is None or (assembly.dependent is not None and assembly.dependent.size > 0)
+    pieces = _subset_terms_on(local, params, factors[todo[0][0]], drop_zeros=drop)
+    offset = 0
+    for i, _, _, gcols, _ in todo:
+        out[i] = (pieces, (offset, int(gcols.size)), _lifter(gcols, n_a))
+        offset += int(gcols.size)
+    return out
+
+
+def _diagonal_block(m, offset: int, size: int) -> sp.csr_matrix:
+    """Rows and columns offset .. offset + size of a block-diagonal CSR matrix (no entries outside the block
+    in those rows), as a (size, size) CSR matrix."""
+    m = sp.csr_matrix(m)
+    lo, hi = m.indptr[offset], m.indptr[offset + size]
+    return sp.csr_matrix((m.data[lo:hi], m.indices[lo:hi] - offset, m.indptr[offset:offset + size + 1] - lo),
+                         shape=(size, size))
+
+
+def _lifter(gcols: np.ndarray, n_a: int):
+    """``lift(m)``: a local (n_l, n_l) matrix on the local independent DOF ``gcols`` (increasing) placed on the
+    full a-set, (n_a, n_a) canonical CSR."""
+
     def lift(m) -> sp.csr_matrix:
         m = sp.csr_matrix(m)
-        counts = np.zeros(n_a, dtype=np.int64)
-        counts[gcols] = np.diff(m.indptr)
-        indptr = np.zeros(n_a + 1, dtype=m.indptr.dtype)
-        np.cumsum(counts, out=indptr[1:])
+        # global row j starts where local row #{gcols < j} does: each local offset repeated over the global
+        # rows up to its own (gcols increasing); a cumulative sum over all n_a rows costs 10x more per subset
+        indptr = np.repeat(m.indptr, np.diff(np.r_[-1, gcols, n_a]))
         return sp.csr_matrix((m.data, gcols[m.indices].astype(m.indices.dtype), indptr), shape=(n_a, n_a))
 
-    return _subset_terms_on(local, params, factor, drop_zeros=drop), lift
+    return lift
 
 
 def _factor_key(key) -> tuple[str, int, str]:

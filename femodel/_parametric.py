@@ -399,14 +399,8 @@ class ParametricModel:
                                  f"{', '.join(c.__name__ for c in TERM_FAMILIES)}")
         p = self._p(p)
         if isinstance(term, ElementFactor):
-            mine = set(term.elements)
-            for t in self.terms:
-                if isinstance(t, ElementFactor) and mine.intersection(t.elements):
-                    e = min(mine.intersection(t.elements))
-                    raise ParameterError(f"{where}term_derivative: element {e} is in both {t.name!r} and "
-                                         f"{term.name!r} (element subsets must be disjoint)")
+            self._check_disjoint(term)
         out = {"K": None, "M": None}
-        n0 = len(self.parameters)
         lift = None
         if isinstance(term, ElementFactor):
             # summed on the subset's own grids, then placed on the a-set once (same entries as the full-size sum)
@@ -420,21 +414,88 @@ class ParametricModel:
         if lift is None:
             parts = self._term_parts(term, "term_derivative")
         for kind, pieces in parts.items():
-            mats = [m for m, _, _, _ in pieces]
             if isinstance(term, ElementFactor):
-                a = np.zeros((len(pieces), self.n_params))
-                b = np.zeros((len(pieces), self.n_params))
-                a[:, :n0] = np.array([x[1] for x in pieces])
-                b[:, :n0] = np.array([x[2] for x in pieces])
-                r = np.array([x[3] for x in pieces])
-                coef = SeriesAffineMatrix(tuple(mats), a, b, r).coefficients(p)
+                total = self._weighted_sum(pieces, p)
             else:
-                coef = np.ones(len(mats))
-            total = mats[0] * coef[0]
-            for m, c in zip(mats[1:], coef[1:]):
-                total = total + m * c
+                total = pieces[0][0]
+                for m, _, _, _ in pieces[1:]:
+                    total = total + m
             out[kind] = sp.csr_matrix(total) if lift is None else lift(total)
         return out
+
+    def term_derivatives(self, terms, p) -> list:
+        """:meth:`term_derivative` of many terms at ``p``: a list of the same dicts, in order.
+
+        Element subsets (ElementFactor, e.g. the candidate element clusters of
+        a diagnosis) of one kind are assembled together in one pass, each on
+        its own copy of its grids (block diagonal, one block per subset; the
+        same entries as one by one, at a fraction of the fixed per-subset
+        cost). Every other term, and a subset the batch cannot take (not
+        disjoint from the model's subsets, rigid-element or MPC dependent DOF
+        on its grids, no terms of its kind), goes through
+        :meth:`term_derivative`, which raises the error that names the fault.
+        """
+        from femodel._grouping import _diagonal_block, _local_subset_batch
+        from femodel._terms import ElementFactor
+
+        terms = list(terms)
+        p = self._p(p)
+        out: list = [None] * len(terms)
+        for kind in ("K", "M"):
+            idx = []
+            for i, t in enumerate(terms):
+                if isinstance(t, ElementFactor) and t.kind == kind:
+                    try:
+                        self._check_disjoint(t)
+                    except ParameterError:
+                        continue
+                    idx.append(i)
+            if len(idx) < 2:
+                continue
+            batch = _local_subset_batch(self.assembly, self.parameters, [terms[i] for i in idx], self._amap())
+            first = next((b for b in batch if b is not None), None)
+            if first is None:
+                continue
+            (mats, a, b, r), _, _ = first
+            pieces = [(m, ar, br, float(rr)) for m, ar, br, rr in zip(mats, a, b, r) if m.nnz]
+            if not pieces:
+                continue
+            total = sp.csr_matrix(self._weighted_sum(pieces, p))
+            for i, got in zip(idx, batch):
+                if got is None:
+                    continue
+                _, (offset, size), lift = got
+                block = _diagonal_block(total, offset, size)
+                if block.nnz:
+                    out[i] = {"K": None, "M": None, kind: lift(block)}
+        return [o if o is not None else self.term_derivative(t, p) for o, t in zip(out, terms)]
+
+    def _weighted_sum(self, pieces, p):
+        """Sum of an element subset's pieces [(matrix, a row, b row, ratio)] with their coefficients at ``p``."""
+        n0 = len(self.parameters)
+        mats = [m for m, _, _, _ in pieces]
+        a = np.zeros((len(pieces), self.n_params))
+        b = np.zeros((len(pieces), self.n_params))
+        a[:, :n0] = np.array([x[1] for x in pieces])
+        b[:, :n0] = np.array([x[2] for x in pieces])
+        r = np.array([x[3] for x in pieces])
+        coef = SeriesAffineMatrix(tuple(mats), a, b, r).coefficients(p)
+        total = mats[0] * coef[0]
+        for m, c in zip(mats[1:], coef[1:]):
+            total = total + m * c
+        return total
+
+    def _check_disjoint(self, term) -> None:
+        """ParameterError when an element subset shares an element with one already in the model."""
+        from femodel._terms import ElementFactor
+
+        mine = set(term.elements)
+        for t in self.terms:
+            if isinstance(t, ElementFactor) and mine.intersection(t.elements):
+                e = min(mine.intersection(t.elements))
+                where = f"{self.bdf}: " if self.bdf else ""
+                raise ParameterError(f"{where}term_derivative: element {e} is in both {t.name!r} and "
+                                     f"{term.name!r} (element subsets must be disjoint)")
 
 
 def _pad(row, n: int) -> np.ndarray:

@@ -322,6 +322,34 @@ def test_every_candidate_builds_and_its_derivative_is_the_with_terms_one(which, 
             assert d["K" if c.term.kind == "M" else "M"] is None
 
 
+@pytest.mark.parametrize("which", ["frame", "shell", "generic"])
+def test_term_derivatives_batch_equals_one_by_one(which, frame_pm, shell_pm, tmp_path):
+    """The batched derivatives (element subsets of one kind in one assembly pass, each on its own copy of its
+    grids) are the one-by-one ones entry for entry: stiffness and mass clusters, cylindrical displacement
+    systems, bars and rods, and every other family through the one-by-one path, in order."""
+    if which == "generic":
+        path = frame_deck(tmp_path / "all.bdf", cd_cyl=True, spc=True)
+        pm = parametric_model(ParameterSet((Parameter("E1", "MAT1", (1,), "E", -0.2, 0.2),)), path)
+        sensors, drives = [1, 9, 13], [(13, (1.0, 0.0, 0.0))]
+    else:
+        pm = frame_pm if which == "frame" else shell_pm
+        sensors, drives = _setup(pm)
+    opts = CandidateOptions(spread_grids=8, max_per_family=80, cluster_kinds=("K", "M"))
+    terms = [c.term for c in generate_candidates(pm, sensors=sensors, drives=drives, options=opts)]
+    assert sum(hasattr(t, "kind") for t in terms) >= 4
+    p = np.random.default_rng(5).uniform(-0.1, 0.1, pm.n_params)
+    batch = pm.term_derivatives(terms, p)
+    assert len(batch) == len(terms)
+    for t, d in zip(terms, batch):
+        ref = pm.term_derivative(t, p)
+        for kind in ("K", "M"):
+            if ref[kind] is None:
+                assert d[kind] is None, (t.name, kind)
+            else:
+                assert d[kind].shape == ref[kind].shape and d[kind].format == "csr"
+                assert abs(d[kind] - ref[kind]).max() <= 1e-14 * abs(ref[kind]).max(), (t.name, kind)
+
+
 def test_compound_effects_join_the_member_families_at_the_same_grids(frame_pm):
     """A shaker attachment is one effect with two terms: its mass and its stinger spring at the drive grid;
     one compound per drive grid, only complete sets."""
