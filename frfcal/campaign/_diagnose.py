@@ -776,7 +776,8 @@ def _accept_member(camp, load, pm, model, articles, m, check, rows, ctx, quantit
                     + ("" if a["size_identifiable"] else f": {a['size_identifiability']}"))
         # an effect accepted on the screening's target may be refined on the raw lines to a size the data do not
         # see (a spring at 1e-37 N/m): dropped, and reported as such
-        sizes = refined_sizes(camp, arts, sur_ref, x_ref, damping, n_p, accepted, n_res, quantity)
+        sizes = refined_sizes(camp, arts, sur_ref, x_ref, damping, n_p, accepted, n_res, quantity,
+                              sur_without=fit_acc.surrogate)
         n_fitted = len(accepted)
         accepted, dropped, x_kept = drop_negligible(accepted, sizes, x_ref, n_p)
         if dropped:
@@ -1194,38 +1195,67 @@ def _holdout_at(camp, arts, sur, x, quantity, damping, channels) -> float:
     return float(v.sd_calibrated)
 
 
-def _mode_shift(sur, x, x0, band) -> float:
-    """Largest relative frequency change of the model's elastic modes in ``band`` between x0 and x (sorted
-    eigenvalues of the reduced model: a small change keeps their order)."""
+def _mode_shift(sur, x, x0, band, sur0=None) -> float:
+    """Largest relative frequency change of the model's elastic modes in ``band`` between x0 (on ``sur0``,
+    default ``sur``) and x (sorted eigenvalues of the reduced models: a small change keeps their order)."""
     from calibration import reduced_modes
 
-    f = [np.sqrt(np.clip(reduced_modes(sur, np.asarray(v, float))[0], 0, None)) / (2 * np.pi) for v in (x, x0)]
-    use = (f[1] > sur.rigid_hz) & (f[1] >= band[0]) & (f[1] <= band[1])
+    sur0 = sur if sur0 is None else sur0
+    f = [np.sqrt(np.clip(reduced_modes(s, np.asarray(v, float))[0], 0, None)) / (2 * np.pi)
+         for s, v in ((sur, x), (sur0, x0))]
+    n = min(f[0].size, f[1].size)
+    f = [v[:n] for v in f]
+    use = (f[1] > sur0.rigid_hz) & (f[1] >= band[0]) & (f[1] <= band[1])
     return float(np.max(np.abs(f[0][use] / f[1][use] - 1.0))) if use.any() else 0.0
 
 
-def refined_sizes(camp, arts, sur, x, damping, n_p: int, accepted, n_res: int, quantity) -> list:
+def refined_sizes(camp, arts, sur, x, damping, n_p: int, accepted, n_res: int, quantity, sur_without=None) -> list:
     """Per accepted effect, its final (refined) size seen by the data: the hold-out SD (raw lines of the
     hold-out channels, or of the calibration channels without any; the damping the refinement estimated) of
     the final model ``(sur, x)`` and of the same model with the effect's magnitude ``x[n_p + j]`` set to 0,
     beside the acceptance's penalty for its parameter (:func:`calibration.negligible_effect`), and the largest
     relative shift of a mode in band it makes. ``negligible``: the model is as good without it (an effect
-    refined to ~0 after it was accepted on the screening's target)."""
+    refined to ~0 after it was accepted on the screening's target).
+
+    ``sur_without``: the surrogate the magnitudes are set to 0 on (same parameters as ``sur``), default
+    ``sur``. The refined surrogate's basis is built at the refined point: for a stiff effect (a contact
+    refined to its upper bound, a near-rigid tie) every basis vector moves the tied DOF together, so on that
+    basis the effect's term projects to ~0 and setting its magnitude to 0 changes nothing: the effect would
+    look negligible while it explains the data. The diagnose stage passes the acceptance fit's surrogate,
+    the calibrated basis extended by the effects' static corrections, which holds the model without them
+    exactly (c = 0 is its own basis point)."""
     from calibration import negligible_effect
 
     chans = list(camp.channels.holdout) or list(camp.channels.calibrate)
     band = (camp.band.low_hz, camp.band.high_hz)
     x = np.asarray(x, float)
+    s0 = sur if sur_without is None else sur_without
     h = _holdout_at(camp, arts, sur, x, quantity, damping, chans)
+    damping0 = damping if s0 is sur else _damping_on(sur, s0, damping)
     out = []
     for j, _ in enumerate(accepted):
         x0 = x.copy()
         x0[n_p + j] = 0.0
-        h0 = _holdout_at(camp, arts, sur, x0, quantity, damping, chans)
+        h0 = _holdout_at(camp, arts, s0, x0, quantity, damping0, chans)
         neg, ratio, allowed = negligible_effect(h, h0, max(int(n_res), 2))
         out.append({"holdout_with": h, "holdout_without": h0, "ratio": ratio, "penalty_ratio": allowed,
-                    "max_mode_shift": _mode_shift(sur, x, x0, band), "negligible": neg})
+                    "max_mode_shift": _mode_shift(sur, x, x0, band, s0), "negligible": neg})
     return out
+
+
+def _damping_on(sur, sur0, damping):
+    """The refinement's estimated damping ((zeta per article over the reduced modes of ``sur`` at p_ref, p_ref))
+    carried to the reduced modes of ``sur0`` (same parameters, another basis): each mode of ``sur0`` at p_ref
+    takes the damping of the mode of ``sur`` nearest in frequency there. None stays None."""
+    from calibration import reduced_modes
+
+    if damping is None:
+        return None
+    zeta, p_ref = damping
+    f = np.sqrt(np.clip(reduced_modes(sur, np.asarray(p_ref, float))[0], 0, None))
+    f0 = np.sqrt(np.clip(reduced_modes(sur0, np.asarray(p_ref, float))[0], 0, None))
+    near = np.argmin(np.abs(f0[:, None] - f[None, :]), axis=1)
+    return [np.asarray(z, float)[near] for z in zeta], p_ref
 
 
 def drop_negligible(accepted, sizes, x, n_p: int) -> tuple:
@@ -1461,7 +1491,7 @@ def member_candidates(camp: Campaign, pm, load, p, log=print) -> tuple:
     drives = tuple((t.grid, tuple(t.direction)) for t in load.drives)
     cctx = candidate_context(pm, sensors=sensors, drives=drives, options=opts)
     cands = list(generate_candidates(pm, families=cfg.families, context=cctx))
-    terms = [candidate_term(pm, c, p) for c in cands]
+    terms = candidate_terms(pm, cands, p)
     counts = {}
     for c in cands:
         counts[c.family] = counts.get(c.family, 0) + 1
@@ -1471,10 +1501,16 @@ def member_candidates(camp: Campaign, pm, load, p, log=print) -> tuple:
 
 def candidate_term(pm, cand, p):
     """The screening's CandidateTerm of a femodel Candidate: its dK, dM at ``p``."""
+    return candidate_terms(pm, [cand], p)[0]
+
+
+def candidate_terms(pm, cands, p) -> list:
+    """:func:`candidate_term` of many candidates: their derivatives in one
+    :meth:`femodel.ParametricModel.term_derivatives` call (the element clusters assembled in one pass)."""
     from calibration import CandidateTerm
 
-    d = pm.term_derivative(cand.term, p)
-    return CandidateTerm(cand.name, d["K"], d["M"], cand.term.lower, cand.term.upper)
+    ds = pm.term_derivatives([c.term for c in cands], p)
+    return [CandidateTerm(c.name, d["K"], d["M"], c.term.lower, c.term.upper) for c, d in zip(cands, ds)]
 
 
 def point_zoom(cctx, pm, p, cands: list, terms: list):
@@ -1505,7 +1541,7 @@ def point_zoom(cctx, pm, p, cands: list, terms: list):
                 got = zoom_candidates(cctx, cands + new, b)
                 new.extend(got)
                 parents += [b.name] * len(got)
-        out = [(candidate_term(pm, c, p), c.family, par) for c, par in zip(new, parents)]
+        out = [(t, c.family, par) for t, c, par in zip(candidate_terms(pm, new, p), new, parents)]
         cands.extend(new)
         terms.extend(t for t, _, _ in out)
         return out
