@@ -17,11 +17,16 @@ Timed, the diagnosis stages (wall and process CPU time each):
 
 1. candidate generation (``femodel.generate_candidates``, every family, cap
    ``--candidates-per-family``);
-2. term derivatives at the calibrated p (``ParametricModel.term_derivative``);
-3. screening (``calibration.screen``: linear scores on every continuation
-   stage, the zoom of the point families around their best candidates
-   (``frfcal.campaign._diagnose.point_zoom``, its own time and CPU in the
-   table; ``--no-zoom`` without), nonlinear re-fits of the ``--n-check`` best);
+2. term derivatives at the calibrated p (``ParametricModel.term_derivatives``
+   per family, as the diagnose stage forms them);
+3. screening (``calibration.screen`` called as the diagnose stage calls it:
+   linear scores on every continuation stage, the zoom of the point families
+   around their best candidates (``frfcal.campaign._diagnose.point_zoom``,
+   its own time and CPU in the table; ``--no-zoom`` without), nonlinear
+   re-fits of the ``[diagnosis] top_n`` best places (``--n-check``), of each
+   family's best and of each checked region's alternatives, with
+   ``[diagnosis] max_evaluations``; until stop 30 the bench checked the 10
+   best without families or regions, a lighter screening than the stage's);
 4. acceptance: ``calibration.fit_with`` of the ``--top`` best singly (from
    their converged nonlinear checks, ``fit_with(warm=...)``, on the check's own extension; ``--no-warm``:
    from the baseline through the continuation stages) and the best of them together with the best-ranked
@@ -35,6 +40,14 @@ screening, the fits and the hold-out compare the model with, as the diagnose sta
 (``frfcal.campaign._diagnose.screening_target``): ``debiased`` the raw lines with the identified poles'
 damping raised to each stage's, ``equalized`` the identified model on the half-bandwidth grids. Built
 before the timed stages (its time is in the untimed table).
+
+Then, untimed in the table, the campaign's diagnose stage itself
+(``frfcal.campaign._diagnose.diagnose_stage``, after the validate and
+cross-validate stages) on the same calibrated member: everything it does
+(residual check, screening, acceptance with its combinations, tied places
+and re-screening, raw-line refinement), its wall and CPU time, its verdict
+and its timestamped log (``--no-stage`` without). The table above times the
+kernels of a simpler acceptance; the stage is what a user waits for.
 
 Then (untimed) the hold-out SD with the truth damping of the calibrated deck
 and of the deck extended by the accepted candidate at its fitted magnitude
@@ -189,7 +202,9 @@ def main(argv=None) -> int:
     ap.add_argument("--candidates-per-family", type=int, default=500, help="CandidateOptions.max_per_family")
     ap.add_argument("--seed", type=int, default=11)
     ap.add_argument("--starts", type=int, default=4, help="calibration multi-start (untimed preparation)")
-    ap.add_argument("--n-check", type=int, default=10, help="nonlinear checks of the screening")
+    ap.add_argument("--n-check", type=int, default=None,
+                    help="nonlinear checks of the screening (default: the campaign's [diagnosis] top_n); each "
+                         "family's best is checked too and each checked region's alternatives, as the stage does")
     ap.add_argument("--top", type=int, default=3, help="candidates fitted singly in the acceptance")
     ap.add_argument("--cv-realizations", type=int, default=5, help="cross-validation splits of the acceptance")
     ap.add_argument("--workers", type=int, default=None)
@@ -202,6 +217,9 @@ def main(argv=None) -> int:
                          "stages, or the raw line nearest each point of the stage's half-bandwidth grid")
     ap.add_argument("--no-zoom", dest="zoom", action="store_false",
                     help="no zoom of the point families (CandidateOptions.zoom_rounds = 0)")
+    ap.add_argument("--no-stage", dest="stage", action="store_false",
+                    help="skip the run of the campaign's diagnose stage itself (untimed in the table above; its "
+                         "wall time, verdict and log are reported after it)")
     ap.add_argument("--no-model-sd", action="store_true", help="skip the full-order hold-out SD with truth damping")
     ap.add_argument("--no-refine", dest="refine", action="store_false",
                     help="skip the raw-line refinement of the chosen effect (untimed; needs the model SD)")
@@ -270,16 +288,17 @@ def main(argv=None) -> int:
         cal = calibrate_stage(camp, model, articles, eq, groups, pool, log)
         prep["campaign calibration (load, identify, equalize, calibrate, refine)"] = time.perf_counter() - t
         return _diagnose(args, ex, sc, effects, camp, model, articles, eq, cal, pool, sensors, drives, hold_ch,
-                         prep, load0, malloc_tuned)
+                         prep, load0, malloc_tuned, load, groups)
     finally:
         pool.close()
 
 
 def _diagnose(args, ex, sc, effects, camp, model, articles, eq, cal, pool, sensors, drives, hold_ch, prep, load0,
-              malloc_tuned) -> int:
+              malloc_tuned, load=None, groups=None) -> int:
     import femodel
-    from calibration import CandidateTerm, accept, cross_validate, fit_with, holdout_sd, screen, shifted_solver
-    from femodel import CandidateOptions, candidate_context, generate_candidates
+    from calibration import accept, cross_validate, fit_with, holdout_sd, screen, shifted_solver
+    from femodel import CandidateOptions, candidate_context, candidate_regions, generate_candidates
+    from frfcal.campaign._diagnose import candidate_terms
     from frfcal.campaign._diagnose import point_zoom
     from frfcal.campaign._diagnose import debiased_data, screening_target
     from frfcal.campaign._stages import equalized_data
@@ -315,12 +334,13 @@ def _diagnose(args, ex, sc, effects, camp, model, articles, eq, cal, pool, senso
     per_family = {f: sum(c.family == f for c in cands) for f in families}
 
     t0 = clock.start()
-    terms, deriv_s = [], {f: 0.0 for f in families}
-    for c in cands:
+    by_term, deriv_s = {}, {}
+    for f in families:  # as the diagnose stage: one term_derivatives call (a family's clusters in one pass)
         t1 = time.process_time()
-        d = pm.term_derivative(c.term, p_cal)
-        terms.append(CandidateTerm(c.term.name, d["K"], d["M"], c.term.lower, c.term.upper))
-        deriv_s[c.family] += time.process_time() - t1
+        mine = [c for c in cands if c.family == f]
+        by_term.update(zip((c.name for c in mine), candidate_terms(pm, mine, p_cal)))
+        deriv_s[f] = time.process_time() - t1
+    terms = [by_term[c.name] for c in cands]
     clock.stop("term derivatives", t0)
 
     t0 = clock.start()
@@ -328,9 +348,12 @@ def _diagnose(args, ex, sc, effects, camp, model, articles, eq, cal, pool, senso
     clock.stop("shared factorization K + s M", t0)
 
     t0 = clock.start()
+    dcfg = camp.diagnosis  # the diagnose stage's screening: its check count, evaluations, families, regions
     s = screen(sur, basis, p_cal, data, zeta, terms, pm.lower, pm.upper, quantity=quantity, model=model,
-               n_check=args.n_check, solve=solve, continuation=cont, executor=pool,
-               zoom=point_zoom(cctx, pm, p_cal, cands, terms), zoom_rounds=cctx.options.zoom_rounds)
+               n_check=args.n_check or dcfg.top_n, max_nfev=dcfg.max_evaluations, solve=solve,
+               continuation=cont, executor=pool, groups=[c.family for c in cands],
+               zoom=point_zoom(cctx, pm, p_cal, cands, terms), zoom_rounds=cctx.options.zoom_rounds,
+               regions=candidate_regions(cands))
     clock.stop("screening (linear + zoom + nonlinear checks)", t0)
     clock.rows["  of which the zoom (derivatives + linear scores)"] = {"wall_s": s.timings_s["zoom"],
                                                                        "cpu_s": s.timings_s["cpu: zoom"]}
@@ -352,7 +375,8 @@ def _diagnose(args, ex, sc, effects, camp, model, articles, eq, cal, pool, senso
     def trial(names_):
         fit = fit_with(sur, basis, model, [terms[by_name[n]] for n in names_], data, zeta, pm.lower, pm.upper,
                        p0=p_b, c0=[start_c(n) for n in names_], continuation=cont, quantity=quantity,
-                       solve=solve, warm=s.check(names_[0]) if len(names_) == 1 and args.warm else None,
+                       solve=solve, max_nfev=dcfg.max_evaluations,
+                       warm=s.check(names_[0]) if len(names_) == 1 and args.warm else None,
                        with_basis=False)
         fits[tuple(names_)] = fit
         h = float(np.mean([holdout_sd(fit.surrogate, fit.x, d, zeta, quantity) for d in hold]))
@@ -445,6 +469,30 @@ def _diagnose(args, ex, sc, effects, camp, model, articles, eq, cal, pool, senso
             sc.p_true[0], 0, hold_ch, BAND, terms=[e.term for e in effects], values=[e.value for e in effects])
         prep["full-order hold-out SD with truth damping"] = time.perf_counter() - t
 
+    # ------------------------------------------------------------------ the diagnose stage itself
+    stage = None
+    if args.stage:  # the campaign's stage end to end on the same calibrated member: all of what it does
+        from frfcal.campaign._diagnose import diagnose_stage
+        from frfcal.campaign._stages import crossvalidate_stage, validate_stage
+
+        print("the campaign's diagnose stage (validate, cross-validate untimed):", flush=True)
+        t_st = time.perf_counter()
+        lines = []
+
+        def slog(msg):
+            lines.append([round(time.perf_counter() - t_st, 1), msg])
+            print(f"  {lines[-1][0]:7.1f} s  {msg}", flush=True)
+
+        bounds = (pm.lower, pm.upper)
+        val = validate_stage(camp, articles, cal, bounds, slog)
+        xval = crossvalidate_stage(camp, articles, eq, cal, bounds, pm.parameters.names, pool, slog)
+        t_d, c_d = time.perf_counter(), cpu_s()
+        diag = diagnose_stage(camp, load, pm, model, articles, eq, cal, val, xval, pool, slog, groups)
+        (dm,) = diag.members
+        stage = {"wall_s": time.perf_counter() - t_d, "cpu_s": cpu_s() - c_d, "verdict": dm.verdict,
+                 "reason": dm.reason, "accepted": [{k: a.get(k) for k in ("name", "family", "size", "value", "unit")}
+                                                   for a in dm.accepted], "log": lines}
+
     # ------------------------------------------------------------------ report
     print()
     print(f"target {target.kind}: {sum(d.frf.shape[0] for d in data)} lines at zeta0, "
@@ -499,6 +547,10 @@ def _diagnose(args, ex, sc, effects, camp, model, articles, eq, cal, pool, senso
     print(f"floor (hold-out raw lines, truth vs its noise): {floor:.4g}")
     for k, v in sd_model.items():
         print(f"hold-out SD with truth damping, {k}: {v:.4g} ({v / floor:.2f} x floor)")
+    if stage is not None:
+        print(f"the campaign's diagnose stage end to end (residual check, screening, acceptance with its "
+              f"combinations and re-screening, raw-line refinement): {stage['wall_s']:.1f} s wall, "
+              f"{stage['cpu_s']:.1f} s CPU; verdict {stage['verdict']}: {stage['reason']}")
 
     out = {
         "dof": int(ex.n_dof), "effect": args.effect, "target": target.kind,
@@ -518,6 +570,7 @@ def _diagnose(args, ex, sc, effects, camp, model, articles, eq, cal, pool, senso
         "true_rank": true_rank, "true_matching": true_names, "true_best": true_best, "magnitude": mag,
         "holdout_sd_before": h_before, "cv_test_before": list(map(float, cv_before)), "floor_holdout": floor,
         "n_independent": int(n_ind), "trials": trials, "holdout_sd_truth_damping": sd_model, "refined": refined,
+        "diagnose_stage": stage,
     }
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(out, indent=1, default=float))
