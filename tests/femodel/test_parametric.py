@@ -365,3 +365,32 @@ def test_corner_thickness_elements_are_refused(tmp_path):
     (tmp_path / "p.toml").write_text(SPRINGS_PARAMS)
     with pytest.raises(ParameterError, match=r"parameter 't': CQUAD4 \[1\] give their own corner thicknesses"):
         parametric_model(tmp_path / "p.toml")
+
+
+@pytest.mark.parametrize("folder, name", REFERENCE_DECKS)
+def test_real_decks_batched_cluster_derivatives_equal_one_by_one(folder, name):
+    """term_derivatives on real decks (shells, beams, solids): the element clusters of both kinds assembled
+    together in one pass are the ones assembled alone, entry for entry."""
+    from tests.conftest import reference_path
+
+    from femodel import CandidateOptions, generate_candidates
+    from femodel._params import parameters_from_dict
+
+    path = reference_path("nastran", folder, name)
+    fe = read_bdf(path, units="consistent")
+    mid = int(fe.materials["MAT1"].ids[0])
+    ps = parameters_from_dict({"model": {"bdf": str(path), "units": "consistent"},
+                               "parameter": [dict(name="E", card="MAT1", id=mid, field="E", lower=-0.3, upper=0.3)]})
+    pm = parametric_model(ps)
+    cands = generate_candidates(pm, families=["element_cluster"],
+                                options=CandidateOptions(cluster_kinds=("K", "M"), max_per_family=60))
+    if len(cands) < 2:
+        pytest.skip(f"{folder}: fewer than two element clusters (no MAT1 group to scale)")
+    terms = [c.term for c in cands]
+    p = np.array([0.1])
+    for t, d in zip(terms, pm.term_derivatives(terms, p)):
+        ref = pm.term_derivative(t, p)
+        for kind in ("K", "M"):
+            assert (d[kind] is None) == (ref[kind] is None), (t.name, kind)
+            if ref[kind] is not None:
+                assert abs(d[kind] - ref[kind]).max() <= 1e-13 * abs(ref[kind]).max(), (t.name, kind)
