@@ -357,6 +357,33 @@ def _with_series(mats, a, b, ratio, series):
     return mats, a, b, ratio
 
 
+def _check_pcomp_materials(params: ParameterSet, fe, source) -> None:
+    """A MAT1 parameter cannot be a ply material of a PCOMP laminate that shell elements use.
+
+    A laminate enters the model as a constant term (no card-field monomial describes it), while the
+    write-back changes the MAT1 card its plies read: the calibrated model and the deck written from it would
+    differ. Refused with the laminates named, instead of a deck that silently disagrees with the model."""
+    pcomp = fe.properties.get("PCOMP")
+    if pcomp is None or len(pcomp) == 0 or "mids" not in pcomp.fields:
+        return
+    used = [np.asarray(fe.elements[c]["pid"]) for c in ("CQUAD4", "CTRIA3") if c in fe.elements and len(fe.elements[c])]
+    if not used:
+        return
+    live = np.isin(pcomp.ids, np.concatenate(used))
+    where = f"{source}: " if source else ""
+    for prm in params.parameters:
+        if prm.card != "MAT1":
+            continue
+        hit = live & np.any(np.isin(pcomp["mids"], prm.ids), axis=1)
+        if np.any(hit):
+            raise ParameterError(
+                f"{where}parameter {prm.name!r} (MAT1 {list(prm.ids)} {prm.field}): the material is a ply of PCOMP "
+                f"{pcomp.ids[hit][:5].tolist()}, used by shell elements. A laminate is a constant term of the model "
+                "(its stiffness is not a monomial of card fields), but the write-back would change it through this "
+                "MAT1: give the plies their own MAT1 (or a MAT8), or leave this material out of the parameters"
+            )
+
+
 def _check_element_thickness(params: ParameterSet, fe, source) -> None:
     """A PSHELL T parameter cannot move elements that give their own T1..T4."""
     where = f"{source}: " if source else ""

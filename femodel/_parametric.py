@@ -27,6 +27,7 @@ import scipy.sparse as sp
 from femodel._affine import AffineMatrix
 from femodel._grouping import (
     _check_element_thickness,
+    _check_pcomp_materials,
     _factor_key,
     _grouped_terms,
     _key_index,
@@ -597,6 +598,7 @@ def parametric_model(params, bdf=None, *, units: str | None = None, allow_unsupp
                 )
 
         _check_element_thickness(params, fe, source)
+        _check_pcomp_materials(params, fe, source)
         prepared = shear_elements.result()
 
         def stiffness_monomials():

@@ -219,7 +219,8 @@ def _pcomp_table(rows, mats, us: UnitSystem, where: str) -> Table:
     """PCOMP laminates resolved to shell constitutive matrices (classical lamination), SI.
 
     Fields: dm, dmb, db (n, 3, 3) in the material axes of THETA = 0, ds (n, 2, 2)
-    (``inf`` where every ply is shear-rigid), mu (n,) kg/m^2, t (n,) m.
+    (``inf`` where every ply is shear-rigid), mu (n,) kg/m^2, t (n,) m, mids (n, most plies)
+    the plies' material ids (-1 past a laminate's last ply).
     """
     from femodel._elements_shell import laminate_abd, orthotropic_q
 
@@ -231,6 +232,7 @@ def _pcomp_table(rows, mats, us: UnitSystem, where: str) -> Table:
     ds = np.zeros((n, 2, 2))
     mu = np.zeros(n)
     tt = np.zeros(n)
+    ply_mids = []
     for i, (pid, p) in enumerate(rows):
         try:
             t = np.array(p.get_thicknesses(), float) * L
@@ -238,6 +240,7 @@ def _pcomp_table(rows, mats, us: UnitSystem, where: str) -> Table:
             mids = [int(x) for x in p.get_material_ids()]
         except (AttributeError, TypeError, ValueError, IndexError) as exc:
             raise ModelError(f"{where}: PCOMP {pid}: cannot read the plies ({exc})") from None
+        ply_mids.append(mids)
         q = np.zeros((t.size, 3, 3))
         g = np.zeros((t.size, 2))
         rho = np.zeros(t.size)
@@ -262,10 +265,13 @@ def _pcomp_table(rows, mats, us: UnitSystem, where: str) -> Table:
             raise ModelError(f"{where}: PCOMP {pid}: {exc}") from None
         mu[i] = float(np.sum(rho * t)) + field_float(p.nsm, 0.0) * us.mass_kg / L**2
         tt[i] = t.sum()
+    mid_table = np.full((n, max((len(m) for m in ply_mids), default=0)), -1, np.int64)
+    for i, m in enumerate(ply_mids):
+        mid_table[i, :len(m)] = m
     return Table(
         "PCOMP",
         np.array([r[0] for r in rows], np.int64),
-        {"dm": dm, "dmb": dmb, "db": db, "ds": ds, "mu": mu, "t": tt},
+        {"dm": dm, "dmb": dmb, "db": db, "ds": ds, "mu": mu, "t": tt, "mids": mid_table},
     )
 
 

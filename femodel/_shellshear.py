@@ -258,6 +258,7 @@ def _shell_shear_elements(fe, params: ParameterSet, key_index: dict) -> list:
     """
     from femodel._assembly import to_cd
     from femodel._elements_shell import RESIDUAL_BENDING_COEFF, bending_lengths, shell_frames, unit_shear
+    from femodel._model import Table
 
     coeff = float(RESIDUAL_BENDING_COEFF)
     prop = fe.properties.get("PSHELL")
@@ -271,6 +272,11 @@ def _shell_shear_elements(fe, params: ParameterSet, key_index: dict) -> list:
         tab = fe.elements.get(card)
         if tab is None or len(tab) == 0:
             continue
+        own = np.isin(tab["pid"], prop.ids)  # PSHELL elements only: a PCOMP laminate has no shear series
+        if not np.all(own):
+            tab = Table(tab.card, tab.ids[own], {key: v[own] for key, v in tab.fields.items()})
+            if len(tab) == 0:
+                continue
         pr = prop.rows(tab["pid"])
         m2, m3 = prop["mid2"][pr], prop["mid3"][pr]
         pids = tab["pid"]

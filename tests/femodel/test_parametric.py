@@ -394,3 +394,29 @@ def test_real_decks_batched_cluster_derivatives_equal_one_by_one(folder, name):
             assert (d[kind] is None) == (ref[kind] is None), (t.name, kind)
             if ref[kind] is not None:
                 assert abs(d[kind] - ref[kind]).max() <= 1e-13 * abs(ref[kind]).max(), (t.name, kind)
+
+
+def test_pcomp_laminates_beside_pshell_parameters(tmp_path):
+    """A deck with CQUAD4 on PSHELL and on PCOMP laminates (plus bars, beams, rods, solids, an INCLUDE):
+    PSHELL and PBAR parameters build and round-trip exactly (the laminates are constant terms; the shell
+    shear series skips them); a MAT1 that is also a ply material is refused with the laminates named,
+    since the write-back would change the laminates the model holds constant."""
+    from tests.conftest import reference_path
+
+    from femodel._params import parameters_from_dict
+
+    path = reference_path("nastran", "solid_shell_bar", "mode_solid_shell_bar.bdf")
+    model = {"bdf": str(path), "units": "consistent"}
+    ok = parameters_from_dict({"model": model, "parameter": [
+        dict(name="t4", card="PSHELL", id=4, field="T", lower=-0.3, upper=0.3),
+        dict(name="A1", card="PBAR", id=1, field="A", lower=-0.3, upper=0.3)]})
+    pm = parametric_model(ok)
+    assert "PCOMP" in pm.assembly.model.properties
+    p = np.array([0.2, -0.1])
+    _, K, M = fresh(pm.write_bdf(tmp_path / "p.bdf", p), "consistent")
+    assert rel(pm.stiffness(p), K) <= max(1e-13, pm.series_error_bound)
+    assert rel(pm.mass(p), M) < 1e-13
+    bad = parameters_from_dict({"model": model, "parameter": [
+        dict(name="E1", card="MAT1", id=1, field="E", lower=-0.3, upper=0.3)]})
+    with pytest.raises(ParameterError, match=r"'E1'.*ply of PCOMP \[6, 7\].*own MAT1"):
+        parametric_model(bad)
