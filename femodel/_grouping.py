@@ -120,12 +120,12 @@ def _local_subset_batch(assembly, params: ParameterSet, factors, amap) -> list:
     Returns
     -------
     list
-        Per factor: (pieces, lift) with ``pieces`` = (mats, a, b, ratio) of the
-        combined assembly and ``block`` (offset, size) of the subset in its
-        local DOF, i.e. ``((mats, a, b, ratio), (offset, size), lift)``; None
-        where :func:`_local_subset_terms` would return None or the submodel
-        cannot be formed (the caller takes the one-by-one path, which also
-        raises the error that names the fault).
+        Per factor ``(pieces, (offset, size), lift)``: ``pieces`` = (mats, a,
+        b, ratio) of the combined assembly (the same object for every
+        factor), the subset's block in the combined local DOF, and its lift
+        to the a-set; None where :func:`_local_subset_terms` would return
+        None or the submodel cannot be formed (the caller takes the
+        one-by-one path, which also raises the error that names the fault).
     """
     from femodel._model import Table
 
