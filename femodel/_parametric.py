@@ -356,8 +356,19 @@ class ParametricModel:
                 raise ParameterError(f"{where}{what}: element subset {term.name!r} has no {term.kind} terms")
             return {term.kind: pieces}
         zero = np.zeros(len(self.parameters))
-        for kind, m_g in term.g_matrices(asm.model).items():
-            m = _to_aset(asm, self._amap(), _canonical(m_g), drop_zeros=True)
+        amap = self._amap()
+        n_a = int(asm.T.shape[1])
+        for kind, (rows, cols, vals) in term.g_entries(asm.model).items():
+            ar, ac = amap[rows], amap[cols]
+            if np.all(ar >= -1) and np.all(ac >= -1):
+                # unit selections or removed DOF: the entries map straight to the a-set (no n_g-sized matrix;
+                # the same entries as the reduction, _to_aset's few-rows path)
+                keep = (ar >= 0) & (ac >= 0) & (vals != 0.0)
+                m = sp.coo_matrix((vals[keep], (ar[keep], ac[keep])), shape=(n_a, n_a)).tocsr()
+            else:  # dependent DOF (rigid elements, MPC): reduced by T
+                n_g = 6 * asm.model.n_grids
+                m_g = sp.csr_matrix((vals, (rows, cols)), shape=(n_g, n_g))
+                m = _to_aset(asm, amap, _canonical(m_g), drop_zeros=True)
             m.eliminate_zeros()
             if m.nnz == 0:
                 raise ParameterError(f"{where}{what}: term {term.name!r} acts only on constrained DOF")

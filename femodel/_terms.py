@@ -111,15 +111,23 @@ def _check_scale(cls: str, name: str, scale: float) -> None:
         raise ParameterError(f"{cls} {name!r}: scale must be positive and finite, got {scale!r}")
 
 
-def _grid_dof(fe, grid: int, component: int, what: str) -> int:
-    """g-set row of (grid, component); components are in the grid's CD system (1..6)."""
-    if int(component) not in range(1, 7):
-        raise ParameterError(f"{what}: component {component} must be 1..6")
+def _grid_dofs(fe, grids, components, what: str) -> np.ndarray:
+    """g-set rows of (grid, component) pairs; components are in the grids' CD systems (1..6)."""
+    comps = np.asarray(components, dtype=np.int64)
+    bad = comps[(comps < 1) | (comps > 6)]
+    if bad.size:
+        raise ParameterError(f"{what}: component {int(bad[0])} must be 1..6")
     try:
-        row = int(fe.grid_index([int(grid)], what=what)[0])
+        rows = fe.grid_index(np.asarray(grids, dtype=np.int64), what=what)
     except ValueError as exc:
         raise ParameterError(str(exc)) from None
-    return 6 * row + int(component) - 1
+    return 6 * rows + comps - 1
+
+
+def _g_csr(entries: dict, fe) -> dict:
+    """{kind: (rows, cols, vals)} g-set entries as (n_g, n_g) CSR matrices (duplicates summed)."""
+    n = 6 * fe.n_grids
+    return {k: sp.csr_matrix((v, (r, c)), shape=(n, n)) for k, (r, c, v) in entries.items()}
 
 
 @dataclass(frozen=True)
@@ -191,21 +199,26 @@ class AddedSpring:
         """The p of a rate (SI)."""
         return float(value) / float(self.scale)
 
+    def g_entries(self, fe) -> dict:
+        """{"K": (rows, cols, vals)}: the g-set entries at p = 1 (``scale`` times the unit springs), pair by
+        pair: (i, i) for a spring to ground, (i, i), (i, j), (j, i), (j, j) between two DOF (duplicates are
+        to be summed)."""
+        d = np.asarray(self.dofs, dtype=np.int64).reshape(-1, 4)
+        what = f"added spring {self.name!r} grid"
+        two = d[:, 2] != 0
+        i = _grid_dofs(fe, d[:, 0], d[:, 1], what)
+        j = np.zeros_like(i)
+        j[two] = _grid_dofs(fe, d[two, 2], d[two, 3], what)
+        rows = np.stack([i, i, j, j], axis=1)
+        cols = np.stack([i, j, i, j], axis=1)
+        vals = np.tile([1.0, -1.0, -1.0, 1.0], (d.shape[0], 1))
+        use = np.ones((d.shape[0], 4), dtype=bool)
+        use[~two, 1:] = False
+        return {"K": (rows[use], cols[use], float(self.scale) * vals[use])}
+
     def g_matrices(self, fe) -> dict:
         """{"K": g-set matrix at p = 1} (``scale`` times the unit springs), (n_g, n_g)."""
-        n = 6 * fe.n_grids
-        rows, cols, vals = [], [], []
-        for g1, c1, g2, c2 in self.dofs:
-            what = f"added spring {self.name!r} grid"
-            i = _grid_dof(fe, g1, c1, what)
-            rows.append(i), cols.append(i), vals.append(1.0)
-            if g2:
-                j = _grid_dof(fe, g2, c2, what)
-                rows += [i, j, j]
-                cols += [j, i, j]
-                vals += [-1.0, -1.0, 1.0]
-        m = sp.csr_matrix((float(self.scale) * np.array(vals), (rows, cols)), shape=(n, n))
-        return {"K": m}
+        return _g_csr(self.g_entries(fe), fe)
 
     def write_cards(self, value: float, editor) -> None:
         """CELAS2 cards of rate ``value`` (SI) for every pair (fresh element ids), small field (the rate
@@ -261,11 +274,15 @@ class AddedMass:
     def normalized(self, value: float) -> float:
         return float(value) / float(self.scale)
 
+    def g_entries(self, fe) -> dict:
+        """{"M": (rows, cols, vals)}: the g-set entries at p = 1 (kg on the three translations of each grid)."""
+        g = np.repeat(np.asarray(self.grids, dtype=np.int64), 3)
+        idx = _grid_dofs(fe, g, np.tile([1, 2, 3], len(self.grids)), f"added mass {self.name!r} grid")
+        return {"M": (idx, idx, np.full(idx.size, float(self.scale)))}
+
     def g_matrices(self, fe) -> dict:
         """{"M": g-set matrix at p = 1}, (n_g, n_g), kg."""
-        n = 6 * fe.n_grids
-        idx = [_grid_dof(fe, g, c, f"added mass {self.name!r} grid") for g in self.grids for c in (1, 2, 3)]
-        return {"M": sp.csr_matrix((np.full(len(idx), float(self.scale)), (idx, idx)), shape=(n, n))}
+        return _g_csr(self.g_entries(fe), fe)
 
     def write_cards(self, value: float, editor) -> None:
         """CONM2 cards of mass ``value`` (kg) on every grid (fresh element ids, CID 0), small field (the mass

@@ -350,6 +350,37 @@ def test_term_derivatives_batch_equals_one_by_one(which, frame_pm, shell_pm, tmp
                 assert abs(d[kind] - ref[kind]).max() <= 1e-14 * abs(ref[kind]).max(), (t.name, kind)
 
 
+@pytest.mark.parametrize("which", ["frame", "shell", "generic"])
+def test_spring_and_mass_terms_map_to_the_aset_as_the_reduction_does(which, frame_pm, shell_pm, tmp_path):
+    """Added springs and masses go to the a-set entry by entry (no g-set-sized matrix): bit for bit the
+    matrices the reduction by T gives (constrained grids, cylindrical displacement systems included)."""
+    import scipy.sparse as sp
+
+    from femodel._pattern import _canonical, _to_aset
+
+    if which == "generic":
+        path = frame_deck(tmp_path / "all.bdf", cd_cyl=True, spc=True)
+        pm = parametric_model(ParameterSet((Parameter("E1", "MAT1", (1,), "E", -0.2, 0.2),)), path)
+        sensors, drives = [1, 9, 13], [(13, (1.0, 0.0, 0.0))]
+    else:
+        pm = frame_pm if which == "frame" else shell_pm
+        sensors, drives = _setup(pm)
+    cands = [c for c in generate_candidates(pm, sensors=sensors, drives=drives,
+                                            options=CandidateOptions(spread_grids=8, max_per_family=40))
+             if not hasattr(c.term, "kind")]
+    assert len({c.family for c in cands}) >= 4
+    asm, amap = pm.assembly, pm._amap()
+    for c in cands:
+        for kind, d in pm._term_parts(c.term, "test").items():
+            m = d[0][0]
+            ref = _to_aset(asm, amap, _canonical(c.term.g_matrices(asm.model)[kind]), drop_zeros=True)
+            ref.eliminate_zeros()
+            ref = _canonical(ref)
+            assert sp.isspmatrix_csr(m) and m.shape == ref.shape, c.name
+            for a in ("indptr", "indices", "data"):
+                np.testing.assert_array_equal(getattr(m, a), getattr(ref, a), err_msg=f"{c.name} {a}")
+
+
 def test_compound_effects_join_the_member_families_at_the_same_grids(frame_pm):
     """A shaker attachment is one effect with two terms: its mass and its stinger spring at the drive grid;
     one compound per drive grid, only complete sets."""
