@@ -79,6 +79,22 @@ def _local_subset_terms(assembly, params: ParameterSet, factor, amap):
         (n_l, n_l) CSR matrix on the full a-set, (n_a, n_a) canonical CSR.
     """
     fe = assembly.model
+    place = _local_place(fe, factor, amap)
+    if place is None:
+        return None
+    sub, g, kept, gcols = place
+    local_model = replace(sub, grid_ids=fe.grid_ids[g], xyz=fe.xyz[g], cp=fe.cp[g], cd=fe.cd[g], ps=fe.ps[g],
+                          rbe2=(), rbe3=(), mpc=(), spc_grid=np.zeros(0, np.int64),
+                          spc_component=np.zeros(0, np.int8))
+    local = _selected_assembly(assembly, local_model, kept)
+    return (_subset_terms_on(local, params, factor, drop_zeros=_drop_zeros(assembly)),
+            _lifter(gcols, int(assembly.T.shape[1])))
+
+
+def _local_place(fe, factor, amap):
+    """(submodel, grid rows, kept local DOF mask, their a-set columns) of an element subset on the grids its
+    elements touch; None where the local path does not apply (no grids, a rigid-element or MPC dependent
+    DOF, independent DOF out of g-set order). Raises what ``factor.submodel`` and ``grid_index`` raise."""
     sub = factor.submodel(fe)
     grids = [np.asarray(t["nodes"]).ravel() for t in sub.elements.values() if len(t) and "nodes" in t.fields]
     grids = np.unique(np.concatenate(grids)) if grids else np.zeros(0, np.int64)
@@ -86,24 +102,26 @@ def _local_subset_terms(assembly, params: ParameterSet, factor, amap):
     if grids.size == 0:
         return None
     g = fe.grid_index(grids, what=f"ElementFactor {factor.name!r} grid")
-    gd = (6 * g[:, None] + np.arange(6)[None, :]).ravel()
-    am = amap[gd]
+    am = amap[(6 * g[:, None] + np.arange(6)[None, :]).ravel()]
     kept = am >= 0
     gcols = am[kept]
     if np.any(am < -1) or np.any(np.diff(gcols) <= 0):
         return None
-    n_l, n_a = int(gcols.size), int(assembly.T.shape[1])
-    local_model = replace(sub, grid_ids=fe.grid_ids[g], xyz=fe.xyz[g], cp=fe.cp[g], cd=fe.cd[g], ps=fe.ps[g],
-                          rbe2=(), rbe3=(), mpc=(), spc_grid=np.zeros(0, np.int64),
-                          spc_component=np.zeros(0, np.int8))
-    sel = np.flatnonzero(kept)
-    T = sp.csr_matrix((np.ones(n_l), (sel, np.arange(n_l))), shape=(gd.size, n_l))
-    local = replace(assembly, model=local_model, terms=_element_terms(local_model), T=T, selection=sel,
-                    dependent=np.zeros(0, np.int64), dependent_rows=None)
-    # the full assembly's choice (see _grouped_terms): drop exact zeros unless T is a plain selection
-    drop = assembly.selection is None or (assembly.dependent is not None and assembly.dependent.size > 0)
+    return sub, g, kept, gcols
 
-    return _subset_terms_on(local, params, factor, drop_zeros=drop), _lifter(gcols, n_a)
+
+def _selected_assembly(assembly, local_model, kept):
+    """The assembly of a local model whose T selects its ``kept`` DOF (no dependent DOF)."""
+    sel = np.flatnonzero(kept)
+    n_l = int(sel.size)
+    T = sp.csr_matrix((np.ones(n_l), (sel, np.arange(n_l))), shape=(kept.size, n_l))
+    return replace(assembly, model=local_model, terms=_element_terms(local_model), T=T, selection=sel,
+                   dependent=np.zeros(0, np.int64), dependent_rows=None)
+
+
+def _drop_zeros(assembly) -> bool:
+    """The full assembly's choice (see _grouped_terms): drop exact zeros unless T is a plain selection."""
+    return assembly.selection is None or (assembly.dependent is not None and assembly.dependent.size > 0)
 
 
 def _local_subset_batch(assembly, params: ParameterSet, factors, amap) -> list:
@@ -134,24 +152,12 @@ def _local_subset_batch(assembly, params: ParameterSet, factors, amap) -> list:
     todo = []  # (index, g, kept, gcols, sub)
     for i, factor in enumerate(factors):
         try:
-            sub = factor.submodel(fe)
+            place = _local_place(fe, factor, amap)
         except (ParameterError, ValueError):
             continue
-        grids = [np.asarray(t["nodes"]).ravel() for t in sub.elements.values() if len(t) and "nodes" in t.fields]
-        grids = np.unique(np.concatenate(grids)) if grids else np.zeros(0, np.int64)
-        grids = grids[grids > 0]
-        if grids.size == 0:
-            continue
-        try:
-            g = fe.grid_index(grids, what=f"ElementFactor {factor.name!r} grid")
-        except ValueError:
-            continue
-        am = amap[(6 * g[:, None] + np.arange(6)[None, :]).ravel()]
-        kept = am >= 0
-        gcols = am[kept]
-        if np.any(am < -1) or np.any(np.diff(gcols) <= 0):
-            continue
-        todo.append((i, g, kept, gcols, sub))
+        if place is not None:
+            sub, g, kept, gcols = place
+            todo.append((i, g, kept, gcols, sub))
     out: list = [None] * len(factors)
     if not todo:
         return out
@@ -179,14 +185,8 @@ def _local_subset_batch(assembly, params: ParameterSet, factors, amap) -> list:
     local_model = replace(fe, elements=elements, grid_ids=new_ids, xyz=fe.xyz[g_all], cp=fe.cp[g_all],
                           cd=fe.cd[g_all], ps=fe.ps[g_all], rbe2=(), rbe3=(), mpc=(),
                           spc_grid=np.zeros(0, np.int64), spc_component=np.zeros(0, np.int8))
-    kept_all = np.concatenate([k for _, _, k, _, _ in todo])
-    sel = np.flatnonzero(kept_all)
-    n_l = int(sel.size)
-    T = sp.csr_matrix((np.ones(n_l), (sel, np.arange(n_l))), shape=(kept_all.size, n_l))
-    local = replace(assembly, model=local_model, terms=_element_terms(local_model), T=T, selection=sel,
-                    dependent=np.zeros(0, np.int64), dependent_rows=None)
-    drop = assembly.selection is None or (assembly.dependent is not None and assembly.dependent.size > 0)
-    pieces = _subset_terms_on(local, params, factors[todo[0][0]], drop_zeros=drop)
+    local = _selected_assembly(assembly, local_model, np.concatenate([k for _, _, k, _, _ in todo]))
+    pieces = _subset_terms_on(local, params, factors[todo[0][0]], drop_zeros=_drop_zeros(assembly))
     offset = 0
     for i, _, _, gcols, _ in todo:
         out[i] = (pieces, (offset, int(gcols.size)), _lifter(gcols, n_a))

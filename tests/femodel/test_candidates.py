@@ -322,18 +322,23 @@ def test_every_candidate_builds_and_its_derivative_is_the_with_terms_one(which, 
             assert d["K" if c.term.kind == "M" else "M"] is None
 
 
+def _model_and_setup(which, frame_pm, shell_pm, tmp_path):
+    """(parametric model, sensors, drives): the frame, the shell, or a deck with bars, rods, cylindrical
+    displacement systems and SPC'd grids."""
+    if which == "generic":
+        path = frame_deck(tmp_path / "all.bdf", cd_cyl=True, spc=True)
+        pm = parametric_model(ParameterSet((Parameter("E1", "MAT1", (1,), "E", -0.2, 0.2),)), path)
+        return pm, [1, 9, 13], [(13, (1.0, 0.0, 0.0))]
+    pm = frame_pm if which == "frame" else shell_pm
+    return (pm, *_setup(pm))
+
+
 @pytest.mark.parametrize("which", ["frame", "shell", "generic"])
 def test_term_derivatives_batch_equals_one_by_one(which, frame_pm, shell_pm, tmp_path):
     """The batched derivatives (element subsets of one kind in one assembly pass, each on its own copy of its
     grids) are the one-by-one ones entry for entry: stiffness and mass clusters, cylindrical displacement
     systems, bars and rods, and every other family through the one-by-one path, in order."""
-    if which == "generic":
-        path = frame_deck(tmp_path / "all.bdf", cd_cyl=True, spc=True)
-        pm = parametric_model(ParameterSet((Parameter("E1", "MAT1", (1,), "E", -0.2, 0.2),)), path)
-        sensors, drives = [1, 9, 13], [(13, (1.0, 0.0, 0.0))]
-    else:
-        pm = frame_pm if which == "frame" else shell_pm
-        sensors, drives = _setup(pm)
+    pm, sensors, drives = _model_and_setup(which, frame_pm, shell_pm, tmp_path)
     opts = CandidateOptions(spread_grids=8, max_per_family=80, cluster_kinds=("K", "M"))
     terms = [c.term for c in generate_candidates(pm, sensors=sensors, drives=drives, options=opts)]
     assert sum(hasattr(t, "kind") for t in terms) >= 4
@@ -358,13 +363,7 @@ def test_spring_and_mass_terms_map_to_the_aset_as_the_reduction_does(which, fram
 
     from femodel._pattern import _canonical, _to_aset
 
-    if which == "generic":
-        path = frame_deck(tmp_path / "all.bdf", cd_cyl=True, spc=True)
-        pm = parametric_model(ParameterSet((Parameter("E1", "MAT1", (1,), "E", -0.2, 0.2),)), path)
-        sensors, drives = [1, 9, 13], [(13, (1.0, 0.0, 0.0))]
-    else:
-        pm = frame_pm if which == "frame" else shell_pm
-        sensors, drives = _setup(pm)
+    pm, sensors, drives = _model_and_setup(which, frame_pm, shell_pm, tmp_path)
     cands = [c for c in generate_candidates(pm, sensors=sensors, drives=drives,
                                             options=CandidateOptions(spread_grids=8, max_per_family=40))
              if not hasattr(c.term, "kind")]
