@@ -18,7 +18,10 @@ from calibration._errors import CalibrationError
 
 @runtime_checkable
 class Executor(Protocol):
-    """Maps a function over independent items; returns the results in item order."""
+    """Maps a function over independent items; returns the results in item order.
+
+    ``width`` (optional; 1 when absent) is how many items run at once: a caller that submits in
+    rounds (the multi-start's stopping rule) sizes its rounds by it."""
 
     def map(self, fn: Callable, items: Iterable) -> list: ...
 
@@ -38,6 +41,11 @@ class SerialExecutor:
 
     def __init__(self, progress: str | None = None):
         self.progress = progress
+
+    @property
+    def width(self) -> int:
+        """Items run at once: 1."""
+        return 1
 
     def map(self, fn: Callable, items: Iterable) -> list:
         items = list(items)
@@ -104,6 +112,11 @@ class ProcessExecutor:
         pool = self._get_pool()
         for _ in range(self.max_workers):
             pool.submit(_import_modules, tuple(modules))
+
+    @property
+    def width(self) -> int:
+        """Items run at once: the workers."""
+        return self.max_workers
 
     def map(self, fn: Callable, items: Iterable) -> list:
         """``[fn(x) for x in items]`` in the workers. A list or tuple of one item runs here; any other
@@ -182,6 +195,14 @@ class DaskExecutor:
         ex = cls(client=Client(cluster), progress=progress, cluster=cluster)
         ex._own = True
         return ex
+
+    @property
+    def width(self) -> int:
+        """Items run at once: the cluster's worker threads (at least 1)."""
+        try:
+            return max(sum(self.client.nthreads().values()), 1)
+        except (OSError, TimeoutError):  # a scheduler that does not answer: rounds of one
+            return 1
 
     def map(self, fn: Callable, items: Iterable) -> list:
         items = list(items)

@@ -163,7 +163,12 @@ class CalibrationSection(_Strict):
 
     zeta0: float = Field(0.01, gt=0, lt=0.5, description="equalized damping ratio (fraction)")
     samples_per_half_bandwidth: float = Field(3.0, gt=0, description="frequency samples per 2*zeta0*f")
-    starts: int = Field(20, ge=0, description="Latin-hypercube starts besides the nominal one")
+    starts: int = Field(20, ge=0, description="Latin-hypercube starts besides the nominal one (at most, with "
+                        "adaptive_starts)")
+    adaptive_starts: bool = Field(
+        True, description="stop the multi-start once its starts make a further minimum unlikely (Boender and "
+        "Rinnooy Kan's Bayesian rule: 8 starts that all end in one minimum; docs/calibration.md); false: run "
+        "every start")
     seed: int = Field(0, description="seed of the Latin hypercube")
     continuation_zeta: list[float] = Field(
         default_factory=lambda: [0.08, 0.03], description="damping continuation stages before zeta0 ([] = off)"

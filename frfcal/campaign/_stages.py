@@ -751,6 +751,7 @@ def calibrate_stage(camp: Campaign, model, articles, equalize: EqualizeResult, g
     log(f"surrogate: {sur0.size} ({len(sur0.basis_frequencies_hz)} modes, {sur0.n_static} static, "
         f"{sur0.n_enrich} enrichment) in {basis_s:.1f} s")
     opts = CycleOptions(n_starts=c.starts, seed=c.seed, quantity=articles[0].quantity, max_cycles=c.max_cycles,
+                        adaptive_starts=c.adaptive_starts,
                         tol=c.cycle_tol, basis_factor=c.basis_factor, enrich=c.enrich, max_nfev=c.max_evaluations,
                         basis_tol=c.basis_tol or None, rebasis=c.rebasis)
     members = []
@@ -759,7 +760,7 @@ def calibrate_stage(camp: Campaign, model, articles, equalize: EqualizeResult, g
         data, cont = equalize.member(idx)
         t = time.perf_counter()
         log(f"[{label}] calibrating on {len(arts)} article(s), {len(equalize.freq_hz)} frequencies x "
-            f"{len(camp.channels.calibrate)} channels, {c.starts + 1} starts")
+            f"{len(camp.channels.calibrate)} channels, {'up to ' if c.adaptive_starts else ''}{c.starts + 1} starts")
         cyc = calibrate_cycles(model, data, band, lower, upper, c.zeta0, options=replace(opts, quantity=arts[0].quantity),
                                executor=executor, surrogate=sur0, basis=T0, continuation=cont, log=log)
         log(f"[{label}] calibration SD (equalized test model, zeta0={100 * c.zeta0:g} %) "

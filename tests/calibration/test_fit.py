@@ -51,8 +51,9 @@ def beam():
 def test_noise_free_recovery_from_every_start(beam):
     model, sur = beam
     cont = [(z, _data(model, P_TRUE, z)) for z in SCHEDULE]
-    cal = calibrate(sur, _data(model, P_TRUE, 0.01), LO, HI, 0.01, n_starts=10, seed=3, continuation=cont)
-    assert len(cal.outcomes) == 11
+    cal = calibrate(sur, _data(model, P_TRUE, 0.01), LO, HI, 0.01, n_starts=10, seed=3, continuation=cont,
+                    adaptive_starts=False)
+    assert len(cal.outcomes) == 11 and not cal.stopped_early
     for o in cal.outcomes:
         err = np.abs((1 + o.p) / (1 + P_TRUE) - 1)
         assert err.max() < 0.005, (o.start, o.p)
@@ -275,3 +276,69 @@ def test_fit_data_takes_weights_per_line_or_per_value():
     np.testing.assert_allclose(per_value.value_weights(), np.sqrt([1, 2, 4, 5, 6]))
     with pytest.raises(CalibrationError, match="A7: weights must be 3 .* or \\(3, 2, 1\\)"):
         FitData(f, H, ("a", "b"), ("F",), article="A7", weights=np.ones((3, 2)))
+
+
+def test_bayesian_stopping_rule_counts():
+    """Boender and Rinnooy Kan's rule: w (n - 1) / (n - w - 2) < w + 1/2 first holds at 8, 17, 30 starts."""
+    from calibration._fit import enough_starts
+
+    first = {w: next(n for n in range(1, 200) if enough_starts(n, w)) for w in (1, 2, 3)}
+    assert first == {1: 8, 2: 17, 3: 30}
+    assert not enough_starts(0, 0) and not enough_starts(50, 0)
+
+
+def test_distinct_minima_and_stopping_point():
+    from calibration._fit import distinct_minima, stopping_point
+
+    one = [1.0, 1.0 + 1e-9, 1.0 - 5e-8, np.inf, 1.0]
+    assert distinct_minima(one) == 1
+    assert distinct_minima([1.0, 1.02, 1.0, 3.0, np.nan]) == 3
+    assert distinct_minima([]) == 0
+    # noise-free minima are round-off: equal within the absolute tolerance, not relatively
+    assert distinct_minima([1e-12, 3e-11, 5e-13]) == 3 and distinct_minima([1e-12, 3e-11, 5e-13], atol=1e-10) == 1
+    # one minimum: the 8th successful start ends it; a failed start does not count
+    assert stopping_point([2.0] * 8) == 8
+    assert stopping_point([2.0] * 3 + [np.inf] + [2.0] * 6) == 9
+    assert stopping_point([2.0] * 7) is None
+    # a second minimum among the first eight: 17 starts are needed
+    sds = [2.0, 2.5] + [2.0] * 20
+    assert stopping_point(sds) == 17
+
+
+def test_multistart_stops_by_the_rule_and_keeps_the_best(beam, monkeypatch):
+    """All starts of the noise-free beam end in one minimum: the rule stops after 8 of 21 with the same
+    optimum as the full multi-start, and rounds of two workers give the serial result start by start."""
+    from calibration._fit import _multistart
+
+    model, sur = beam
+    cont = [(z, _data(model, P_TRUE, z)) for z in SCHEDULE]
+    data = _data(model, P_TRUE, 0.01)
+    full = calibrate(sur, data, LO, HI, 0.01, n_starts=20, seed=3, continuation=cont, adaptive_starts=False)
+    short = calibrate(sur, data, LO, HI, 0.01, n_starts=20, seed=3, continuation=cont)
+    assert len(full.outcomes) == 21 and len(short.outcomes) == 8 and short.starts_planned == 21
+    assert short.stopped_early and "8 of 21 starts" in short.describe_starts()
+    assert short.to_dict()["distinct_minima"] == 1
+    for a, b in zip(short.outcomes, full.outcomes):
+        np.testing.assert_array_equal(a.p, b.p)
+    np.testing.assert_allclose(short.p, full.p, atol=1e-6)
+
+    class Rounds:  # an executor of width 3 that records its rounds
+        width = 3
+
+        def __init__(self):
+            self.rounds = []
+
+        def map(self, fn, items):
+            items = list(items)
+            self.rounds.append(len(items))
+            return [fn(x) for x in items]
+
+    ex = Rounds()
+    fake = [((), None, None, None, None, None)] * 21
+    import calibration._fit as F
+
+    seq = iter([1.0, 1.0, 1.5] + [1.0] * 30)  # a second minimum at start 3: the rule needs 17
+    monkeypatch.setattr(F, "run_start",
+                        lambda job: F.StartOutcome(np.zeros(1), np.zeros(1), 0.0, next(seq), True, "", 0, 0, 1, 1.0, 0.0))
+    out = _multistart(ex, fake)
+    assert len(out) == 17 and ex.rounds == [9, 3, 3, 3]  # 9 (>= 8 in rounds of 3), then rounds up to 18, cut to 17
