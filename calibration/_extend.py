@@ -189,7 +189,10 @@ def bordered(sur: Surrogate, T: np.ndarray, model: FRFModel, X: np.ndarray, p_b,
     """
     MX = M0 @ X
     before = np.sqrt(np.einsum("ij,ij->j", X, MX)) if column_scaled else None
-    for _ in range(2):  # twice: T is M-orthonormal at p_b
+    # twice (T is M-orthonormal at p_b) when the basis is returned; once when it is not: the round-off T
+    # part one pass leaves is removed by the reduced congruence below, which then needs no n-row product
+    # (two (n, r) x (r, k) products and a sparse M product less: 0.3-0.5 s of an extension at 200k DOF)
+    for _ in range(2 if with_basis else 1):
         X = X - T @ (T.T @ MX)
         MX = M0 @ X
     if X.shape[1] and column_scaled:
@@ -225,15 +228,23 @@ def bordered(sur: Surrogate, T: np.ndarray, model: FRFModel, X: np.ndarray, p_b,
     Mr = extend(model.M, sur.M)
     B = model.inputs.toarray() if sp.issparse(model.inputs) else np.asarray(model.inputs, float)
     C = model.outputs.toarray() if sp.issparse(model.outputs) else np.asarray(model.outputs, float)
-    Kr, Mr, Wn = _new_columns_orthonormalized(Kr, Mr, T, W, p_b)
-    if Wn is None:  # T itself was not M-orthonormal: the whole basis (n-sized, (r + k)^2 per row)
+    Kr, Mr, ok, F = _new_columns_orthonormalized(Kr, Mr, T, W, p_b)
+    if not ok:  # T itself was not M-orthonormal: the whole basis (n-sized, (r + k)^2 per row)
         Kr, Mr, Te = m_orthonormalized(Kr, Mr, np.hstack([T, W]), p_b, "raise vector_rtol")
-        inputs, outputs = np.asarray(Te.T @ B), np.asarray(C @ Te)
-    else:  # T kept as it is: its rows of the reduced inputs and outputs are the surrogate's
-        inputs = np.vstack([sur.inputs, np.asarray(Wn.T @ B)])
-        outputs = np.hstack([sur.outputs, np.asarray(C @ Wn)])
-        Te = np.hstack([T, Wn]) if with_basis else None
-    return Kr, Mr, inputs, outputs, Te, k
+        return Kr, Mr, np.asarray(Te.T @ B), np.asarray(C @ Te), Te, k
+    # T kept as it is: its rows of the reduced inputs and outputs are the surrogate's (T^T B, C T); the new
+    # columns W' = T F_T + W F_W (W' = W when F is None) need only W^T B and C W, not W' itself
+    WB, CW = np.asarray(W.T @ B), np.asarray(C @ W)
+    r = T.shape[1]
+    if F is None:
+        new_in, new_out, Wn = WB, CW, W
+    else:
+        new_in = F[:r].T @ sur.inputs + F[r:].T @ WB
+        new_out = sur.outputs @ F[:r] + CW @ F[r:]
+        Wn = T @ F[:r] + W @ F[r:] if with_basis else None
+    inputs = np.vstack([sur.inputs, new_in])
+    outputs = np.hstack([sur.outputs, new_out])
+    return Kr, Mr, inputs, outputs, (np.hstack([T, Wn]) if with_basis else None), k
 
 
 def _new_columns_orthonormalized(Kr, Mr, T: np.ndarray, W: np.ndarray, p, tol: float = 1e-12):
@@ -242,11 +253,13 @@ def _new_columns_orthonormalized(Kr, Mr, T: np.ndarray, W: np.ndarray, p, tol: f
     T (r columns) is M-orthonormal already: when the T-T block of the
     Cholesky factor L of M_r(p) is the identity within ``tol`` (the tolerance
     within which :func:`m_orthonormalized` leaves a basis as it is), it is
-    taken as the identity, so the congruence L^-1 keeps T and forms
-    W' = [T, W] (L^-1)[r:]^T: (n, r + k) x (r + k, k) instead of the
-    (r + k, r + k) product of the whole basis. Returns (Kr, Mr, W'), W' = W
-    when all of L is the identity within ``tol``; (Kr, Mr, None) when the T-T
-    block is not (then the caller orthonormalizes the whole basis).
+    taken as the identity, so the congruence L^-1 keeps T and the new columns
+    are W' = [T, W] F with F = (L^-1)[r:]^T (r + k, k), instead of the
+    (r + k, r + k) product of the whole basis. Returns (Kr, Mr, ok, F):
+    F None when all of L is the identity within ``tol`` (W' = W); ok False
+    when the T-T block is not (then the caller orthonormalizes the whole
+    basis). W' itself is left to the caller, which may need only its rows
+    at the inputs and outputs.
     """
     from calibration._surrogate import _congruent
 
@@ -254,15 +267,13 @@ def _new_columns_orthonormalized(Kr, Mr, T: np.ndarray, W: np.ndarray, p, tol: f
     try:
         L = np.linalg.cholesky(_sym(Mr.at(p)))
     except np.linalg.LinAlgError:
-        return Kr, Mr, None  # m_orthonormalized raises the error that names the remedy
+        return Kr, Mr, False, None  # m_orthonormalized raises the error that names the remedy
     eye = np.eye(L.shape[0])
     if np.abs(L - eye).max() <= tol:
-        return Kr, Mr, W
+        return Kr, Mr, True, None
     if np.abs(L[:r, :r] - eye[:r, :r]).max() > tol:
-        return Kr, Mr, None
+        return Kr, Mr, False, None
     L = L.copy()
     L[:r, :r] = eye[:r, :r]
     Li = sla.solve_triangular(L, eye, lower=True)  # its first r rows are exactly [I, 0]
-    Wn = T @ Li[r:, :r].T
-    Wn += W @ Li[r:, r:].T
-    return _congruent(Kr, Li), _congruent(Mr, Li), Wn
+    return _congruent(Kr, Li), _congruent(Mr, Li), True, np.ascontiguousarray(Li[r:].T)
