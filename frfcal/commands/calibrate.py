@@ -11,7 +11,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("campaign", help="campaign TOML file (see docs/campaign.md)")
     parser.add_argument("--json", action="store_true", help="print one JSON object with the results")
     parser.add_argument("--out", help="output directory (overrides [output] dir)")
-    parser.add_argument("--starts", type=int, help="Latin-hypercube starts (overrides [calibration] starts)")
+    parser.add_argument("--starts", type=int, help="Latin-hypercube starts, at most (overrides [calibration] starts; "
+                        "the multi-start stops earlier by the Bayesian rule unless adaptive_starts = false)")
     parser.add_argument("--realizations", type=int, help="cross-validation realizations (overrides the campaign)")
     parser.add_argument("--workers", type=int, help="local worker processes")
     parser.add_argument("--scheduler", help="Dask scheduler address (tcp://host:8786)")
