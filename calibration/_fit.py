@@ -66,12 +66,20 @@ def enough_starts(n: int, w: int) -> bool:
     return w * (n - 1) / (n - w - 2) < w + 0.5
 
 
-def stopping_point(sds, rtol: float = SAME_MINIMUM_RTOL, atol: float = 0.0) -> int | None:
-    """The smallest number of leading starts (in start order) after which :func:`enough_starts` says
-    stop, counting the successful ones; None if it never does on ``sds``."""
+#: Starts the rule needs at least (all in one minimum) before it can stop the multi-start.
+MIN_STARTS = next(n for n in range(1, 100) if enough_starts(n, 1))
+
+
+def stopping_point(sds, sd_starts=None, rtol: float = SAME_MINIMUM_RTOL) -> int | None:
+    """The smallest number k of leading starts (in start order) after which :func:`enough_starts` says
+    stop, counting the successful ones; None if it never does on ``sds``. With ``sd_starts`` (the square
+    deviations at the starts) the absolute tolerance of :func:`distinct_minima` is
+    :data:`SAME_MINIMUM_ATOL` x the largest of the first k (each prefix judged on itself alone)."""
     sds = list(sds)
     for k in range(1, len(sds) + 1):
         ok = [x for x in sds[:k] if np.isfinite(x)]
+        s0 = [x for x in (sd_starts or [])[:k] if np.isfinite(x)]
+        atol = SAME_MINIMUM_ATOL * max(s0) if s0 else 0.0
         if enough_starts(len(ok), distinct_minima(ok, rtol, atol)):
             return k
     return None
@@ -778,17 +786,17 @@ def _multistart(executor, jobs: list) -> list:
     """The starts' outcomes in start order, up to where :func:`stopping_point` says stop.
 
     The starts run in batches over the executor's workers: first as many as the rule needs at
-    least (8, rounded up to whole rounds of the workers), then one round at a time. Starts a batch
+    least (:data:`MIN_STARTS`, rounded up to whole rounds of the workers), then one round at a time. Starts a batch
     ran beyond the stopping point are dropped, so the result does not depend on the number of workers.
     """
     width = max(int(getattr(executor, "width", 1) or 1), 1)
-    first = -(-8 // width) * width
+    first = -(-MIN_STARTS // width) * width
     outcomes: list = []
     while len(outcomes) < len(jobs):
         k = len(outcomes)
         size = first if k == 0 else width
         outcomes += list(executor.map(run_start, jobs[k:k + size]))
-        stop = stopping_point([o.sd for o in outcomes], atol=same_minimum_atol(outcomes))
+        stop = stopping_point([o.sd for o in outcomes], [o.sd_start for o in outcomes])
         if stop is not None:
             return outcomes[:stop]
     return outcomes

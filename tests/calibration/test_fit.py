@@ -280,10 +280,10 @@ def test_fit_data_takes_weights_per_line_or_per_value():
 
 def test_bayesian_stopping_rule_counts():
     """Boender and Rinnooy Kan's rule: w (n - 1) / (n - w - 2) < w + 1/2 first holds at 8, 17, 30 starts."""
-    from calibration._fit import enough_starts
+    from calibration._fit import MIN_STARTS, enough_starts
 
     first = {w: next(n for n in range(1, 200) if enough_starts(n, w)) for w in (1, 2, 3)}
-    assert first == {1: 8, 2: 17, 3: 30}
+    assert first == {1: 8, 2: 17, 3: 30} and MIN_STARTS == 8
     assert not enough_starts(0, 0) and not enough_starts(50, 0)
 
 
@@ -300,6 +300,9 @@ def test_distinct_minima_and_stopping_point():
     assert stopping_point([2.0] * 8) == 8
     assert stopping_point([2.0] * 3 + [np.inf] + [2.0] * 6) == 9
     assert stopping_point([2.0] * 7) is None
+    # noise-free: minima of round-off, one minimum within 1e-8 of the SD at the starts
+    assert stopping_point([1e-12, 3e-11] + [5e-13] * 6) is None
+    assert stopping_point([1e-12, 3e-11] + [5e-13] * 6, [1e-2] * 8) == 8
     # a second minimum among the first eight: 17 starts are needed
     sds = [2.0, 2.5] + [2.0] * 20
     assert stopping_point(sds) == 17
