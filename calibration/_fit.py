@@ -920,7 +920,7 @@ def calibrate_cycles(
         surrogate, basis = build_surrogate(model, np.zeros(model.n_params), band_hz, o.basis_factor, enrich=o.enrich)
     t1 = time.perf_counter()
     say(f"cycle 1: basis {surrogate.size} ({len(surrogate.basis_frequencies_hz)} modes), "
-        f"{'up to ' if o.adaptive_starts else ''}{o.n_starts + 1} starts")
+        f"{'up to ' if o.adaptive_starts and o.n_starts + 1 > MIN_STARTS else ''}{o.n_starts + 1} starts")
     cal = calibrate(surrogate, data, lower, upper, zeta0, fit, executor=executor, continuation=continuation)
     t2 = time.perf_counter()
     say(f"cycle 1: {cal.describe_starts()} ({t2 - t1:.1f} s)")

@@ -46,6 +46,7 @@ from calibration import (
     scatter_sd,
 )
 from calibration._correct import rebased
+from calibration._fit import MIN_STARTS
 from calibration._refine import ModalDampingObjective, Refinement, carried_damping, refine
 from calibration._surrogate import assembled
 from calibration._signal import signal_pairs
@@ -760,7 +761,8 @@ def calibrate_stage(camp: Campaign, model, articles, equalize: EqualizeResult, g
         data, cont = equalize.member(idx)
         t = time.perf_counter()
         log(f"[{label}] calibrating on {len(arts)} article(s), {len(equalize.freq_hz)} frequencies x "
-            f"{len(camp.channels.calibrate)} channels, {'up to ' if c.adaptive_starts else ''}{c.starts + 1} starts")
+            f"{len(camp.channels.calibrate)} channels, "
+            f"{'up to ' if c.adaptive_starts and c.starts + 1 > MIN_STARTS else ''}{c.starts + 1} starts")
         cyc = calibrate_cycles(model, data, band, lower, upper, c.zeta0, options=replace(opts, quantity=arts[0].quantity),
                                executor=executor, surrogate=sur0, basis=T0, continuation=cont, log=log)
         log(f"[{label}] calibration SD (equalized test model, zeta0={100 * c.zeta0:g} %) "
