@@ -402,6 +402,9 @@ def _parameters(camp, r: ReportResults, tmp: Path) -> str:
                    + ("" if idf.spread is None else "; the verdict includes the spread of the cross-validation "
                       "refits (a parameter whose refits scatter beyond 5 % of its range, or end at a bound, is not "
                       "identifiable whatever its formal std)") + ".</p>")
+        cal = getattr(getattr(m, "cycle", None), "calibration", None)
+        if cal is not None:  # how many starts ran and into how many minima (docs/calibration.md, the stopping rule)
+            out.append(f"<p>Multi-start (equalized stage): {_esc(cal.describe_starts())}.</p>")
     return "".join(out)
 
 

@@ -153,6 +153,8 @@ def test_parameter_table_holds_the_calibrated_values(campaign):
             assert float(cells[2]) == pytest.approx(pm.physical(m.p)[name], rel=1e-3)
             assert float(cells[3]) == pytest.approx(100 * m.p[j], rel=1e-3, abs=1e-3)
             assert cells[5] == ("yes" if m.identifiability.identifiable[j] else f"NO: {m.identifiability.reasons[j]}")
+    for m in members:  # how many starts ran, and into how many minima
+        assert f"Multi-start (equalized stage): {m.cycle.calibration.describe_starts()}." in text
     # the reported values are the calibration's, and it moved towards the truth: the one-article member (which
     # of three alike articles stands alone under n_groups = 2 is the identified models' chance)
     (single,) = [m for m in members if len(m.articles) == 1]
