@@ -49,10 +49,10 @@ def distinct_minima(sds, rtol: float = SAME_MINIMUM_RTOL, atol: float = 0.0) -> 
     return 1 + int(np.sum(np.diff(v) > rtol * np.abs(v[1:]) + atol))
 
 
-def same_minimum_atol(outcomes) -> float:
-    """The absolute tolerance of :func:`distinct_minima` for these starts: :data:`SAME_MINIMUM_ATOL` x the
-    largest finite square deviation at a start."""
-    s0 = [o.sd_start for o in outcomes if np.isfinite(o.sd_start)]
+def same_minimum_atol(sd_starts) -> float:
+    """The absolute tolerance of :func:`distinct_minima` for starts whose square deviations at the start
+    are ``sd_starts``: :data:`SAME_MINIMUM_ATOL` x the largest finite one (0 without any)."""
+    s0 = [x for x in sd_starts if np.isfinite(x)]
     return SAME_MINIMUM_ATOL * max(s0) if s0 else 0.0
 
 
@@ -78,9 +78,7 @@ def stopping_point(sds, sd_starts=None, rtol: float = SAME_MINIMUM_RTOL) -> int 
     sds = list(sds)
     for k in range(1, len(sds) + 1):
         ok = [x for x in sds[:k] if np.isfinite(x)]
-        s0 = [x for x in (sd_starts or [])[:k] if np.isfinite(x)]
-        atol = SAME_MINIMUM_ATOL * max(s0) if s0 else 0.0
-        if enough_starts(len(ok), distinct_minima(ok, rtol, atol)):
+        if enough_starts(len(ok), distinct_minima(ok, rtol, same_minimum_atol((sd_starts or [])[:k]))):
             return k
     return None
 
@@ -489,7 +487,8 @@ class Calibration:
     @property
     def distinct_minima(self) -> int:
         """Distinct minima the starts ended in (:func:`distinct_minima`)."""
-        return distinct_minima([o.sd for o in self.outcomes], atol=same_minimum_atol(self.outcomes))
+        atol = same_minimum_atol([o.sd_start for o in self.outcomes])
+        return distinct_minima([o.sd for o in self.outcomes], atol=atol)
 
     @property
     def stopped_early(self) -> bool:

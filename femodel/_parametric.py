@@ -344,7 +344,7 @@ class ParametricModel:
         is its own p alone). Shared by :meth:`with_terms` and
         :meth:`term_derivative`, so both see the same matrices.
         """
-        from femodel._terms import ElementFactor
+        from femodel._terms import ElementFactor, _g_csr
 
         where = f"{self.bdf}: " if self.bdf else ""
         asm = self.assembly
@@ -366,8 +366,7 @@ class ParametricModel:
                 keep = (ar >= 0) & (ac >= 0) & (vals != 0.0)
                 m = sp.coo_matrix((vals[keep], (ar[keep], ac[keep])), shape=(n_a, n_a)).tocsr()
             else:  # dependent DOF (rigid elements, MPC): reduced by T
-                n_g = 6 * asm.model.n_grids
-                m_g = sp.csr_matrix((vals, (rows, cols)), shape=(n_g, n_g))
+                m_g = _g_csr({kind: (rows, cols, vals)}, asm.model)[kind]
                 m = _to_aset(asm, amap, _canonical(m_g), drop_zeros=True)
             m.eliminate_zeros()
             if m.nnz == 0:
