@@ -233,6 +233,36 @@ def _read_records(path: Path, types_wanted=(58,)) -> list[tuple[int, dict]]:
         raise UffError(f"{path}: cannot parse as a universal file: {exc}") from None
 
 
+def _dataset_tags(data: bytes) -> list[int]:
+    """Byte offsets of the ``    -1`` lines that open and close the datasets of a universal file, by pyuff's
+    own rule (the tag followed by a line end, the end of the file or blanks to column 80)."""
+    tags, at = [], -1
+    while True:
+        at = data.find(b"    -1", at + 1)
+        if at == -1:
+            return tags
+        end = at + 6
+        if end == len(data) or data[end] in (10, 13) or (end + 74 < len(data) and data[end:end + 74] == b" " * 74):
+            tags.append(at)
+
+
+def _check_complete(path: Path) -> None:
+    """Refuse a universal file that ends inside a dataset (a truncated copy or download).
+
+    pyuff pairs the ``    -1`` delimiters and silently drops an unpaired last one, so a file cut inside a
+    record would import as the records before the cut: a smaller run that looks complete (outside trial,
+    stop 33: an 11 x 1 run from a 16 x 2 file)."""
+    data = path.read_bytes()
+    tags = _dataset_tags(data)
+    if len(tags) % 2:
+        start = tags[-1]
+        line = data.count(b"\n", 0, start) + 1
+        head = data[start + 6:start + 200].lstrip(b" \r\n").split(b"\n", 1)[0][:6].strip().decode("ascii", "replace")
+        raise UffError(f"{path}: the file ends inside dataset {len(tags) // 2 + 1} (type {head or '?'}, opened at "
+                       f"line {line}, byte {start}): no closing -1 delimiter line: the file "
+                       f"({len(data)} bytes) is truncated or damaged; nothing imported")
+
+
 def _dataset_listing(path: Path) -> str:
     """What a universal file holds, for an error: "it holds datasets 151 x1, 164 x1" or "it holds no dataset
     pyuff can delimit (N bytes)" (a damaged or empty file, e.g. a binary one written record by record in
@@ -413,6 +443,7 @@ def import_uff(path, out, *, article: str | None = None, overwrite: bool = False
     path = Path(path)
     if not path.exists():
         raise UffError(f"{path}: file not found")
+    _check_complete(path)
     records = _read_records(path)
     plan = {"source": "uff58", "file": str(path)}
     if not records:

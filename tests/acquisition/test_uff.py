@@ -408,3 +408,25 @@ def test_a_file_without_frf_records_says_what_it_holds(tmp_path):
     (tmp_path / "junk.uff").write_text("junk\n")
     with pytest.raises(UffError, match=r"junk.uff: no UFF58 records; it holds no dataset pyuff can delimit"):
         import_uff(tmp_path / "junk.uff", tmp_path / "junk.h5")
+
+
+@pytest.mark.parametrize("binary", [False, True])
+def test_a_truncated_file_is_refused_not_imported_in_part(tmp_path, binary):
+    """A copy cut inside a record: pyuff drops the unclosed dataset silently, and the records before the cut
+    (here the first reference's) would fill a smaller matrix that looks complete. The import refuses it and
+    says where the file ends."""
+    cells = _mimo_cells()
+    if binary:
+        f, frf = _run(tmp_path / "src.h5")
+        export_uff(tmp_path / "src.h5", tmp_path / "full.uff", binary=True)
+    else:
+        _foreign(tmp_path / "full.uff", cells)
+    full = (tmp_path / "full.uff").read_bytes()
+    assert import_uff(tmp_path / "full.uff", tmp_path / "full.h5").frf.shape == ((40, 3, 2) if binary else (16, 20, 2))
+    cut = full[: int(0.537 * len(full))]  # inside a record (0.55 x 40 records would end one exactly)
+    (tmp_path / "cut.uff").write_bytes(cut)
+    with pytest.raises(UffError, match=r"cut.uff: the file ends inside dataset \d+ \(type 58b?, opened at line \d+, "
+                                       r"byte \d+\): no closing -1 delimiter line: the file \(\d+ bytes\) is "
+                                       r"truncated or damaged; nothing imported"):
+        import_uff(tmp_path / "cut.uff", tmp_path / "cut.h5")
+    assert not (tmp_path / "cut.h5").exists()
