@@ -43,7 +43,7 @@ import numpy as np
 
 from calibration._damping import IdentifiedModes, pair_modes
 from calibration._errors import CalibrationError
-from calibration._metric import LN10, log_deviation
+from calibration._metric import LN10, log_deviation, log_noise_variance
 from calibration._nonlinearity import _chi2_z
 from calibration._surrogate import Surrogate, reduced_modes
 from labdata import mac
@@ -90,13 +90,15 @@ class ResidualItem:
 
 
 def expected_from_std_error(frf_test, std_error) -> np.ndarray:
-    """Per value ``E|eps|^2 = (sigma / |H|)^2 / (ln 10)^2`` from the lines' standard errors (same shape)."""
+    """Per value ``E|eps|^2`` from the lines' standard errors (same shape): ``(sigma / |H|)^2 / (ln 10)^2``
+    where sigma << |H|, growing only logarithmically where the noise reaches |H|
+    (:func:`calibration._metric.log_noise_variance`)."""
     H = np.asarray(frf_test)
     s = np.asarray(std_error, float)
     if s.shape != H.shape:
         raise CalibrationError(f"standard errors shape {s.shape} != FRF shape {H.shape}")
     with np.errstate(divide="ignore", invalid="ignore"):
-        q = (s / np.abs(H)) ** 2 / LN10**2
+        q = log_noise_variance((s / np.abs(H)) ** 2) / LN10**2
     return np.where(np.isfinite(q), q, 0.0)
 
 

@@ -18,8 +18,11 @@ set. A lower SD is not a pass: a model that lacks physics also improves.
 Noise floor. When the per-line standard errors ``sigma`` of the raw FRF
 estimates are known (run files store them, same unit as the FRF, the rms of
 the complex error), the SD that measurement noise alone leaves is estimated
-as ``floor = mean (sigma / |H|)^2 / (ln 10)^2`` over the compared values,
-from ``E|log10(1 + n/H)|^2 ~ E|n|^2 / (|H| ln 10)^2`` for ``|n| << |H|``.
+as ``floor = mean E|log10(1 + n/H)|^2`` over the compared values, with
+``E|n|^2 = sigma^2`` (:func:`calibration._metric.log_noise_variance`): that is
+``(sigma / |H|)^2 / (ln 10)^2`` where ``sigma << |H|``, and grows only
+logarithmically where the noise reaches |H| (anti-resonances, a channel near
+its noise), where the first-order form blew up.
 A calibrated SD near the floor (ratio ~1) leaves nothing for the model to
 explain; a ratio of 10 means model error dominates the noise.
 """
@@ -32,7 +35,7 @@ import numpy as np
 
 from calibration._errors import CalibrationError
 from calibration._fit import FitData
-from calibration._metric import LN10, log_deviation, square_deviation
+from calibration._metric import LN10, log_deviation, log_noise_variance, square_deviation
 from calibration._surrogate import Surrogate, modal_frf, reduced_modes
 from calibration._damping import IdentifiedModes, mapped_damping, pair_modes  # noqa: F401 (re-exported)
 from calibration._refine import ModalDampingObjective
@@ -70,7 +73,8 @@ def noise_floor_sd(data: FitData, std_error) -> float:
 
     Returns
     -------
-    float, mean (sigma/|H|)^2 / (ln 10)^2 over the compared values.
+    float, mean E|log10(1 + n/H)|^2 (E|n|^2 = sigma^2) over the compared values: (sigma/|H|)^2 / (ln 10)^2
+    where sigma << |H| (:func:`calibration._metric.log_noise_variance`).
     """
     sig = np.asarray(std_error, float)
     if sig.shape != data.frf.shape:
@@ -78,7 +82,7 @@ def noise_floor_sd(data: FitData, std_error) -> float:
             f"standard errors of {data.article or 'the hold-out data'}: shape {sig.shape} != FRF shape {data.frf.shape}"
         )
     with np.errstate(divide="ignore", invalid="ignore"):
-        q = (sig / np.abs(data.frf)) ** 2 / LN10**2
+        q = log_noise_variance((sig / np.abs(data.frf)) ** 2) / LN10**2
     q = q if data.mask is None else q[data.mask]
     if not np.all(np.isfinite(q)):
         raise CalibrationError(
