@@ -58,15 +58,22 @@ class OrderSelection:
         Chosen order.
     matched : bool
         True when the physical poles at ``order`` are exactly the stable set;
-        False when no evaluated order matched and the one with the fewest
-        mismatches was taken.
+        False when no evaluated order matched: then the evaluated order whose
+        physical poles agree best with the other evaluated orders was taken
+        (fewest stable poles missing + physical poles that recur at no more
+        than half of the other evaluated orders + poles that recur there but
+        are absent at it; see :func:`select_order`).
     missing_hz : tuple of tuple of float
         Per scanned order: frequencies [Hz] of stable-set poles with no
         matching in-band pole at that order (poles only, before labelling).
     evaluations : tuple of dict
         Orders fully identified and labelled: ``{"order", "n_physical",
         "missing_hz", "spurious_hz"}`` (physical poles without a stable
-        counterpart are spurious).
+        counterpart are spurious); when no order matched and three or more
+        were evaluated, also ``"recurring_hz"`` (the spurious poles that are
+        physical at more than half of the other evaluated orders: modes the
+        stable set missed) and ``"absent_hz"`` (such recurring poles that
+        this order lacks).
     reason : str
         The choice in words.
     criteria : dict
@@ -229,6 +236,44 @@ def _match(lam_s, sh_s, lam, sh, crit):
     )
 
 
+def _mismatches(e: dict) -> int:
+    """An evaluation's mismatch count: stable poles missing + spurious physical poles, where the vote of
+    :func:`_vote` ran: less the spurious poles that recur, plus the recurring ones absent."""
+    if "recurring_hz" not in e:
+        return len(e["missing_hz"]) + len(e["spurious_hz"])
+    return len(e["missing_hz"]) + len(e["spurious_hz"]) - len(e["recurring_hz"]) + len(e["absent_hz"])
+
+
+def _vote(evaluations: list, phys_sets: list, lam_s, sh_s, crit) -> None:
+    """Add ``recurring_hz`` and ``absent_hz`` to every evaluation (see :func:`select_order`, step 5).
+
+    A physical pole recurs when more than half of the other evaluated orders have a physical pole matching
+    it (:func:`_match`: frequency and MAC). The recurring poles outside the stable set are collected over
+    all evaluations, one per frequency (within ``tol_frequency``: a weakly excited mode's shape may differ
+    from order to order more than the MAC allows, its frequency does not); an order lacks one when none of
+    its physical poles lies within ``tol_frequency`` of it."""
+    n = len(phys_sets)
+    tol = crit["tol_frequency"]
+    modes_hz: list[float] = []  # recurring poles beyond the stable set, one per frequency
+    for e, (lam_a, sh_a) in zip(evaluations, phys_sets):
+        count = np.zeros(lam_a.size, int)
+        for b, (lam_b, sh_b) in enumerate(phys_sets):
+            if lam_b is not lam_a:
+                hit = np.ones(lam_a.size, bool)
+                hit[_match(lam_a, sh_a, lam_b, sh_b, crit)[0]] = False
+                count += hit
+        beyond = np.zeros(lam_a.size, bool)
+        beyond[_match(lam_s, sh_s, lam_a, sh_a, crit)[1]] = True  # spurious: no stable counterpart
+        idx = np.flatnonzero(beyond & (count > (n - 1) / 2))
+        e["recurring_hz"] = list(_hz(lam_a[idx]))
+        for f in e["recurring_hz"]:
+            if not any(abs(f - m) <= tol * m for m in modes_hz):
+                modes_hz.append(f)
+    for e, (lam_p, _) in zip(evaluations, phys_sets):
+        f_p = pole_frequency_hz(lam_p)
+        e["absent_hz"] = sorted(m for m in modes_hz if not np.any(np.abs(f_p - m) <= tol * m))
+
+
 def _hz(lam) -> tuple[float, ...]:
     return tuple(round(float(x), 4) for x in pole_frequency_hz(np.asarray(lam)))
 
@@ -296,6 +341,15 @@ def select_order(
        :func:`identify`) until one has exactly the stable set as physical
        poles (one-to-one, same criteria): no stable pole missing, no
        spurious physical pole. That order is returned.
+    5. When none matches, the evaluated orders vote: a physical pole that is
+       physical (frequency and MAC agreeing) at more than half of the other
+       evaluated orders is a mode, also when the stable set missed it (a
+       weakly excited or closely spaced mode whose chain broke near the
+       reference order). The order returned has the fewest stable poles
+       missing + physical poles that do not recur + recurring poles it lacks
+       (ties: the lowest). Counting every pole outside the stable set as a
+       mismatch instead chose, on an outside frame, the order at which a
+       large, well-separated mode had split into two negligible poles.
 
     Parameters
     ----------
@@ -392,6 +446,7 @@ def select_order(
     missing = [_match(lam_s, sh_s, lam[seg], sh[:, seg], crit)[0] for (lam, sh), seg in zip(scans, in_segment)]
     evaluations: list[dict] = []
     mismatch: list[tuple[set, int]] = []  # per evaluation: missing stable poles (indices), number spurious
+    phys_sets: list[tuple] = []  # per evaluation: (physical eigenvalues, their shapes)
     results: dict[int, Identification] = {}
     chosen = None
     for j, n in enumerate(ords):
@@ -402,7 +457,9 @@ def select_order(
         r = results[n] = full(n)
         phys = r.poles.physical
         lam_p = r.poles.eigenvalues[phys]
-        miss, spur = _match(lam_s, sh_s, lam_p, _shapes(r, data.dual), crit)
+        sh_p = _shapes(r, data.dual)
+        phys_sets.append((lam_p, sh_p))
+        miss, spur = _match(lam_s, sh_s, lam_p, sh_p, crit)
         evaluations.append({
             "order": int(n),
             "n_physical": int(phys.sum()),
@@ -422,7 +479,9 @@ def select_order(
                 break
     matched = chosen is not None
     if not matched:
-        best = min(evaluations, key=lambda e: (len(e["missing_hz"]) + len(e["spurious_hz"]), e["order"]))
+        if len(evaluations) >= 3:
+            _vote(evaluations, phys_sets, lam_s, sh_s, crit)
+        best = min(evaluations, key=lambda e: (_mismatches(e), e["order"]))
         chosen = best["order"]
     refined: list[dict] = []
     if rejected:
@@ -451,15 +510,24 @@ def select_order(
                      f"{', '.join(str(e['order']) for e in evaluations)}: left out)")
     else:
         e = ev[chosen]
-        head = (
-            f"order {chosen}: no scanned order has exactly the {ns} stable poles in {lo:g}-{hi:g} Hz as physical "
-            f"poles; this one has the fewest mismatches ({len(e['missing_hz'])} missing, "
-            f"{len(e['spurious_hz'])} spurious)"
-        )
+        head = f"order {chosen}: no scanned order has exactly the {ns} stable poles in {lo:g}-{hi:g} Hz as physical poles"
+        if "recurring_hz" in e:
+            rec, n_ev = e["recurring_hz"], len(evaluations)
+            head += (f"; its physical poles agree best with the other {n_ev - 1} evaluated orders "
+                     f"({len(e['missing_hz'])} stable missing, {len(e['spurious_hz']) - len(rec)} spurious, "
+                     f"{len(e['absent_hz'])} recurring absent)")
+            if rec:
+                head += f"; {_list_hz(rec)} beyond the stable set {'is' if len(rec) == 1 else 'are'} physical at " \
+                        "most evaluated orders: kept as modes"
+        else:
+            head += (f"; this one has the fewest mismatches ({len(e['missing_hz'])} missing, "
+                     f"{len(e['spurious_hz'])} spurious)")
     notes = []
     for e in evaluations:
-        if e["order"] < chosen and e["spurious_hz"]:
-            sp = e["spurious_hz"]
+        if e["order"] < chosen and e.get("absent_hz"):
+            notes.append(f"order {e['order']} lacks {_list_hz(e['absent_hz'])} that most evaluated orders have")
+        sp = [v for v in e["spurious_hz"] if v not in e.get("recurring_hz", ())]
+        if e["order"] < chosen and sp:
             what = f"a spurious physical pole at {sp[0]:.1f} Hz" if len(sp) == 1 else (
                 f"{len(sp)} spurious physical poles ({', '.join(f'{v:.1f}' for v in sp[:4])}{', ...' if len(sp) > 4 else ''} Hz)"
             )

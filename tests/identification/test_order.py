@@ -187,3 +187,32 @@ def test_campaign_identifies_like_the_cli_with_automatic_order(run_file, capsys)
                                 "identification": {"use_stored": False, "order": 40}})
     arts = identified_articles(fixed, load_articles(fixed, print, identify_data=False), lambda m: None)
     assert arts[0].identification.order == 40 and arts[0].identification.order_selection is None
+
+
+def test_without_a_match_the_evaluated_orders_vote_on_the_modes():
+    """No evaluated order has exactly the stable set: a mode the stable set missed (its chain broke near the
+    reference order) is physical at most evaluated orders and counts as a mode, so the order that lacks it
+    (split into two negligible poles) is not taken for having "fewer mismatches" (outside frame, stop 33)."""
+    from identification._order import _mismatches, _vote
+
+    rng = np.random.default_rng(2)
+    f = np.array([20.0, 50.0, 80.0, 120.0, 97.0])
+    lam = -0.002 * 2 * np.pi * f + 2j * np.pi * f
+    shapes = rng.normal(size=(6, 5)) + 0j
+    crit = {"tol_frequency": 0.005, "min_mac": 0.95}
+    stable = [0, 1, 2]  # the 120 Hz mode is not in the stable set; 97 Hz is noise at one order
+    sets = {40: [0, 1, 2, 3, 4], 42: [0, 1, 2, 3], 44: [0, 1, 2], 46: [0, 1, 2, 3]}
+    evaluations, phys = [], []
+    for order, idx in sets.items():
+        jitter = 1 + 1e-5 * order  # the same modes, a little moved from order to order
+        phys.append((lam[idx] * jitter, shapes[:, idx]))
+        evaluations.append({"order": order, "n_physical": len(idx), "missing_hz": [],
+                            "spurious_hz": [round(float(f[i] * jitter), 4) for i in idx if i not in stable]})
+    old = min(evaluations, key=lambda e: (_mismatches(e), e["order"]))
+    assert old["order"] == 44  # fewest poles outside the stable set: the one without the 120 Hz mode
+    _vote(evaluations, phys, lam[stable], shapes[:, stable], crit)
+    by = {e["order"]: e for e in evaluations}
+    assert [round(v) for v in by[40]["recurring_hz"]] == [120] and by[40]["absent_hz"] == []
+    assert [round(v) for v in by[44]["absent_hz"]] == [120]
+    assert [_mismatches(by[o]) for o in (40, 42, 44, 46)] == [1, 0, 1, 0]
+    assert min(evaluations, key=lambda e: (_mismatches(e), e["order"]))["order"] == 42
