@@ -367,6 +367,14 @@ def identifiability(
 MIN_REFITS = 5
 
 
+def _weak_only(idf: Identifiability, j: int, reason: str) -> bool:
+    """Parameter ``j`` is judged not identifiable only by taking part in a weak combination (not at a bound,
+    resolved, formal std within the rule): the cross-validation refits may readmit it (:func:`with_spread`)."""
+    limit = idf.thresholds["max_std_range"] * (idf.upper[j] - idf.lower[j])
+    return (not idf.identifiable[j] and not idf.at_bound[j] and bool(np.isfinite(idf.std[j]))
+            and idf.std[j] <= limit and reason.startswith("in weak combination"))
+
+
 def with_spread(idf: Identifiability, p_refits, bound_tol: float | None = None) -> Identifiability:
     """The verdict checked against what the estimates do when the data change: cross-validation refits.
 
@@ -420,8 +428,11 @@ def with_spread(idf: Identifiability, p_refits, bound_tol: float | None = None) 
     n = len(idf.names)
     if P.shape[1] != n:
         raise CalibrationError(f"with_spread: refits have {P.shape[1]} parameters, the identifiability {n}")
+    few = (f"; {P.shape[0]} cross-validation refit{'s' if P.shape[0] != 1 else ''} cannot decide: at least "
+           f"{MIN_REFITS} are needed ([crossvalidation] realizations)")
     if P.shape[0] < 2:
-        return replace(idf, spread=np.full(n, np.nan), std_formal=idf.std)
+        reasons = tuple(r + few if _weak_only(idf, j, r) else r for j, r in enumerate(idf.reasons))
+        return replace(idf, spread=np.full(n, np.nan), std_formal=idf.std, reasons=reasons)
     tol = idf.thresholds["bound_tol"] if bound_tol is None else bound_tol
     span = idf.upper - idf.lower
     pinned = np.sum((P <= idf.lower + tol * span) | (P >= idf.upper - tol * span), axis=0)
@@ -434,11 +445,12 @@ def with_spread(idf: Identifiability, p_refits, bound_tol: float | None = None) 
         if not ident[j]:
             # judged only by taking part in a weak combination (not at a bound, resolved, formal std within the
             # rule): refits that agree to the strict rule's 1 % of the range show the data do hold it
-            weak_only = (not idf.at_bound[j] and np.isfinite(idf.std[j]) and idf.std[j] <= limit[j]
-                         and reasons[j].startswith("in weak combination"))
-            if weak_only and P.shape[0] >= MIN_REFITS and not pinned[j] and spread[j] <= strict[j]:
-                ident[j] = True
-                reasons[j] = ""
+            if _weak_only(idf, j, reasons[j]):
+                if P.shape[0] < MIN_REFITS:  # say so: the verdict stays, but the refits could have changed it
+                    reasons[j] += few
+                elif not pinned[j] and spread[j] <= strict[j]:
+                    ident[j] = True
+                    reasons[j] = ""
             continue
         if pinned[j]:
             why = (f"at a bound in {pinned[j]} of {P.shape[0]} cross-validation refits (formal std "

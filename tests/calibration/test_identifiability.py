@@ -116,7 +116,12 @@ def test_refits_that_agree_readmit_a_parameter_of_a_weak_combination():
     assert out.identifiable.all() and out.reasons[:2] == ("", "")
     P[:, 1] = np.linspace(-0.01, 0.01, 10)  # s.d. 0.64 %: above 1 % of the 0.6 range
     assert with_spread(idf, P).identifiable.tolist() == [True, False, True, True]
-    assert with_spread(idf, P[:4]).identifiable.tolist() == [False, False, True, True]  # too few refits
+    few = with_spread(idf, P[:4])
+    assert few.identifiable.tolist() == [False, False, True, True]  # too few refits: and the verdict says so
+    assert all(why.endswith("; 4 cross-validation refits cannot decide: at least 5 are needed ([crossvalidation] "
+                            "realizations)") for why in few.reasons[:2]) and few.reasons[2:] == ("", "")
+    assert with_spread(idf, P[:1]).reasons[0].endswith("1 cross-validation refit cannot decide: at least 5 are "
+                                                        "needed ([crossvalidation] realizations)")
     P[0, 0] = LO[0]
     assert not with_spread(idf, P).identifiable[0]
     # at a bound (not only a weak combination) is never readmitted
