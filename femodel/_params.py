@@ -497,13 +497,14 @@ def _container(model, card: str) -> dict:
     raise KeyError(card)  # pragma: no cover - guarded by SUPPORTED_FIELDS
 
 
-def deck_card(model, key, source=None):
-    """The pyNastran card object for ``(card, id, field)``, or a ParameterError."""
+def deck_card(model, key, source=None, label: str | None = None):
+    """The pyNastran card object for ``(card, id, field)``, or a ParameterError (prefixed with ``label``,
+    e.g. "parameter 'M_mass'", the parameter whose card it is)."""
     card, cid, fld = key
     obj = _container(model, card).get(cid)
     if obj is None or obj.type != card:
         have = "" if obj is None else f" (id {cid} is a {obj.type})"
-        _fail(source, f"card {card} {cid} (field {fld}) is not in the deck{have}")
+        _fail(source, f"{label + ': ' if label else ''}card {card} {cid} (field {fld}) is not in the deck{have}")
     return obj
 
 
@@ -606,7 +607,7 @@ def si_factor(model, key, units: str, source=None) -> float:
 
 def _deck_value(label: str, unit: str, key, model, units: str, source) -> tuple[float, float]:
     """(number on the card, value in ``unit`` or, without a unit, that same number) of one key."""
-    obj = deck_card(model, key, source)
+    obj = deck_card(model, key, source, label)
     raw = get_deck_value(obj, key[2])
     if raw is None:
         _fail(source, f"{label}: {key[0]} {key[1]} has no field {key[2]}")
@@ -660,7 +661,7 @@ def nominal_values(params: ParameterSet, model, units: str | None = None, source
     for prm in params.parameters:
         vals = []
         for key in prm.keys:
-            obj = deck_card(model, key, source)
+            obj = deck_card(model, key, source, f"parameter {prm.name!r}")
             raw = get_deck_value(obj, prm.field)
             if raw is None:
                 _fail(source, f"parameter {prm.name!r}: {key[0]} {key[1]} has no field {key[2]}")

@@ -230,10 +230,10 @@ def _resolve_values(values, parameters: ParameterSet | None, model, units, sourc
                 raise ParameterError(f"write_bdf: value keyed by name {key!r} needs parameters=ParameterSet")
             prm = parameters.parameters[parameters.index(key)]
             # a group moves together: every card is scaled by the factor of the first
-            first = deck_card(model, prm.keys[0], source)
+            first = deck_card(model, prm.keys[0], source, f"parameter {prm.name!r}")
             p0 = float(get_deck_value(first, prm.field)) * si_factor(model, prm.keys[0], units, source)
             for k in prm.keys:
-                obj = deck_card(model, k, source)
+                obj = deck_card(model, k, source, f"parameter {prm.name!r}")
                 pk = float(get_deck_value(obj, prm.field)) * si_factor(model, k, units, source)
                 out[k] = v if k == prm.keys[0] else pk * (v / p0)
         else:

@@ -144,6 +144,19 @@ def _same_point(a, b, sign: float = 1.0) -> bool:
                                                        sign * np.asarray(b.direction, float), atol=1e-6)
 
 
+def _named_point(name: str):
+    """(grid, unit direction) of a channel name that ends in its point as import-uff names channels,
+    ``"acc12 (101+Z)"`` or ``"n101-Y"``; None otherwise."""
+    import re
+
+    m = re.search(r"(?:\(|(?:^|_)n)(\d+)([+-])([XYZ])\)?\s*$", name)
+    if m is None:
+        return None
+    d = np.zeros(3)
+    d["XYZ".index(m.group(3))] = 1.0 if m.group(2) == "+" else -1.0
+    return int(m.group(1)), d
+
+
 def _by_point(channels, names, first: dict, what: str, path, log) -> tuple[list, np.ndarray]:
     """Indices of ``names`` among a run's ``channels``, and the sign of each: by name, else by the point
     (grid and direction) the name has in the campaign's first run.
@@ -182,6 +195,12 @@ def _by_point(channels, names, first: dict, what: str, path, log) -> tuple[list,
             signs.append(-1.0)
         else:
             there = [c for c in channels if ref is not None and int(c.grid) == int(ref.grid)]
+            if ref is None:  # a name not in the first run either: one that names a point ("X (101+Z)") may be a typo
+                at = _named_point(n)
+                same = [c.name for c in channels if at is not None and int(c.grid) == at[0]
+                        and np.allclose(np.asarray(c.direction, float), at[1], atol=1e-6)]
+                if same:
+                    n = f"{n} (the run's {same[0]!r} is at grid {at[0]} along {tuple(at[1])}: that name?)"
             missing.append(n if ref is None else
                            f"{n} (grid {ref.grid}, direction {tuple(ref.direction)}: "
                            + (f"{len(hits)} channels along it" if hits else "none along it or opposite")

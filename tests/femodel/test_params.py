@@ -138,7 +138,7 @@ def test_bad_files_name_file_and_parameter(deckdir, edit, message):
     path = write(deckdir, edit(GOOD))
     if message is None:
         ps = read_parameters(path)
-        with pytest.raises(ParameterError, match=r"card CONM2 3 \(field M\) is not in the deck"):
+        with pytest.raises(ParameterError, match=r"parameter 'm': card CONM2 3 \(field M\) is not in the deck"):
             nominal_values(ps, _read_deck(ps.bdf))
         return
     with pytest.raises(ParameterError) as info:

@@ -322,3 +322,21 @@ def test_a_corrected_second_raw_line_rebasis_lands_where_a_rebuilt_one_does(stag
     assert [x for x in lines if "raw-line re-basis 2: basis corrected" in x], lines
     assert not [x for x in lines if "raw-line re-basis 1: basis corrected" in x]
     _lands_where_the_campaign_did(m, model, first)
+
+
+def test_a_drive_named_by_its_point_but_not_in_the_runs_names_the_channel_there(staged):
+    """A campaign name in import-uff's form "<entity> (<grid><axis>)" that no run has, where a run channel sits
+    at that point (a lab's typo of the entity name): the error names that channel (outside trial, stop 33)."""
+    from acquisition import read_run
+    from frfcal.campaign import load_stage
+
+    camp, _ = staged
+    drive = read_run(camp.resolve(camp.run[0].path)).drives[0]
+    k = int(np.flatnonzero(np.asarray(drive.direction))[0])
+    point = f"{drive.grid}{'+' if drive.direction[k] > 0 else '-'}{'XYZ'[k]}"
+    bad = camp.model_copy(update={"channels": camp.channels.model_copy(update={"drives": [f"IMP-C ({point})"]})})
+    import re
+
+    with pytest.raises(CalibrationError, match=rf"drives \[\"IMP-C \({re.escape(point)}\) \(the run's '{drive.name}' is at grid "
+                                               rf"{drive.grid} along .*: that name\?\)\"\] are not drives of the run"):
+        load_stage(bad, lambda _: None)
