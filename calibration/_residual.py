@@ -330,6 +330,11 @@ def residual_check(items, channels, drives, *, scatter: float = 0.0, band_hz=Non
             + (f" + test-to-test scatter {scatter:.3g}" if scatter else "") + f"): ratio {ratio:.3g}"
             + f" ({'>' if ratio > ratio_threshold else '<='} {ratio_threshold:g}), chi-square with {2 * n} dof "
             + f"{z:.3g} sigma ({'>' if z > z_threshold else '<='} {z_threshold:g}): {verdict}")
+    if not sig and z > z_threshold:  # one test passed, the other not: say why they can disagree
+        test += (" (the chi-square alone exceeds its threshold: it weighs each value by its own floor, so a misfit "
+                 "small against the mean floor shows where the noise is lowest)")
+    elif not sig and ratio > ratio_threshold:
+        test += " (the ratio alone exceeds its threshold: too few values back it)"
     return ResidualCheck(sig, verdict, sd, floor, floor_source, float(scatter), ex, ratio, z, n,
                          float(ratio_threshold), float(z_threshold), tuple(rows), tuple(bands), tuple(modes),
                          tuple(antiresonances), test)

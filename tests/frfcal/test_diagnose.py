@@ -57,6 +57,17 @@ def test_white_residual_at_its_floor_is_not_significant_a_systematic_one_is():
     # the test-to-test scatter raises the expectation: the same residual is then inside
     r3 = residual_check([ResidualItem("A", f, eps + bias, q)], ["a", "b", "c"], ["F"], scatter=0.01)
     assert not r3.significant and r3.expected == pytest.approx(r3.floor + 0.01)
+    # a misfit far below the mean floor on values whose own floor is tiny: the chi-square alone fires, and the
+    # verdict says why the two tests disagree (outside trial, stop 33: "ratio 0.248 (<= 2), ... 11.7 sigma")
+    q4 = q.copy()
+    q4[::20, 0, 0] = 1e-8
+    eps4 = _white(rng, q.shape, q4)
+    eps4[::20, 0, 0] += 1e-3
+    r4 = residual_check([ResidualItem("A", f, eps4, q4)], ["a", "b", "c"], ["F"], band_hz=(50, 400))
+    assert not r4.significant and r4.ratio < 2 and r4.z > 5
+    assert r4.test.endswith("inside the floor (the chi-square alone exceeds its threshold: it weighs each value by "
+                            "its own floor, so a misfit small against the mean floor shows where the noise is lowest)")
+    assert r.test.endswith("inside the floor")
 
 
 def test_difference_noise_recovers_the_noise_under_a_smooth_error():
