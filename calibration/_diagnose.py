@@ -116,10 +116,12 @@ class CandidateTerm:
         for kind, A in (("dK", self.dK), ("dM", self.dM)):
             if A is None:
                 continue
-            A = sp.csr_matrix(A, dtype=float, copy=True)  # never touch the caller's arrays (a shared pattern)
+            A = sp.csr_matrix(A, dtype=float)
             if A.shape[0] != A.shape[1]:
                 raise CalibrationError(f"candidate {self.name!r}: {kind} is {A.shape}, not square")
-            A.eliminate_zeros()
+            if np.any(A.data == 0):  # a copy first: never touch the caller's arrays (a shared pattern)
+                A = A.copy()
+                A.eliminate_zeros()
             mats[kind] = A
         if not mats or all(A.nnz == 0 for A in mats.values()):
             raise CalibrationError(f"candidate {self.name!r}: neither dK nor dM has a non-zero entry")
@@ -129,10 +131,15 @@ class CandidateTerm:
         lo, hi = float(self.lower), float(self.upper)
         if not (np.isfinite(lo) and np.isfinite(hi) and -1.0 < lo < hi):
             raise CalibrationError(f"candidate {self.name!r}: bounds need -1 < lower < upper, got [{lo}, {hi}]")
-        rows = np.unique(np.concatenate([np.concatenate([np.flatnonzero(np.diff(A.indptr)),
-                                                         np.unique(A.indices)]) for A in mats.values()]))
-        local = tuple(None if kind not in mats else sp.csr_matrix(mats[kind][rows][:, rows])
-                      for kind in ("dK", "dM"))
+        # the rows and columns the candidate touches, and its matrices on them, from the non-zeros alone: a
+        # candidate is a few entries of an n-row matrix, and every pass over its n + 1 row pointers costs
+        # 0.2-0.7 ms at 200,000 DOF (1,300 candidates: 1-2 s of a diagnosis's term derivatives before)
+        coo = {k: (np.searchsorted(A.indptr, np.arange(A.nnz), side="right") - 1, A.indices, A.data)
+               for k, A in mats.items()}
+        rows = np.unique(np.concatenate([np.concatenate([r, c]) for r, c, _ in coo.values()]))
+        local = tuple(None if kind not in coo else sp.csr_matrix(
+            (coo[kind][2], (np.searchsorted(rows, coo[kind][0]), np.searchsorted(rows, coo[kind][1]))),
+            shape=(rows.size, rows.size)) for kind in ("dK", "dM"))
         object.__setattr__(self, "dK", mats.get("dK"))
         object.__setattr__(self, "dM", mats.get("dM"))
         object.__setattr__(self, "lower", lo)
