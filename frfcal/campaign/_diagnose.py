@@ -1354,6 +1354,12 @@ def diagnose_stage(camp: Campaign, load, pm, model, articles, eq, cal, val, xval
                 fits.append((m, acc, fit[0], extended[0], fit[3]))
                 reason = "accepted: " + "; ".join(f"{a['description']}: {a['size']}{size_words(a)}"
                                                   for a in acc) + negl
+                still = ((after or {}).get("residual") or {})
+                if still.get("significant"):  # said here too, not only in the "after" line
+                    reason += (f"; the residual with them is still significant ({still['ratio']:.3g} x the "
+                               "expected): the model still lacks something, or an accepted effect stands in for "
+                               "another; a denser sample of the point families ([diagnosis] candidates = "
+                               "{ spread_grids = N }) may find it")
             elif dropped:
                 verdict = "no effect accepted"
                 reason = (f"the residual is significant ({check.ratio:.3g} x the floor) and no nonlinearity is "
