@@ -538,6 +538,13 @@ def set_deck_value(obj, fld: str, value: float) -> None:
         else:
             obj.rho = value
     elif t == "PSHELL":
+        # the fibre distances Z1, Z2 default to -T/2, T/2 (pyNastran fills them in when the deck leaves them
+        # blank): they follow T, so the card is written with them blank again, not at the old T's values
+        old = obj.t
+        if old is not None and getattr(obj, "z1", None) is not None and obj.z1 == -old / 2.0:
+            obj.z1 = -value / 2.0
+        if old is not None and getattr(obj, "z2", None) is not None and obj.z2 == old / 2.0:
+            obj.z2 = value / 2.0
         obj.t = value
     elif t in ("CONM2", "CMASS2", "PMASS"):
         obj.mass = value

@@ -36,6 +36,11 @@ def test_values_round_trip_exactly_and_rest_unchanged(deckdir):
     mat1 = [ln for ln in out.read_text().splitlines() if ln.startswith("MAT1,3,")][0]
     assert mat1.split(",")[3] == ""
     assert b.materials[3].g == pytest.approx(b.materials[3].e / 2.6, rel=1e-15)
+    # Z1, Z2 were blank (-T/2, T/2): they stay blank, following the new T, not the old T's fibres (outside
+    # trial, stop 33: written as explicit -1.0e-3/1.0e-3 beside a new T)
+    pshell = [ln for ln in out.read_text().splitlines() if ln.startswith("PSHELL,5,")][0].split(",")
+    assert pshell[6:9] == ["", "", ""][: len(pshell[6:9])]
+    assert (b.properties[5].z1, b.properties[5].z2) == (-b.properties[5].t / 2, b.properties[5].t / 2)
     # everything else identical
     for nid, n in a.nodes.items():
         np.testing.assert_array_equal(n.xyz, b.nodes[nid].xyz)
