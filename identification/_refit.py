@@ -102,14 +102,25 @@ class _Projection:
         return xs, ssr, JTJ, JTr
 
 
+#: Largest relative change of a physical pole's frequency over the whole refit (each step: 1 %).
+MAX_POLE_DRIFT = 0.02
+#: Largest factor by which a physical pole's decay rate (its damping) may change over the whole refit.
+MAX_DAMPING_FACTOR = 4.0
+
+
 def _lm(proj, lam_phys, lam_res, band_omega, zeta_max, max_iter, tol):
     """Levenberg-Marquardt on the physical poles; returns (lam_phys, per-pair coefficients there, ssr0, ssr,
     iterations)."""
     n = lam_phys.size
 
     def params_to_lam(lam0, dp):
-        sig = lam0.real * np.exp(dp[0::2])
-        om = lam0.imag * (1 + dp[1::2])
+        # a pole refines its mode; it does not leave it: travel to another mode (a weak mode's pole drifting
+        # 1 % per step toward a strong mode the subspace missed) or widen into a broad term that soaks up that
+        # mode's tail (0.2 % -> 11 % damping in 5 steps); an outside panel lost its 118 Hz mode so (stop 33)
+        sig = np.clip(lam0.real * np.exp(dp[0::2]), lam_phys.real * MAX_DAMPING_FACTOR,
+                      lam_phys.real / MAX_DAMPING_FACTOR)
+        om = np.clip(lam0.imag * (1 + dp[1::2]), lam_phys.imag * (1 - MAX_POLE_DRIFT),
+                     lam_phys.imag * (1 + MAX_POLE_DRIFT))
         return sig + 1j * om
 
     lam = lam_phys.copy()
