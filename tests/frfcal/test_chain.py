@@ -103,11 +103,13 @@ def test_frame_chain_reaches_the_noise_floor(frame_chain):
 
 def _standard_error_floor(sc, channels, article):
     """The floor the true standard errors would print (noise_floor_sd's formula on the noisy lines)."""
+    from calibration._metric import log_noise_variance
+
     z = sc.truth()
     idx, lo, hi, (i,) = sc._selection(channels, BAND, [article])
     f = z[f"frequency_hz_{i}"]
     sel = (f >= lo) & (f <= hi)
-    q = (z[f"sigma_{i}"][sel][:, idx] / np.abs(z[f"noisy_{i}"][sel][:, idx])) ** 2 / np.log(10.0) ** 2
+    q = log_noise_variance((z[f"sigma_{i}"][sel][:, idx] / np.abs(z[f"noisy_{i}"][sel][:, idx])) ** 2) / np.log(10.0) ** 2
     return float(np.mean(q[:, sc.signal_pairs(i, [str(z["sensors"][k]) for k in idx], (lo, hi))]))
 
 
@@ -115,9 +117,10 @@ def test_uff_campaign_prints_floors_estimated_from_the_lines(frame_chain):
     """UFF58 carries no standard errors: the hold-out and raw-line floors are estimated from the lines
     (calibration.estimate_std_error) and said so; the hold-out's within 30 % of the truth's own floor, both
     within 30 % of the floor the true standard errors give. (On the raw calibration lines the truth's own
-    floor is 2x lower on A1: one pair, s14 / F2, at SNR near 1 on its anti-resonances holds most of the mean
-    of (sigma/|H|)^2, where |log10(H_noisy/H)|^2 saturates; that pair's true standard errors give 2.7x its
-    truth floor too.)"""
+    floor was 2x lower on A1: one pair, s14 / F2, at SNR near 1 on its anti-resonances held most of the mean
+    of (sigma/|H|)^2, where |log10(H_noisy/H)|^2 saturates. Since stop 33 both floors are the exact
+    E|log10(1 + n/H)|^2, which saturates too: the first-order reference gave 1.0e-3 there against the
+    estimate's 5.3e-4.)"""
     sc, _, result, cal, hold, _ = frame_chain
     for m in result["members"]:
         (a,) = m["articles"]
