@@ -59,8 +59,8 @@ def stacked(eps: np.ndarray) -> np.ndarray:
 
 
 def _log_noise_table():
-    """(ln q nodes, cubic spline of ln E|ln(1 + z)|^2 in ln q) for q = E|z|^2 in 1e-3..1e6, z circular
-    complex Gaussian, by quadrature.
+    """Cubic spline of ln E|ln(1 + z)|^2 in ln q, for q = E|z|^2 in 1e-3..1e6 and z circular complex
+    Gaussian, by quadrature.
 
     With z = r e^{i theta} the mean over theta is Li2(r^2) for r <= 1 and
     (ln r)^2 + pi^2/3 + Li2(1/r^2) - 2 Li2(1/r) for r > 1 (the Fourier series of
@@ -130,3 +130,11 @@ def log_noise_variance(rel2) -> np.ndarray:
     out[big] = _log_noise_large(q[big])
     out[np.isinf(q)] = np.inf
     return out.reshape(np.shape(rel2))
+
+
+def log_noise_floor(frf, std_error) -> np.ndarray:
+    """Per value ``E|log10(1 + n/H)|^2`` (decades^2) of FRF values ``frf`` with standard errors ``std_error``
+    (same shape): :func:`log_noise_variance` of ``(sigma / |H|)^2`` over (ln 10)^2; inf where H = 0 (callers
+    decide: the hold-out floor refuses it, the residual check counts it as no expectation)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return log_noise_variance((np.asarray(std_error, float) / np.abs(np.asarray(frf))) ** 2) / LN10**2

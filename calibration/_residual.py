@@ -43,7 +43,7 @@ import numpy as np
 
 from calibration._damping import IdentifiedModes, pair_modes
 from calibration._errors import CalibrationError
-from calibration._metric import LN10, log_deviation, log_noise_variance
+from calibration._metric import log_deviation, log_noise_floor
 from calibration._nonlinearity import _chi2_z
 from calibration._surrogate import Surrogate, reduced_modes
 from labdata import mac
@@ -97,8 +97,7 @@ def expected_from_std_error(frf_test, std_error) -> np.ndarray:
     s = np.asarray(std_error, float)
     if s.shape != H.shape:
         raise CalibrationError(f"standard errors shape {s.shape} != FRF shape {H.shape}")
-    with np.errstate(divide="ignore", invalid="ignore"):
-        q = log_noise_variance((s / np.abs(H)) ** 2) / LN10**2
+    q = log_noise_floor(H, s)
     return np.where(np.isfinite(q), q, 0.0)
 
 

@@ -35,7 +35,7 @@ import numpy as np
 
 from calibration._errors import CalibrationError
 from calibration._fit import FitData
-from calibration._metric import LN10, log_deviation, log_noise_variance, square_deviation
+from calibration._metric import log_deviation, log_noise_floor, square_deviation
 from calibration._surrogate import Surrogate, modal_frf, reduced_modes
 from calibration._damping import IdentifiedModes, mapped_damping, pair_modes  # noqa: F401 (re-exported)
 from calibration._refine import ModalDampingObjective
@@ -81,8 +81,7 @@ def noise_floor_sd(data: FitData, std_error) -> float:
         raise CalibrationError(
             f"standard errors of {data.article or 'the hold-out data'}: shape {sig.shape} != FRF shape {data.frf.shape}"
         )
-    with np.errstate(divide="ignore", invalid="ignore"):
-        q = log_noise_variance((sig / np.abs(data.frf)) ** 2) / LN10**2
+    q = log_noise_floor(data.frf, sig)
     q = q if data.mask is None else q[data.mask]
     if not np.all(np.isfinite(q)):
         raise CalibrationError(

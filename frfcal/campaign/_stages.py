@@ -10,6 +10,7 @@ docs/architecture.md).
 
 from __future__ import annotations
 
+import re
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -147,8 +148,6 @@ def _same_point(a, b, sign: float = 1.0) -> bool:
 def _named_point(name: str):
     """(grid, unit direction) of a channel name that ends in its point as import-uff names channels,
     ``"acc12 (101+Z)"`` or ``"n101-Y"``; None otherwise."""
-    import re
-
     m = re.search(r"(?:\(|(?:^|_)n)(\d+)([+-])([XYZ])\)?\s*$", name)
     if m is None:
         return None
