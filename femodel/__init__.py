@@ -22,7 +22,8 @@ from femodel._terms import AddedMass, AddedSpring, ElementFactor, ExtendedAffine
 from femodel._candidates import (CANDIDATE_FAMILIES, COMPOUND_EFFECTS, Candidate, CandidateContext,
                                  CandidateOptions, POINT_FAMILIES, PointFamily, REGION_FAMILIES,
                                  candidate_context, candidate_regions, compound_candidates, contact_on_pairs,
-                                 candidate_pairs, generate_candidates, register_family, zoom_candidates)
+                                 candidate_pairs, generate_candidates, point_coverage, register_family,
+                                 zoom_candidates)
 from femodel._writeback import fixed_field_card, write_bdf
 from femodel._example import SubframeExample, example_subframe
 from femodel._example_frame import FrameExample, example_frame
@@ -39,4 +40,5 @@ __all__ = [
     "FactorizationError", "NotPositiveDefiniteError", "available_backends", "default_backend", "factorize",
     "CANDIDATE_FAMILIES", "COMPOUND_EFFECTS", "Candidate", "CandidateContext", "CandidateOptions",
     "candidate_context", "compound_candidates", "generate_candidates", "register_family", "POINT_FAMILIES",
-    "PointFamily", "REGION_FAMILIES", "candidate_regions", "contact_on_pairs", "candidate_pairs", "zoom_candidates"]
+    "PointFamily", "REGION_FAMILIES", "candidate_regions", "contact_on_pairs", "candidate_pairs", "zoom_candidates",
+    "point_coverage"]

@@ -50,6 +50,9 @@ _LINE_CARDS = ("CBAR", "CBEAM", "CROD", "CONROD", "CTUBE")
 _SHELL_CARDS = ("CQUAD4", "CTRIA3")
 _SOLID_CARDS = ("CTETRA", "CPYRAM", "CPENTA", "CHEXA")
 _STRUCTURAL_CARDS = _LINE_CARDS + _SHELL_CARDS + _SOLID_CARDS
+#: Grids of the spread sample of the point families on a model too large to have them at every grid
+#: (``CandidateOptions.spread_grids`` None).
+SPREAD_GRIDS = 40
 #: Corner-node count and the factor taking the mean corner-to-centroid distance of a regular solid to its edge.
 _SOLID_CORNERS = {"CTETRA": (4, 1.633), "CPYRAM": (5, 1.3), "CPENTA": (6, 1.309), "CHEXA": (8, 1.1547)}
 #: Properties an :class:`ElementFactor` can scale and write back (with MAT1 materials).
@@ -119,10 +122,13 @@ class CandidateOptions:
     ground_components : tuple of int
         Translational components (1..3, in each grid's displacement system)
         of the ground springs. Default (1, 2, 3).
-    spread_grids : int
+    spread_grids : int or None
         Number of grids, spread evenly over the structure (farthest-point
         sampling: the extremes come first), that get ground springs and
-        lumped masses. Default 40.
+        lumped masses. Default None: every eligible grid when the family's
+        candidates at every grid number at most ``max_per_family`` (a small
+        model: a mass or spring between sampled grids is then a candidate
+        itself, not left to the zoom), else :data:`SPREAD_GRIDS` (40).
     f_ref_hz : float
         p = 1 of a ground or stinger spring is total mass * (2 pi f_ref)^2,
         N/m: the whole structure on that spring alone would bounce at
@@ -168,7 +174,7 @@ class CandidateOptions:
     cluster_kinds: tuple = ("K",)
     factor_bounds: tuple = (-0.9, 3.0)
     ground_components: tuple = (1, 2, 3)
-    spread_grids: int = 40
+    spread_grids: int | None = None
     f_ref_hz: float = 10.0
     lumped_mass_fraction: float = 0.01
     sensor_mass_fraction: float = 0.001
@@ -194,6 +200,8 @@ class CandidateOptions:
         for name, lo in (("contact_hops", 1), ("spread_grids", 1), ("max_per_family", 1), ("cluster_seeds", 1),
                          ("zoom_rounds", 0), ("zoom_top", 1), ("zoom_grids", 1)):
             v = getattr(self, name)
+            if v is None and name == "spread_grids":
+                continue
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
                 bad(name, f"must be an integer >= {lo}")
         kinds = tuple(self.cluster_kinds)
@@ -772,11 +780,23 @@ def _ground_springs_at(ctx: CandidateContext, row: int, components):
                             f"spring to ground {scale:.3g} N/m x p at {ctx.grid_label(g)} along {_AXES[c - 1]}")
 
 
+def _spread_count(ctx: CandidateContext, n_candidates: int) -> int:
+    """Grids a point family spreads its candidates over: ``spread_grids``, or when it is None every grid
+    if the family's ``n_candidates`` at every grid fit ``max_per_family``, else :data:`SPREAD_GRIDS`."""
+    o = ctx.options
+    if o.spread_grids is not None:
+        return int(o.spread_grids)
+    return max(int(n_candidates), 1) if n_candidates <= o.max_per_family else SPREAD_GRIDS
+
+
 def ground_spring_family(ctx: CandidateContext):
     """Springs to ground (suspension, fixture) at ``spread_grids`` grids spread over the
-    structure, one candidate per grid and component: p = 1 is total mass * (2 pi f_ref)^2."""
-    rows = _ground_rows(ctx, ctx.options.ground_components)
-    rows = rows[ctx.spread(ctx.xyz[rows], ctx.options.spread_grids)]
+    structure (every grid of a small model, see :class:`CandidateOptions`), one candidate per grid
+    and free component: p = 1 is total mass * (2 pi f_ref)^2."""
+    comps = ctx.options.ground_components
+    rows = _ground_rows(ctx, comps)
+    n_all = int(np.count_nonzero(ctx.free[rows][:, [c - 1 for c in comps]]))
+    rows = rows[ctx.spread(ctx.xyz[rows], _spread_count(ctx, n_all))]
     for r in rows.tolist():
         yield from _ground_springs_at(ctx, r, ctx.options.ground_components)
 
@@ -795,16 +815,18 @@ def _mass_at(ctx: CandidateContext, row: int) -> Candidate:
 
 
 def lumped_mass_family(ctx: CandidateContext):
-    """An unmodelled lumped mass at ``spread_grids`` grids spread over the structure and at
+    """An unmodelled lumped mass at ``spread_grids`` grids spread over the structure (every grid of a
+    small model, see :class:`CandidateOptions`) and, when that is not every grid, at
     ``spread_grids // 4`` grids spread away from the sensors and drives (the grid farthest from
-    every one of them first; sensor grids excluded): p = 1 is ``lumped_mass_fraction`` of the
+    every one of them first); sensor grids excluded. p = 1 is ``lumped_mass_fraction`` of the
     total mass."""
     rows = _mass_rows(ctx)
-    pick = set(ctx.spread(ctx.xyz[rows], ctx.options.spread_grids).tolist())
+    k = _spread_count(ctx, rows.size)
+    pick = set(ctx.spread(ctx.xyz[rows], k).tolist())
     measured = list(dict.fromkeys(list(ctx.sensors) + [g for g, _ in ctx.drives]))
-    if measured and rows.size:
+    if measured and rows.size > k:
         # and the grids farthest from every sensor and drive, where nothing measured is near a missing mass
-        far = ctx.spread(ctx.xyz[rows], max(ctx.options.spread_grids // 4, 1),
+        far = ctx.spread(ctx.xyz[rows], max(k // 4, 1),
                          away_from=ctx.xyz[ctx.grid_index(measured)])
         pick |= set(far.tolist())
     rows = rows[np.array(sorted(pick), dtype=int)]
@@ -1279,6 +1301,25 @@ def candidate_regions(candidates) -> list:
         label = None if key is None else key(c)
         out.append(None if label is None else ((c.family, label), frozenset(int(g) for g in c.grids)))
     return out
+
+
+def point_coverage(ctx: CandidateContext, candidates) -> dict:
+    """How much of each point family's eligible grids ``candidates`` cover.
+
+    Returns ``{(family, kind): (grids with a candidate, eligible grids)}`` for every point family
+    (:data:`POINT_FAMILIES`) and kind (a ground spring's component) among ``candidates``: fewer than
+    eligible means a spread sample (``CandidateOptions.spread_grids``), which an effect between the
+    sampled grids can slip through when the zoom does not reach it.
+    """
+    out, like = {}, {}
+    for c in candidates:
+        pf = POINT_FAMILIES.get(c.family)
+        if pf is None or len(c.grids) != 1:
+            continue
+        key = (c.family, pf.key(c))
+        like.setdefault(key, c)
+        out.setdefault(key, set()).add(int(c.grids[0]))
+    return {k: (len(g), int(len(POINT_FAMILIES[k[0]].rows(ctx, like[k])))) for k, g in out.items()}
 
 
 def zoom_candidates(ctx: CandidateContext, screened, best: Candidate, n: int | None = None) -> tuple:

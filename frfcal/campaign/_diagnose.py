@@ -1356,10 +1356,12 @@ def diagnose_stage(camp: Campaign, load, pm, model, articles, eq, cal, val, xval
                                                   for a in acc) + negl
                 still = ((after or {}).get("residual") or {})
                 if still.get("significant"):  # said here too, not only in the "after" line
+                    sampled = _sampled_points(ctx["cctx"], ctx["cands"]) if ctx.get("cctx") else ""
                     reason += (f"; the residual with them is still significant ({still['ratio']:.3g} x the "
                                "expected): the model still lacks something, or an accepted effect stands in for "
-                               "another; a denser sample of the point families ([diagnosis] candidates = "
-                               "{ spread_grids = N }) may find it")
+                               "another" + (f"; the point families were sampled ({sampled}): a denser sample "
+                                            "([diagnosis] candidates = { spread_grids = N }) may find it"
+                                            if sampled else ""))
             elif dropped:
                 verdict = "no effect accepted"
                 reason = (f"the residual is significant ({check.ratio:.3g} x the floor) and no nonlinearity is "
@@ -1502,7 +1504,22 @@ def member_candidates(camp: Campaign, pm, load, p, log=print) -> tuple:
     for c in cands:
         counts[c.family] = counts.get(c.family, 0) + 1
     log("candidates: " + ", ".join(f"{k} {v}" for k, v in counts.items()))
+    sampled = _sampled_points(cctx, cands)
+    if sampled:
+        log(f"  {sampled} (a spread sample, refined by the zoom around the best; every grid: [diagnosis] "
+            f"candidates = {{ spread_grids = N }})")
     return cands, terms, cctx
+
+
+def _sampled_points(cctx, cands) -> str:
+    """"lumped_mass at 40 of 1200 grids, ..." for the point families sampled at fewer grids than eligible, or ""."""
+    from femodel import point_coverage
+
+    cov = {}
+    for (fam, _), (n, n_all) in point_coverage(cctx, cands).items():
+        a, b = cov.get(fam, (0, 0))
+        cov[fam] = (max(a, n), max(b, n_all))
+    return ", ".join(f"{fam} at {n} of {n_all} grids" for fam, (n, n_all) in cov.items() if n < n_all)
 
 
 def candidate_term(pm, cand, p):

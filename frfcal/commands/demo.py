@@ -169,7 +169,7 @@ realizations = {realizations}
 top_n = 2                   # candidates re-fitted nonlinearly after the linear screening, then recalibrated
 max_effects = 1             # one effect per article group at most
 max_evaluations = 15        # residual evaluations per screening fit stage
-candidates = {{ spread_grids = 15 }}  # ground springs and lumped masses at 15 spread grids (default 40)
+candidates = {{ spread_grids = 15 }}  # ground springs and lumped masses at 15 spread grids (default: every grid when <= 500 candidates, else 40)
 {execution}
 [output]
 dir = "campaign"

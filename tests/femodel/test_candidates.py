@@ -284,8 +284,9 @@ def test_setup_families_at_the_given_grids(frame_pm):
     assert stinger.term.dofs == ((drives[0][0], 3, 0, 0),)
     assert stinger.term.scale == pytest.approx(total * (2 * np.pi * 10.0) ** 2)
     assert all(c.term.grids[0] not in sensors for c in fam["lumped_mass"])
-    # 40 spread grids and up to 40 // 4 = 10 more spread away from the sensors and drives
-    assert 40 < len(fam["lumped_mass"]) <= 50 and len(fam["ground_spring"]) == 3 * 40
+    # a small model (82 grids): every grid but the sensors' gets a mass, every grid three ground springs
+    n_grids = len(fe_grids := {int(g) for g in frame_pm.assembly.model.grid_ids})
+    assert len(fam["lumped_mass"]) == len(fe_grids - set(sensors)) and len(fam["ground_spring"]) == 3 * n_grids
     # the spread reaches the frame's extremes: x range of the ground-spring grids = the deck's
     fe = frame_pm.assembly.model
     gx = np.array([c.center[0] for c in fam["ground_spring"]])
@@ -565,6 +566,36 @@ def test_lumped_masses_also_far_from_every_sensor_and_drive(frame_pm):
     pts = np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0], [10, 0, 0]])
     assert ctx.spread(pts, 1, away_from=[[0.0, 0, 0]]).tolist() == [4]
     assert ctx.spread(pts, 2, away_from=[[0.0, 0, 0]]).tolist() == [3, 4]  # 3 is 3 from 0 and 7 from 10
+
+
+def test_a_small_model_has_its_point_families_at_every_grid(frame_pm):
+    """spread_grids None (default): every eligible grid when the family's candidates at every grid fit
+    max_per_family (an undeclared mass between spread grids is a candidate itself, not left to the zoom:
+    outside data where the zoom missed it, docs/diagnosis.md); else the spread sample of SPREAD_GRIDS."""
+    from femodel import point_coverage
+    from femodel._candidates import SPREAD_GRIDS
+
+    sensors, drives = _setup(frame_pm)
+    ctx = candidate_context(frame_pm, sensors=sensors, drives=drives)
+    assert ctx.options.spread_grids is None
+    got = generate_candidates(frame_pm, families=["lumped_mass", "ground_spring"], context=ctx)
+    cov = point_coverage(ctx, got)
+    assert set(cov) == {("lumped_mass", None), ("ground_spring", 1), ("ground_spring", 2), ("ground_spring", 3)}
+    assert all(n == n_all > SPREAD_GRIDS for n, n_all in cov.values()), cov
+    n_mass = cov[("lumped_mass", None)][1]
+    assert n_mass == len({int(g) for g in ctx.grid_ids[[bool(p) for p in ctx.grid_parts]]} - set(sensors))
+    # the same model with a cap below the family's full count: the spread sample (plus the far grids for masses)
+    small = CandidateOptions(max_per_family=n_mass - 1)
+    got = generate_candidates(frame_pm, sensors=sensors, drives=drives, families=["lumped_mass", "ground_spring"],
+                              options=small)
+    ctx2 = candidate_context(frame_pm, sensors=sensors, drives=drives, options=small)
+    cov = point_coverage(ctx2, got)
+    assert SPREAD_GRIDS <= cov[("lumped_mass", None)][0] <= SPREAD_GRIDS + SPREAD_GRIDS // 4 < n_mass
+    # (the 3 x 40 ground springs then go through the family cap too)
+    assert sum(cov[("ground_spring", c)][0] for c in (1, 2, 3)) == n_mass - 1
+    # an explicit spread_grids is kept as given
+    got = generate_candidates(frame_pm, families=["lumped_mass"], options=CandidateOptions(spread_grids=7))
+    assert len(got) == 7
 
 
 def test_spread_never_repeats_a_point_when_points_coincide(frame_pm):

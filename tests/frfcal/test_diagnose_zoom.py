@@ -107,3 +107,16 @@ def test_the_zoom_again_in_a_re_screening_adds_only_new_candidates(frame):
     assert s2.zoomed and not set(s2.zoomed) & set(s1.names)
     assert [t.name for t in terms[n1:]] == list(s2.zoomed) == [c.name for c in cands[n1:]]
     assert "mass_g45" not in s2.names
+
+
+def test_the_log_says_which_point_families_are_sampled(frame):
+    """A spread sample is said (the verdict's hint to sample densely depends on it); every grid is not."""
+    from frfcal.campaign._diagnose import _sampled_points
+
+    pm, _, _, _, ctx = frame
+    cands = list(generate_candidates(pm, families=["lumped_mass", "ground_spring"], context=ctx))
+    said = _sampled_points(ctx, cands)
+    assert said.startswith("lumped_mass at ") and ", ground_spring at 8 of 82 grids" in said
+    full = candidate_context(pm, sensors=ctx.sensors, drives=ctx.drives)  # default: every grid of this frame
+    assert _sampled_points(full, list(generate_candidates(pm, families=["lumped_mass", "ground_spring"],
+                                                          context=full))) == ""
