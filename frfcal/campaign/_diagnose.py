@@ -761,6 +761,7 @@ def _accept_member(camp, load, pm, model, articles, m, check, rows, ctx, quantit
                  "p_refined": dict(zip(pm.names, np.asarray(x_ref[:pm.n_params], float).tolist()))}
         n_p = pm.n_params
         idf = None
+        t_idf = time.perf_counter()
         if ref is not None:  # what the raw lines tell of the refined sizes (the calibrate stage's identifiability)
             idf = effect_identifiability(camp, arts, sur_ref, x_ref, ref, fit_acc.lower, fit_acc.upper,
                                          list(pm.names) + [a["name"] for a in accepted], quantity, pm.n_params)
@@ -773,7 +774,8 @@ def _accept_member(camp, load, pm, model, articles, m, check, rows, ctx, quantit
                 log(f"[{m.label}] {a['name']}: refined size {a['size']}, "
                     + (f"standard deviation from the noise {a['size_std_percent']:.3g} % (model error not "
                        "included)" if a["size_std_percent"] is not None else "standard deviation not resolved")
-                    + ("" if a["size_identifiable"] else f": {a['size_identifiability']}"))
+                    + ("" if a["size_identifiable"] else f": {a['size_identifiability']}")
+                    + f" ({time.perf_counter() - t_idf:.1f} s)")
         # an effect accepted on the screening's target may be refined on the raw lines to a size the data do not
         # see (a spring at 1e-37 N/m): dropped, and reported as such
         sizes = refined_sizes(camp, arts, sur_ref, x_ref, damping, n_p, accepted, n_res, quantity,
@@ -1079,6 +1081,7 @@ def _refined(camp, pm, model, articles, m, fit, extended_terms, quantity, log):
     c = camp.calibration
     if not c.refine:
         return None, None, fit.x, fit.surrogate
+    t0 = time.perf_counter()
     band = (camp.band.low_hz, camp.band.high_hz)
     arts = [articles[i] for i in m.articles]
     raw = [fit_data(a, camp.channels.calibrate, c.refine_weights) for a in arts]
@@ -1112,7 +1115,8 @@ def _refined(camp, pm, model, articles, m, fit, extended_terms, quantity, log):
     if camp.channels.holdout:
         h = _holdout_at(camp, arts, sur, ref.p, quantity, (ref.zeta, ref.p_zeta), camp.channels.holdout)
     log(f"[{m.label}] extended model refined on the raw lines: SD {ref.sd_raw:.4g}"
-        + ("" if h is None else f", hold-out SD {h:.4g} (estimated damping)"))
+        + ("" if h is None else f", hold-out SD {h:.4g} (estimated damping)")
+        + f" ({time.perf_counter() - t0:.1f} s)")
     return ref, h, ref.p, sur
 
 
@@ -1303,10 +1307,11 @@ def diagnose_stage(camp: Campaign, load, pm, model, articles, eq, cal, val, xval
     out, fits = [], []
     for m, v, x in zip(cal.members, val.members, xval.members):
         names = tuple(dict.fromkeys(articles[i].name for i in m.articles))
+        t_res = time.perf_counter()
         check, frfs_before = member_residual(camp, load, articles, m)
         frfs_after = None
-        for line in check.describe():
-            log(f"[{m.label}] {line}")
+        for k, line in enumerate(check.describe()):
+            log(f"[{m.label}] {line}" + (f" ({time.perf_counter() - t_res:.1f} s)" if k == 0 else ""))
         chans = tuple(c.label for c in sorted(check.channels, key=lambda c: -c.ratio))
         sd = _sd_table(m, v, x, check, [articles[i] for i in m.articles])
         flagged = [by_name[n] for n in names if by_name[n].nonlinearity is not None
@@ -1497,13 +1502,15 @@ def member_candidates(camp: Campaign, pm, load, p, log=print) -> tuple:
         raise CalibrationError(f"[diagnosis] candidates: {exc}") from None
     sensors = tuple(dict.fromkeys(t.grid for t in load.channels))
     drives = tuple((t.grid, tuple(t.direction)) for t in load.drives)
+    t0 = time.perf_counter()
     cctx = candidate_context(pm, sensors=sensors, drives=drives, options=opts)
     cands = list(generate_candidates(pm, families=cfg.families, context=cctx))
     terms = candidate_terms(pm, cands, p)
     counts = {}
     for c in cands:
         counts[c.family] = counts.get(c.family, 0) + 1
-    log("candidates: " + ", ".join(f"{k} {v}" for k, v in counts.items()))
+    log("candidates: " + ", ".join(f"{k} {v}" for k, v in counts.items())
+        + f" ({time.perf_counter() - t0:.1f} s with their derivatives)")
     sampled = _sampled_points(cctx, cands)
     if sampled:
         log(f"  {sampled} (a spread sample, refined by the zoom around the best; every grid: [diagnosis] "

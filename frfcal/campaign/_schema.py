@@ -371,7 +371,7 @@ class DiagnosisSection(_Strict):
     max_effects: int = Field(2, ge=1, description="at most this many effects accepted")
     max_evaluations: int = Field(40, ge=5, description="residual evaluations per screening fit stage")
     continuation_lines: Literal["raw", "half-bandwidth"] = Field(
-        "raw", description="lines of the debiased target's continuation stages (wider damping than zeta0): "
+        "half-bandwidth", description="lines of the debiased target's continuation stages (wider damping than zeta0): "
         "'raw' = every raw line; 'half-bandwidth' = the raw line nearest each point of that stage's half-bandwidth "
         "grid (calibration.thinned_lines; about the equalized target's count there, cheaper screening)")
     target: Literal["debiased", "equalized"] = Field(
