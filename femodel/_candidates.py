@@ -56,7 +56,7 @@ SPREAD_GRIDS = 40
 #: Corner-node count and the factor taking the mean corner-to-centroid distance of a regular solid to its edge.
 _SOLID_CORNERS = {"CTETRA": (4, 1.633), "CPYRAM": (5, 1.3), "CPENTA": (6, 1.309), "CHEXA": (8, 1.1547)}
 #: Properties an :class:`ElementFactor` can scale and write back (with MAT1 materials).
-_FACTOR_PROPERTIES = ("PSHELL", "PBAR", "PBARL", "PROD", "PSOLID")
+_FACTOR_PROPERTIES = ("PSHELL", "PBAR", "PBARL", "PBEAM", "PBEAML", "PROD", "PSOLID")
 _MID_FIELDS = ("mid", "mid1", "mid2", "mid3")
 
 

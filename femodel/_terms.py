@@ -309,7 +309,7 @@ class ElementFactor:
     name : str
     elements : tuple of int
         Element ids (CQUAD4, CTRIA3, CBAR, CBEAM, CROD, solids with PSHELL,
-        PBAR/PBARL, PROD or PSOLID properties and MAT1 materials).
+        PBAR/PBARL, PBEAM/PBEAML, PROD or PSOLID properties and MAT1 materials).
     kind : {"K", "M"}
     lower, upper : float
         Bounds on p (-1 < lower < upper).

@@ -247,7 +247,7 @@ def _resolve_values(values, parameters: ParameterSet | None, model, units, sourc
 
 
 #: Property cards whose element subsets can be written back with scaled copies.
-_COPYABLE_PROPERTIES = ("PSHELL", "PBAR", "PBARL", "PROD", "PSOLID")
+_COPYABLE_PROPERTIES = ("PSHELL", "PBAR", "PBARL", "PBEAM", "PBEAML", "PROD", "PSOLID")
 _MID_FIELDS = ("mid", "mid1", "mid2", "mid3", "mid4")
 
 
@@ -342,8 +342,9 @@ class DeckEditor:
                     if mid not in new_mid:
                         new_mid[mid] = self._material_copy(mid, kind, factor, where)
                     setattr(new, fld, new_mid[mid])
-                if kind == "M" and getattr(new, "nsm", None):
-                    new.nsm = float(new.nsm) * factor
+                nsm = getattr(new, "nsm", None)
+                if kind == "M" and nsm is not None:  # PBEAM/PBEAML: one NSM per station
+                    new.nsm = np.asarray(nsm, float) * factor if np.ndim(nsm) else float(nsm) * factor
                 new_pid[pid] = new.pid
                 self.add(new.repr_fields())
             elem.pid = new_pid[pid]

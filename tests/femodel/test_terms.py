@@ -271,6 +271,48 @@ def test_frame_write_back_of_a_mass_factor(frame, tmp_path):
     _round_trip(tmp_path, ext, p, "si")
 
 
+def _beam_deck(path):
+    """A free-free frame of CBEAMs: a PBEAM rail (with NSM) and a PBEAML BOX rail (with NSM), joined by two PBAR
+    cross members; Nastran's default lumped mass (no rotary inertia of the bar mass: small CONM2s keep M
+    definite). SI."""
+    lines = ["SOL 103", "CEND", "BEGIN BULK", "MAT1,1,2.1+11,,0.3,7850.", "MAT1,2,7.0+10,,0.33,2700.",
+             "PBEAM,1,1,4.4-4,1.0-7,1.2-7,,1.6-7,0.3", "PBEAML,2,2,,BOX,,,,,+P2", "+P2,0.05,0.04,0.003,0.003,0.2",
+             "PBAR,3,1,2.0-4,2.0-8,2.5-8,3.0-8"]
+    for i in range(6):
+        lines.append(f"GRID,{1 + i},,{0.2 * i!r},0.,0.")
+        lines.append(f"GRID,{11 + i},,{0.2 * i!r},0.4,0.")
+    eid = 1
+    for a in range(1, 6):
+        lines.append(f"CBEAM,{eid},1,{a},{a + 1},0.,0.,1.")
+        lines.append(f"CBEAM,{eid + 10},2,{a + 10},{a + 11},0.,0.,1.")
+        eid += 1
+    lines += ["CBAR,21,3,1,11,0.,0.,1.", "CBAR,22,3,6,16,0.,0.,1."]
+    for k, g in enumerate(list(range(1, 7)) + list(range(11, 17))):
+        lines += [f"CONM2,{300 + k},{g},0,0.01,,,,,+I{k}", f"+I{k},1.-5,,1.-5,,,1.-5"]
+    lines.append("ENDDATA")
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def test_beam_element_factors_write_back_and_are_cluster_candidates(tmp_path):
+    """PBEAM and PBEAML groups take element-subset factors like PBAR: stiffness and mass (with each station's
+    NSM) re-read from the written deck to the same K and M, and element_cluster offers them."""
+    params = ParameterSet((Parameter("E", "MAT1", (1,), "E", -0.3, 0.3),))
+    pm = parametric_model(params, _beam_deck(tmp_path / "beams.bdf"))
+    ext = pm.with_terms([ElementFactor("f_pbeam", (2, 3)), ElementFactor("f_pbeaml_m", (12, 13, 14), kind="M"),
+                         ElementFactor("f_pbeaml_k", (15,))])
+    p = np.array([0.05, 0.4, -0.3, 1.5])
+    for j in range(1, 4):  # each factor changes its matrix (the terms are not empty)
+        assert abs(ext.dM(p, j) if j == 2 else ext.dK(p, j)).max() > 0
+    out = _round_trip(tmp_path, ext, p, "si")
+    fe = femodel.read_bdf(out)
+    beams = fe.elements["CBEAM"]
+    assert len(set(beams["pid"][np.isin(beams.ids, [12, 13, 14])].tolist()) - {1, 2}) == 1
+    cands = femodel.generate_candidates(pm, families=["element_cluster"])
+    parts = {c.parts[0] for c in cands}
+    assert {"PBEAM 1", "PBEAML 2", "PBAR 3"} <= parts, parts
+
+
 def test_subframe_write_back_rereads_to_the_same_matrices(subframe):
     d, pm, ext = subframe
     rng = np.random.default_rng(2)
