@@ -1379,6 +1379,11 @@ def diagnose_stage(camp: Campaign, load, pm, model, articles, eq, cal, val, xval
                           "flagged; " + (f"the screening ranks {top['family']} {top['name']} first ({top['size']}, "
                                          f"explains {100 * top['explained']:.1f} % of the residual)" if top else
                                          "no candidate") + f"; not accepted: {why}")
+        split = _one_set_over_groups(m, groups, articles)
+        if split and check.significant and verdict != "nonlinear":
+            reason += (f"; the articles fall into groups ({split}) and ensemble = \"all\" fits one parameter set to "
+                       "them: an effect on some articles only is diluted over all; [calibration] ensemble = "
+                       "\"group\" diagnoses each group and names the effect that separates them")
         log(f"[{m.label}] diagnosis: {verdict}: {reason}")
         overlay = None
         if check.significant:
@@ -1388,6 +1393,19 @@ def diagnose_stage(camp: Campaign, load, pm, model, articles, eq, cal, val, xval
                                    acc, trials, None if extended is None else extended[0],
                                    None if extended is None else np.asarray(extended[1], float), overlay))
     return DiagnosisResult(gates, tuple(out), _separations(camp, articles, target or eq, groups, fits, log))
+
+
+def _one_set_over_groups(m, groups, articles) -> str:
+    """"A1, A2; A3, A4" when member ``m`` holds articles the group stage found in more than one group (ensemble
+    "all"), else ""."""
+    from frfcal.campaign._stages import split_words
+
+    grp = None if groups is None else groups.grouping
+    if grp is None or len(groups.members) != 1:
+        return ""
+    labels = np.asarray(grp.labels)
+    sets = [tuple(i for i in m.articles if labels[i] == g) for g in np.unique(labels[list(m.articles)])]
+    return split_words(articles, sets) if len(sets) > 1 else ""
 
 
 def _separations(camp: Campaign, articles, eq, groups, fits, log) -> tuple:
@@ -1416,8 +1434,11 @@ def _separations(camp: Campaign, articles, eq, groups, fits, log) -> tuple:
                                     fit.upper, index=n_p + a.get("term_index", 0), refit_p=True, continuation=cont,
                                     max_nfev=camp.diagnosis.max_evaluations)
             per = [float(_physical(cd.term, float(c))[0]) for c in sep.magnitude]
-            log(f"[{m.label}] {a['name']} per article: "
-                + ", ".join(f"{n} {c:.3g}" for n, c in zip(sep.articles, sep.magnitude))
+            # the sizes of the screening's footing (damping zeta0, the continuation): they separate the articles;
+            # the accepted size is the one refined on the raw lines, and may differ from these
+            log(f"[{m.label}] {a['name']} per article (fitted at the screening's damping {camp.calibration.zeta0:g}, "
+                f"not refined on the raw lines): "
+                + ", ".join(f"{n} {v:.4g}" for n, v in zip(sep.articles, per)) + (f" {a['unit']}" if a["unit"] else "")
                 + f": {'SEPARATES' if sep.separates else 'does not separate'} the groups ({sep.reason}; "
                 + f"{time.perf_counter() - t0:.1f} s)")
             out.append({"member": m.label, "name": a["name"], "family": a["family"], "separates": bool(sep.separates),

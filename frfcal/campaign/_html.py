@@ -508,6 +508,16 @@ def _generic(d, depth: int = 0) -> str:
     return (_kv(scalars) if scalars else "") + "".join(parts)
 
 
+def _separation_row(x: dict) -> tuple:
+    """One row of the per-article effect table: the articles' sizes with their groups, not the raw dict."""
+    sep = x.get("separation") or {}
+    arts, groups = sep.get("articles") or [], sep.get("groups") or []
+    per = "; ".join(f"{a} {v:.4g}" + (f" (group {int(groups[k]) + 1})" if k < len(groups) else "")
+                    for k, (a, v) in enumerate(zip(arts, x.get("value") or [])))
+    return (x.get("member"), x.get("name"), x.get("family"), per, x.get("unit") or "", bool(x.get("separates")),
+            sep.get("reason", ""))
+
+
 def _is_figure(v) -> bool:
     return hasattr(v, "savefig") and hasattr(v, "axes")
 
@@ -588,7 +598,12 @@ def _diagnosis(camp, r: ReportResults, tmp: Path) -> str:
         out += [_diagnosis_member(camp, m) for m in members]
         seps = [dict(x) for x in getattr(d, "separations", ())]
         if seps:
-            out.append("<h3>Effects fitted per article against the groups</h3>" + _generic({"separations": seps}))
+            out.append("<h3>Effects fitted per article against the groups</h3>"
+                       "<p>Each accepted effect re-fitted on every article alone (with the deck parameters) at the "
+                       "screening's damping: the sizes separate the groups or not; the accepted size is the one "
+                       "refined on the raw lines above.</p>" + _table(
+                           ("member", "effect", "family", "per article", "unit", "separates", "why"),
+                           [_separation_row(x) for x in seps]))
         return "".join(out)
     out = [_generic(d.to_dict())]
     figs = getattr(d, "figures", None)
@@ -663,13 +678,18 @@ def _summary(camp, r: ReportResults) -> str:
     if r.model is not None:
         rows.append(("parameters", len(r.model.parameters.names)))
     if r.calibrate is not None:
-        vals = {v.label: v.validation for v in r.validate.members} if r.validate is not None else {}
+        mvs = {v.label: v for v in r.validate.members} if r.validate is not None else {}
         for m in r.calibrate.members:
-            v = vals.get(m.label)
+            mv = mvs.get(m.label)
+            v = None if mv is None else mv.validation
             txt = f"calibration SD {m.cycle.calibration.sd_nominal:.4g} -> {m.cycle.sd:.4g}"
             if v is not None:
                 txt += f"; hold-out SD {v.sd_nominal:.4g} -> {v.sd_calibrated:.4g}"
-                if v.floor_ratio is not None:
+                if mv.floor_with_scatter_ratio is not None:  # several articles: one parameter set cannot remove
+                    txt += (f" ({mv.floor_with_scatter_ratio:.2g}x the floor of one parameter set for "  # their scatter
+                            f"{len(m.articles)} articles: noise {v.sd_floor:.2g} + test-to-test scatter "
+                            f"{mv.scatter:.2g}; {v.floor_ratio:.2g}x the noise alone)")
+                elif v.floor_ratio is not None:
                     txt += f" ({v.floor_ratio:.2g}x the floor)"
             rows.append((f"member {m.label}", txt))
     for m in getattr(r.diagnosis, "members", ()):

@@ -589,7 +589,7 @@ class GroupResult:
 def group_stage(camp: Campaign, articles, equalize: EqualizeResult, log=print) -> GroupResult:
     """Members of the ensemble: all articles, each, or groups of articles by their pairwise SD."""
     mode = camp.calibration.ensemble
-    if mode == "all" or len(articles) == 1:
+    if len(articles) == 1:
         return GroupResult((("all", tuple(range(len(articles)))),))
     if mode == "article":
         return GroupResult(tuple((a.name, (i,)) for i, a in enumerate(articles)))
@@ -606,9 +606,22 @@ def group_stage(camp: Campaign, articles, equalize: EqualizeResult, log=print) -
     grp = grouping(D, camp.calibration.n_groups, None if any(x is None for x in floors) else floors)
     labels = grp.labels
     groups = [tuple(i for i in range(len(articles)) if labels[i] == g) for g in range(labels.max() + 1)]
-    log("groups: " + "; ".join(", ".join(articles[i].name for i in g) for g in groups))
+    if mode == "all":  # one member; the grouping is said (and kept for the report and the diagnosis's verdict)
+        if len(groups) > 1:
+            log(f"grouping: the articles fall into {len(groups)} groups ({split_words(articles, groups)}); "
+                "[calibration] ensemble = \"all\" fits one parameter set to all of them, so what differs between "
+                "the groups (an effect on some articles only) stays in the residual: ensemble = \"group\" "
+                "calibrates and diagnoses each group")
+            log("grouping: " + grp.describe([a.name for a in articles]))
+        return GroupResult((("all", tuple(range(len(articles)))),), D, grp)
+    log("groups: " + split_words(articles, groups))
     log("grouping: " + grp.describe([a.name for a in articles]))
     return GroupResult(tuple((f"group{g + 1}", idx) for g, idx in enumerate(groups)), D, grp)
+
+
+def split_words(articles, groups) -> str:
+    """"A1, A2; A3, A4": the articles of each group (tuples of article indices)."""
+    return "; ".join(", ".join(articles[i].name for i in g) for g in groups)
 
 
 # ----------------------------------------------------------------------------- calibrate

@@ -64,6 +64,15 @@ def _source(d) -> str:
     return f" ({s})" if "estimated" in s else ""
 
 
+def _extended_deck(res, member: str) -> tuple:
+    """(the diagnosis's extended deck, its deck parameters {name: p}) of ``member`` when the diagnosis accepted
+    effects there, else (None, None)."""
+    for d in ((res.get("diagnosis") or {}).get("members") or ()):
+        if d.get("member") == member and d.get("accepted") and d.get("bdf"):
+            return str(d["bdf"]), ((d.get("sd") or {}).get("after") or {}).get("p_refined")
+    return None, None
+
+
 def print_result(camp, res) -> None:
     """The calibration result as a table per member (parameters, SDs, identifiability)."""
     for m in res["members"]:
@@ -105,5 +114,10 @@ def print_result(camp, res) -> None:
         print(f"{m['identifiability']['n_identifiable']} of {len(m['parameters'])} parameters identifiable "
               "from these channels and band")
         if "bdf" in m:
-            print(f"calibrated deck: {m['bdf']}")
+            ext, p_ext = _extended_deck(res, m["member"])
+            print(f"calibrated deck: {m['bdf']}" + (f" (without the effect(s) the diagnosis accepted; with them, "
+                                                     f"parameters re-fitted: {ext})" if ext else ""))
+            if p_ext:
+                print("  parameters re-fitted with the effect(s) (change %): "
+                      + ", ".join(f"{k} {100 * v:+.2f}" for k, v in p_ext.items()))
     print(f"\nresult: {res['result_file']}  ({res['timings']['total_s']:.1f} s)")

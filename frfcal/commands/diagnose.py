@@ -75,7 +75,7 @@ def print_diagnosis(d: dict, out) -> None:
                          f"from {min(x['levels_n']):.3g} to {max(x['levels_n']):.3g} N, {x['z']:.3g} sigma")
             print(f"nonlinear ({x['article']}): {x['check']} at {what}{x['frequency_hz']:.5g} Hz{extra}", file=out)
         if m["ranked"]:
-            print(f"candidates screened: " + ", ".join(f"{k} {v}" for k, v in m["candidates"].items()), file=out)
+            print("candidates screened: " + ", ".join(f"{k} {v}" for k, v in m["candidates"].items()), file=out)
             for line in ranked_lines(m["ranked"][:10]):
                 print(line, file=out)
         for a in m["accepted"]:
@@ -114,6 +114,9 @@ def print_diagnosis(d: dict, out) -> None:
                   f"{_fmt(a['holdout_before_same_footing'])} -> {_fmt(a['holdout'])}, cross-validation RSE "
                   f"{_fmt(a['crossvalidation_rse_before'])} -> {_fmt(a['crossvalidation_rse'])}", file=out)
             print(f"after: {a['residual']['test']}", file=out)
+            if a.get("p_refined"):  # the deck parameters fitted with the effects: the calibrated ones lacked them
+                print("deck parameters with the accepted effect(s), refined on the raw lines (p, relative change): "
+                      + ", ".join(f"{k} {100 * v:+.2f} %" for k, v in a["p_refined"].items()), file=out)
         if m.get("bdf"):
             print(f"extended deck: {m['bdf']}; new cards:", file=out)
             for ln in m["new_cards"][:20]:
@@ -122,10 +125,11 @@ def print_diagnosis(d: dict, out) -> None:
             print(f"figure: {fpath}", file=out)
     for x in d.get("separations", []):
         sep = x["separation"]
-        per = ", ".join(f"{a} {c:.3g}" for a, c in zip(sep["articles"], sep["magnitude"]))
+        per = ", ".join(f"{a} {v:.4g}" for a, v in zip(sep["articles"], x.get("value") or sep["magnitude"]))
         print(f"\nseparating effect: {x['name']} ({x['family']}, accepted in {x['member']}): "
               f"{'SEPARATES' if x['separates'] else 'does not separate'} the article groups {sep['groups']}; "
-              f"magnitude c per article: {per} ({sep['reason']})", file=out)
+              f"size per article at the screening's damping: {per}{' ' + x['unit'] if x.get('unit') else ''} "
+              f"({sep['reason']})", file=out)
     print(f"\ndiagnosis: {d['result_file']}", file=out)
 
 

@@ -74,6 +74,32 @@ def test_print_diagnosis_reports_a_negligible_effect_as_dropped():
     assert not any(ln.startswith("ACCEPTED") for ln in out.getvalue().splitlines())
 
 
+def test_print_diagnosis_gives_the_refitted_parameters_and_physical_sizes_per_article():
+    """Outside data: the deck parameters re-fitted with the accepted effect were only in diagnosis.json, and the
+    per-article sizes were printed as normalized c (-0.672 for a stiffness factor 0.328)."""
+    from frfcal.campaign._html import _separation_row
+
+    member = {"member": "group2", "articles": ["A3", "A4"], "verdict": "effect(s) found", "reason": "r",
+              "residual": {"test": "t", "ranked": []}, "nonlinear_modes": [], "ranked": [], "accepted": [],
+              "trials": [],
+              "sd": {"calibration_raw": 0.01, "holdout": 0.02, "crossvalidation_rse": None,
+                     "residual_all_channels": 0.02, "floor": 0.001, "floor_source": "s", "scatter": 0.0,
+                     "after": {"calibration_raw": 0.01, "holdout_refined": 0.0125, "holdout_floor_ratio": 1.2,
+                               "floor_holdout": 0.0104, "holdout_before_same_footing": 0.02, "holdout": 0.019,
+                               "crossvalidation_rse_before": 0.1, "crossvalidation_rse": 0.09,
+                               "residual": {"test": "t"}, "p_refined": {"E_rail": 0.0802, "m_motor": -0.1154}}}}
+    sep = {"member": "group2", "name": "cluster_15_K", "family": "element_cluster", "separates": True,
+           "separation": {"articles": ["A1", "A3"], "groups": [0, 1], "magnitude": [-0.0021, -0.672],
+                          "reason": "gap 0.67"}, "value": [0.9979, 0.3282], "unit": "x"}
+    out = io.StringIO()
+    print_diagnosis({"gates": [], "members": [member], "separations": [sep], "result_file": "x.json"}, out)
+    text = out.getvalue()
+    assert "E_rail +8.02 %, m_motor -11.54 %" in text
+    assert "A1 0.9979, A3 0.3282 x" in text and "-0.672" not in text
+    row = _separation_row(sep)
+    assert row[3] == "A1 0.9979 (group 1); A3 0.3282 (group 2)" and row[5] is True
+
+
 def test_the_ranking_puts_every_singly_recalibrated_place_first_wherever_the_screening_ranked_it():
     """A place tried because it tied with the best point effect (_tied_places) may lie far down the screening's
     order; the reported ranking (by the hold-out SD of the single recalibrations) must still show it."""

@@ -39,3 +39,31 @@ def test_grouping_leaves_out_the_pairs_without_signal():
     # the pairwise SD is the masked one: in-group pairs far below the between-group pairs
     D = g.pairwise_sd
     assert D[0, 1] < 0.01 * D[0, 3]
+
+
+def test_one_parameter_set_over_two_article_groups_is_said(capsys):
+    # outside data (a cracked weld on A3, A4 of four frames): with the default ensemble = "all" the group
+    # stage said nothing and the diagnosis found no effect in the pooled residual. The split is now computed
+    # and said, one member is kept, and the diagnosis's verdict names the groups (_one_set_over_groups).
+    from frfcal.campaign._diagnose import _one_set_over_groups
+
+    rng = np.random.default_rng(1)
+    f = np.linspace(40.0, 300.0, 400)
+    data = []
+    for s in (0.0, 0.0, -0.03, -0.03):
+        fn = np.array([60.0 * (1 + s), 150.0, 230.0]) * (1 + 0.001 * rng.standard_normal(3))
+        data.append(FitData(f, _modal(f, fn)[:, None, None], ("a",), ("F1",)))
+    camp = SimpleNamespace(calibration=SimpleNamespace(ensemble="all", n_groups=None),
+                           channels=SimpleNamespace(calibrate=("a",)))
+    arts = [SimpleNamespace(name=f"A{k + 1}", std_error=None) for k in range(4)]
+    said = []
+    g = group_stage(camp, arts, SimpleNamespace(data=tuple(data)), log=said.append)
+    assert [(lab, idx) for lab, idx in g.members] == [("all", (0, 1, 2, 3))]
+    assert g.grouping is not None and "2 groups (A1, A2; A3, A4)" in said[0] and 'ensemble = "group"' in said[0]
+    member = SimpleNamespace(articles=(0, 1, 2, 3))
+    assert _one_set_over_groups(member, g, arts) == "A1, A2; A3, A4"
+    # articles that agree: nothing said, nothing in the verdict
+    same = [FitData(f, _modal(f, [60.0, 150.0, 230.0])[:, None, None], ("a",), ("F1",)) for _ in range(4)]
+    said.clear()
+    g = group_stage(camp, arts, SimpleNamespace(data=tuple(same)), log=said.append)
+    assert said == [] and _one_set_over_groups(member, g, arts) == ""
