@@ -397,6 +397,7 @@ def _stages(camp, ctx, stage, records, timings, t_all):
     if isinstance(ctx.results.get("report"), (str, Path)):
         out["report"] = str(ctx.results["report"])
     out["stages"] = records
+    out["time_s"] = time.perf_counter() - t_all  # every stage, the outputs and the late stages after them
     return out
 
 

@@ -120,4 +120,7 @@ def print_result(camp, res) -> None:
             if p_ext:
                 print("  parameters re-fitted with the effect(s) (change %): "
                       + ", ".join(f"{k} {100 * v:+.2f}" for k, v in p_ext.items()))
-    print(f"\nresult: {res['result_file']}  ({res['timings']['total_s']:.1f} s)")
+    total = res.get("time_s")
+    print(f"\nresult: {res['result_file']}  ({res['timings']['total_s']:.1f} s"
+          + (f"; {total:.1f} s with the stages after it" if total and total > res["timings"]["total_s"] + 0.05
+             else "") + ")")
