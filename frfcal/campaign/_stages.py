@@ -699,6 +699,7 @@ def _refined(camp: Campaign, model, arts, cyc, band, lower, upper, log, label):
                 max_nfev=c.max_evaluations)
     t0 = time.perf_counter()
     ref = refine(cyc.surrogate, cyc.p, raw, idents, modes, lower, upper, c.zeta0, floors=c.refine_floors, **opts)
+    start = ref.sd_raw_start  # at the equalized optimum: the re-basis cycles below start from the refined point
     stages = list(ref.stages)
     log(f"[{label}] raw-line SD (identified damping) {ref.sd_raw_start:.4g} -> {ref.sd_raw:.4g} "
         f"after {len(ref.stages)} refinement stage(s), max |dp| {np.max(np.abs(ref.p - cyc.p)):.3g} "
@@ -744,7 +745,7 @@ def _refined(camp: Campaign, model, arts, cyc, band, lower, upper, log, label):
             chk, _ = raw_basis_check(model, sur, basis, ref, band, tol)
             checks.append({**chk.to_dict(), "final": True})
             log(f"[{label}] raw-line re-basis cycles used up; final basis at the final point: {chk.describe()}")
-    return replace(ref, stages=tuple(stages), basis_checks=tuple(checks)), ref.p, sur, basis
+    return replace(ref, stages=tuple(stages), basis_checks=tuple(checks), sd_raw_start=start), ref.p, sur, basis
 
 
 def _identifiability(camp: Campaign, cyc, data, ref, p, sur, arts, lower, upper, names):
