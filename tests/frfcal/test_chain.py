@@ -103,13 +103,13 @@ def test_frame_chain_reaches_the_noise_floor(frame_chain):
 
 def _standard_error_floor(sc, channels, article):
     """The floor the true standard errors would print (noise_floor_sd's formula on the noisy lines)."""
-    from calibration._metric import log_noise_variance
+    from calibration._metric import log_noise_floor
 
     z = sc.truth()
     idx, lo, hi, (i,) = sc._selection(channels, BAND, [article])
     f = z[f"frequency_hz_{i}"]
     sel = (f >= lo) & (f <= hi)
-    q = log_noise_variance((z[f"sigma_{i}"][sel][:, idx] / np.abs(z[f"noisy_{i}"][sel][:, idx])) ** 2) / np.log(10.0) ** 2
+    q = log_noise_floor(z[f"noisy_{i}"][sel][:, idx], z[f"sigma_{i}"][sel][:, idx])
     return float(np.mean(q[:, sc.signal_pairs(i, [str(z["sensors"][k]) for k in idx], (lo, hi))]))
 
 

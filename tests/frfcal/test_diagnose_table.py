@@ -53,20 +53,25 @@ def test_print_diagnosis_prints_the_aligned_table():
     assert text[k:k + 1 + len(ROWS)] == ranked_lines(ROWS)
 
 
+def _member_after(label, articles, verdict, **after):
+    """A diagnosis.json member with an "after" SD block (its own entries ``after``), nothing ranked or accepted."""
+    return {"member": label, "articles": articles, "verdict": verdict, "reason": "r",
+            "residual": {"test": "t", "ranked": []}, "nonlinear_modes": [], "ranked": [], "accepted": [],
+            "trials": [],
+            "sd": {"calibration_raw": 0.01, "holdout": 0.02, "crossvalidation_rse": None,
+                   "residual_all_channels": 0.02, "floor": 0.001, "floor_source": "s", "scatter": 0.0,
+                   "after": {"calibration_raw": 0.01, "holdout_refined": 0.0125, "holdout_floor_ratio": 1.2,
+                             "floor_holdout": 0.0104, "holdout_before_same_footing": 0.02, "holdout": 0.019,
+                             "crossvalidation_rse_before": 0.1, "crossvalidation_rse": 0.09,
+                             "residual": {"test": "t"}, **after}}}
+
+
 def test_print_diagnosis_reports_a_negligible_effect_as_dropped():
     z = {"holdout_with": 0.0125, "holdout_without": 0.0125, "ratio": 1.0, "penalty_ratio": 0.9877,
          "max_mode_shift": 0.0, "negligible": True}
     neg = dict(ROWS[2], name="stinger_g18", description="stinger spring at grid 18", size="1e-37 N/m",
                refined_effect=z)
-    member = {"member": "all", "articles": ["A1"], "verdict": "no effect accepted", "reason": "r",
-              "residual": {"test": "t", "ranked": []}, "nonlinear_modes": [], "ranked": [], "accepted": [],
-              "trials": [],
-              "sd": {"calibration_raw": 0.01, "holdout": 0.02, "crossvalidation_rse": None,
-                     "residual_all_channels": 0.02, "floor": 0.001, "floor_source": "s", "scatter": 0.0,
-                     "after": {"calibration_raw": 0.01, "holdout_refined": 0.0125, "holdout_floor_ratio": 1.2,
-                               "floor_holdout": 0.0104, "holdout_before_same_footing": 0.02, "holdout": 0.019,
-                               "crossvalidation_rse_before": 0.1, "crossvalidation_rse": 0.09,
-                               "residual": {"test": "t"}, "negligible": [neg]}}}
+    member = _member_after("all", ["A1"], "no effect accepted", negligible=[neg])
     out = io.StringIO()
     print_diagnosis({"gates": [], "members": [member], "separations": [], "result_file": "x.json"}, out)
     (line,) = [ln for ln in out.getvalue().splitlines() if ln.startswith("NEGLIGIBLE")]
@@ -79,15 +84,8 @@ def test_print_diagnosis_gives_the_refitted_parameters_and_physical_sizes_per_ar
     per-article sizes were printed as normalized c (-0.672 for a stiffness factor 0.328)."""
     from frfcal.campaign._html import _separation_row
 
-    member = {"member": "group2", "articles": ["A3", "A4"], "verdict": "effect(s) found", "reason": "r",
-              "residual": {"test": "t", "ranked": []}, "nonlinear_modes": [], "ranked": [], "accepted": [],
-              "trials": [],
-              "sd": {"calibration_raw": 0.01, "holdout": 0.02, "crossvalidation_rse": None,
-                     "residual_all_channels": 0.02, "floor": 0.001, "floor_source": "s", "scatter": 0.0,
-                     "after": {"calibration_raw": 0.01, "holdout_refined": 0.0125, "holdout_floor_ratio": 1.2,
-                               "floor_holdout": 0.0104, "holdout_before_same_footing": 0.02, "holdout": 0.019,
-                               "crossvalidation_rse_before": 0.1, "crossvalidation_rse": 0.09,
-                               "residual": {"test": "t"}, "p_refined": {"E_rail": 0.0802, "m_motor": -0.1154}}}}
+    member = _member_after("group2", ["A3", "A4"], "effect(s) found",
+                           p_refined={"E_rail": 0.0802, "m_motor": -0.1154})
     sep = {"member": "group2", "name": "cluster_15_K", "family": "element_cluster", "separates": True,
            "separation": {"articles": ["A1", "A3"], "groups": [0, 1], "magnitude": [-0.0021, -0.672],
                           "reason": "gap 0.67"}, "value": [0.9979, 0.3282], "unit": "x"}
