@@ -306,8 +306,10 @@ def test_a_corrected_second_raw_line_rebasis_lands_where_a_rebuilt_one_does(stag
 
     camp, first = staged
     camp = camp.model_copy(update={"calibration": camp.calibration.model_copy(
-        # basis_tol 0: the second raw-line re-basis runs whatever its check would say (p-move trigger only)
-        update={"refine_rebasis": "corrected", "refine_cycles": 2, "cycle_tol": 1e-12, "basis_tol": 0.0})})
+        # basis_tol 0: the second raw-line re-basis runs whatever its check would say (p-move trigger only);
+        # the first one a rebuild (rebasis "iterated"), so that only the second is corrected
+        update={"rebasis": "iterated", "refine_rebasis": "corrected", "refine_cycles": 2, "cycle_tol": 1e-12,
+                "basis_tol": 0.0})})
     quiet = lambda m: None  # noqa: E731
     lines = []
     load = load_stage(camp, quiet)
