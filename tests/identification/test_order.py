@@ -216,3 +216,42 @@ def test_without_a_match_the_evaluated_orders_vote_on_the_modes():
     assert [round(v) for v in by[44]["absent_hz"]] == [120]
     assert [_mismatches(by[o]) for o in (40, 42, 44, 46)] == [1, 0, 1, 0]
     assert min(evaluations, key=lambda e: (_mismatches(e), e["order"]))["order"] == 42
+
+
+def test_an_order_that_lacks_only_poles_the_labels_reject_is_a_candidate(freefree, auto, monkeypatch):
+    """Outside trial 5: from order 68 on, a spurious stable pole appeared 0.04 Hz beside a 0.06 %-damped mode
+    (124.4928 Hz beside 124.5313 Hz; its shape unlike the mode's, MAC 0.1) and was labelled non-physical at every
+    evaluated order. The orders below lacked it, so they were no candidates: order 68 was chosen instead of 28,
+    and the reason said "orders 28-66 miss the pole at 124.5 Hz", which read as if the true mode were missing.
+    Such a pole is stood in for here by adding it to the diagram's candidate poles from order 50 on (the full
+    identification at each order never has it, so the labels reject it everywhere, as they did there)."""
+    import identification._order as order_module
+
+    t = freefree
+    k = int(np.argmin(np.abs(t.f_n - 241.0)))
+    w = 2 * np.pi * t.f_n[k] * (1 - 1.5e-4)  # 0.04 Hz below the mode, as there
+    lam0 = complex(-1.2e-4 * w, w * np.sqrt(1 - 1.2e-8))
+    shape = np.random.default_rng(7).standard_normal(t.H.shape[1]) + 0j
+    scan = order_module._candidate_poles
+
+    def with_spurious_pole(data, basis, sv, n, zeta_max):
+        lam, sh = scan(data, basis, sv, n, zeta_max)
+        if n < 50:
+            return lam, sh
+        lam, sh = np.append(lam, lam0), np.hstack([sh, shape[:, None] * np.linalg.norm(sh[:, :1])])
+        o = np.argsort(lam.imag)
+        return lam[o], sh[:, o]
+
+    monkeypatch.setattr(order_module, "_candidate_poles", with_spurious_pole)
+    r = identify(t.freq_hz, t.H, band_hz=(80, 688), weights=t.sigma)
+    sel = r.order_selection
+    # the order and the modes of the data without that pole (the old rule chose an order >= 50)
+    assert r.order == auto.order and sel.matched, sel.reason
+    _check(r, t)
+    assert sel.rejected_hz == (round(float(w / (2 * np.pi)), 4),)
+    assert sel.stable_frequency_hz.size == 17
+    f_r = f"{w / (2 * np.pi):.2f}"  # two decimals: at one it would read as the mode beside it, 241.0 Hz
+    assert f"(the pole at {f_r} Hz stable only from order " in sel.reason, sel.reason
+    assert f"order {r.order} has the rest)" in sel.reason
+    # the orders that lack only it were evaluated below the first candidate (lowest first) and say so in the JSON
+    assert [e["order"] for e in sel.evaluations][-1] == r.order
