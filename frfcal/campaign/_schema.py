@@ -201,10 +201,11 @@ class CalibrationSection(_Strict):
         0.0, ge=0, description="in the raw stage after a re-basis, hold parameter combinations whose relative "
         "singular value is far below this at their value before the re-basis (0 = off; docs/calibration.md)")
     rebasis: Literal["iterated", "kept", "solved", "corrected"] = Field(
-        "corrected", description="how a cycle re-makes the basis at its end point: 'corrected' (the default): "
-        "not rebuilt, the old basis plus the solved residuals of its modes and static solutions at the new point "
-        "(no new factorization); or rebuilt with the enrichment of the inverse-iterated old basis, the old "
-        "parameter-derivative columns kept as they are, or new derivative solves (docs/calibration.md)")
+        "iterated", description="how a cycle re-makes the basis at its end point: rebuilt with the enrichment "
+        "of the inverse-iterated old basis, the old parameter-derivative columns kept as they are, or new "
+        "derivative solves; or 'corrected': not rebuilt, the old basis plus the solved residuals of its modes "
+        "and static solutions at the new point (no new factorization; the basis grows, and every later stage "
+        "pays for it; docs/calibration.md)")
     refine_rebasis: Literal["iterated", "kept", "solved", "corrected"] = Field(
         "iterated", description="how the raw-line stage's second and later re-basis cycles re-make the basis "
         "(the first one, after the refinement's large step, as rebasis); 'corrected' adds the solved residuals "
