@@ -195,6 +195,13 @@ def _gram(M: np.ndarray) -> np.ndarray:
     return U + np.triu(U, 1).conj().T
 
 
+def _pole_regressor(omega, A, C):
+    """(X^-1, C X, G) of ``A = X diag(lam) X^-1``, ``G = 1 / (i omega - lam)`` (n_f, n): what the normal
+    systems of one ``A, C`` share whatever their weights."""
+    lam, X = np.linalg.eig(A)
+    return np.linalg.inv(X), C @ X, 1.0 / (1j * omega[:, None] - lam[None, :])
+
+
 class _NormalSystem:
     """Structured normal equations of the ``B, D`` least-squares fit.
 
@@ -207,14 +214,12 @@ class _NormalSystem:
     are ``[B (n rows); D (p rows)]``, one column per input sharing the weights.
     """
 
-    def __init__(self, omega, A, C, a=None, w=None):
+    def __init__(self, omega, A, C, a=None, w=None, poles=None):
         nf = omega.size
         p, n = C.shape
-        lam, X = np.linalg.eig(A)
         self.n, self.p = n, p
-        self.Xi = np.linalg.inv(X)
-        self.Ct = C @ X  # (p, n)
-        self.G = 1.0 / (1j * omega[:, None] - lam[None, :])  # (nf, n)
+        # the part that does not depend on the weights: shared by the systems of one fit (one per input)
+        self.Xi, self.Ct, self.G = poles if poles is not None else _pole_regressor(omega, A, C)
         if w is None:
             self.w2 = np.broadcast_to((a**2)[None, :], (nf, p))
             V = self.Ct.conj().T * (a**2)[None, :]
@@ -284,7 +289,8 @@ def importance(omega: np.ndarray, H: np.ndarray, a: np.ndarray, A: np.ndarray, C
     if a.ndim == 1:
         systems = [(_NormalSystem(omega, A, C, a=a), H, np.broadcast_to(a[None, :, None], H.shape))]
     else:  # per-line weights (n_f, p, m): one normal system per input, as in fit_bd
-        systems = [(_NormalSystem(omega, A, C, w=a[:, :, j]), H[:, :, j : j + 1], a[:, :, j : j + 1])
+        poles = _pole_regressor(omega, A, C)
+        systems = [(_NormalSystem(omega, A, C, w=a[:, :, j], poles=poles), H[:, :, j : j + 1], a[:, :, j : j + 1])
                    for j in range(H.shape[2])]
     ssr = 0.0
     dssr = np.zeros(len(blocks))
@@ -328,8 +334,9 @@ def fit_bd(omega: np.ndarray, H: np.ndarray, W: np.ndarray, A: np.ndarray, C: np
         return _fit_bd_separable(omega, H, sep[0], A, C)
     B = np.empty((n, m))
     D = np.empty((p, m))
+    poles = _pole_regressor(omega, A, C)
     for j in range(m):
-        ns = _NormalSystem(omega, A, C, w=W[:, :, j])
+        ns = _NormalSystem(omega, A, C, w=W[:, :, j], poles=poles)
         x = ns.solve(H[:, :, j : j + 1])
         B[:, j] = x[:n, 0]
         D[:, j] = x[n:, 0]
