@@ -582,7 +582,8 @@ def select_order(
             same.insert(0, same[0] - 1)
         run = [ords[j] for j in same]
         verb = "misses" if len(run) == 1 else "miss"
-        notes.append(f"{_span(run)} {verb} {_list_hz(_hz(lam_s[short[j_top]]), near=_hz(lam_s[~np.isin(np.arange(lam_s.size), short[j_top])]))}")
+        others = _hz(np.delete(lam_s, short[j_top]))
+        notes.append(f"{_span(run)} {verb} {_list_hz(_hz(lam_s[short[j_top]]), near=others)}")
         if same[0] > 0:
             notes.append(f"orders {ords[0]}-{ords[same[0] - 1]} miss more")
     if refined:
