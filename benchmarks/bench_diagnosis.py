@@ -178,8 +178,8 @@ def matches(fe, length_m, effects, family, cands) -> np.ndarray:
     return out
 
 
-def _default_target(field: str = "target") -> str:
-    """The campaign's default ``[diagnosis] target`` (or another ``[diagnosis]`` field)."""
+def _diagnosis_default(field: str) -> str:
+    """The campaign's default of a ``[diagnosis]`` field (``target``, ``continuation_lines``)."""
     from frfcal.campaign._schema import DiagnosisSection
 
     return getattr(DiagnosisSection(), field)
@@ -210,12 +210,12 @@ def main(argv=None) -> int:
     ap.add_argument("--workers", type=int, default=None)
     ap.add_argument("--target", choices=("debiased", "equalized"), default=None,
                     help="the screening's and the acceptance's target ([diagnosis] target; default: the campaign "
-                         "default, " + repr(_default_target()) + "); the hold-out SD of the trials is on the same "
-                         "target's hold-out channels")
+                         "default, " + repr(_diagnosis_default("target")) + "); the hold-out SD of the trials is on "
+                         "the same target's hold-out channels")
     ap.add_argument("--continuation-lines", choices=("raw", "half-bandwidth"), default=None,
                     help="[diagnosis] continuation_lines of the debiased target: every raw line at the continuation "
                          "stages, or the raw line nearest each point of the stage's half-bandwidth grid (default: "
-                         "the campaign default, " + repr(_default_target("continuation_lines")) + ")")
+                         "the campaign default, " + repr(_diagnosis_default("continuation_lines")) + ")")
     ap.add_argument("--no-zoom", dest="zoom", action="store_false",
                     help="no zoom of the point families (CandidateOptions.zoom_rounds = 0)")
     ap.add_argument("--no-stage", dest="stage", action="store_false",
@@ -229,8 +229,8 @@ def main(argv=None) -> int:
                          "not from its converged nonlinear check (fit_with's warm)")
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "diagnosis.json"))
     args = ap.parse_args(argv)
-    args.target = args.target or _default_target()
-    args.continuation_lines = args.continuation_lines or _default_target("continuation_lines")
+    args.target = args.target or _diagnosis_default("target")
+    args.continuation_lines = args.continuation_lines or _diagnosis_default("continuation_lines")
     from frfcal._malloc import keep_large_allocations
 
     malloc_tuned = keep_large_allocations()  # as the frfcal command does

@@ -457,25 +457,30 @@ def select_order(
     mismatch: list[tuple[set, int]] = []  # per evaluation: missing stable poles (indices), number spurious
     phys_sets: list[tuple] = []  # per evaluation: (physical eigenvalues, their shapes)
     results: dict[int, Identification] = {}
+
+    def evaluate(n):
+        """Identify order ``n`` in full and record it: (missing stable poles, spurious physical poles)."""
+        r = results[n] = full(n)
+        lam_p = r.poles.eigenvalues[r.poles.physical]
+        sh_p = _shapes(r, data.dual)
+        phys_sets.append((lam_p, sh_p))
+        miss, spur = _match(lam_s, sh_s, lam_p, sh_p, crit)
+        evaluations.append({
+            "order": int(n),
+            "n_physical": int(lam_p.size),
+            "missing_hz": list(_hz(lam_s[miss])),
+            "spurious_hz": list(_hz(lam_p[spur])),
+        })
+        mismatch.append((set(miss.tolist()), int(spur.size)))
+        return miss, spur
+
     chosen = None
     for j, n in enumerate(ords):
         if missing[j].size:
             continue
         if len(evaluations) >= max_candidates:
             break
-        r = results[n] = full(n)
-        phys = r.poles.physical
-        lam_p = r.poles.eigenvalues[phys]
-        sh_p = _shapes(r, data.dual)
-        phys_sets.append((lam_p, sh_p))
-        miss, spur = _match(lam_s, sh_s, lam_p, sh_p, crit)
-        evaluations.append({
-            "order": int(n),
-            "n_physical": int(phys.sum()),
-            "missing_hz": list(_hz(lam_s[miss])),
-            "spurious_hz": list(_hz(lam_p[spur])),
-        })
-        mismatch.append((set(miss.tolist()), int(spur.size)))
+        miss, spur = evaluate(n)
         if miss.size == 0 and spur.size == 0:
             chosen = n
             break
@@ -517,12 +522,8 @@ def select_order(
                 break
             if not missing[j].size or not set(missing[j].tolist()) <= rejected:
                 continue
-            r = results[n] = full(n)
-            lam_p = r.poles.eigenvalues[r.poles.physical]
-            miss, spur = _match(lam_s, sh_s, lam_p, _shapes(r, data.dual), crit)
+            miss, spur = evaluate(n)
             below_first.append(int(n))
-            evaluations.append({"order": int(n), "n_physical": int(lam_p.size), "missing_hz": list(_hz(lam_s[miss])),
-                                "spurious_hz": list(_hz(lam_p[spur]))})
             if set(miss.tolist()) == rejected and spur.size == 0:
                 chosen = n
                 break
