@@ -26,6 +26,13 @@ p_b. The sizes of the residuals in the norm of the solver come with it:
 error of each static solution, both measured before the round (what it
 corrects). Each round adds its vectors: the basis grows from cycle to cycle
 (docs/calibration.md, "a re-basis without a new factorization").
+
+:func:`compressed` cuts a basis back to what a cold build at p would hold
+(modes up to the cut-off, static and first-moment load solutions, the
+parameter-derivative solutions of the in-band modes), made inside its span
+in reduced coordinates: no solve at full size, one (n, r) x (r, r') product.
+A corrected round followed by it (``rebasis="compressed"``) re-bases
+without a factorization and without growth.
 """
 
 from __future__ import annotations
@@ -34,11 +41,22 @@ import time
 from dataclasses import dataclass, replace
 
 import numpy as np
+import scipy.linalg as sla
 import scipy.sparse as sp
 
 from calibration._errors import CalibrationError
 from calibration._extend import bordered
-from calibration._surrogate import FRFModel, Surrogate, assembled, basis_layout, build_surrogate, reduced_modes
+from calibration._surrogate import (
+    FRFModel,
+    DENSE_BELOW,
+    Surrogate,
+    _sym,
+    assembled,
+    basis_layout,
+    build_surrogate,
+    default_shift_hz,
+    reduced_modes,
+)
 
 
 @dataclass(frozen=True)
@@ -57,6 +75,8 @@ class Correction:
     size : int
         Basis size after the round.
     time_s : float
+    compressed_to : int or None
+        Basis size after :func:`compressed` (``rebasis="compressed"``), else None.
     """
 
     eta_max: float
@@ -64,14 +84,16 @@ class Correction:
     added: int
     size: int
     time_s: float
+    compressed_to: int | None = None
 
     def describe(self) -> str:
+        cut = "" if self.compressed_to is None else f", compressed to {self.compressed_to}"
         return (f"Ritz residual {self.eta_max:.2e}, static energy error {self.static_max:.2e}: "
-                f"+{self.added} vectors -> {self.size} ({self.time_s:.1f} s)")
+                f"+{self.added} vectors -> {self.size}{cut} ({self.time_s:.1f} s)")
 
     def to_dict(self) -> dict:
         return {"eta_max": self.eta_max, "static_max": self.static_max, "added": self.added, "size": self.size,
-                "time_s": self.time_s}
+                "time_s": self.time_s, "compressed_to": self.compressed_to}
 
 
 def corrected_surrogate(model: FRFModel, sur: Surrogate, basis: np.ndarray, p, band_hz, basis_factor: float = 2.0,
@@ -133,22 +155,103 @@ def corrected_surrogate(model: FRFModel, sur: Surrogate, basis: np.ndarray, p, b
     return out, Te, info
 
 
+def compressed(sur: Surrogate, basis: np.ndarray, p, band_hz, basis_factor: float = 2.0,
+               enrich: bool = True, enrich_factor: float = 1.25, enrich_tol: float = 1e-4,
+               static_tol: float = 1e-10):
+    """``sur`` and its basis cut to a cold build's vectors at ``p``, made inside the basis's span.
+
+    In reduced coordinates (the surrogate is exact in p on its span), with
+    A = K_r(p) + s M_r(p) at the default shift s:
+
+    * the modes up to ``basis_factor`` x band top;
+    * the static solutions A^-1 b of every drive and sensor load and their
+      first moments A^-1 M_r(p) A^-1 b (the dynamic part of the residual
+      flexibility of the modes above the cut-off, which a static solution
+      alone misses in the band), each scaled to unit M-norm and cut at
+      ``static_tol``;
+    * the parameter-derivative solutions A^-1 (dK_r/dp_j - lambda_i dM_r/dp_j) x_i
+      of the elastic modes up to ``enrich_factor`` x band top, cut at
+      ``enrich_tol`` as in :func:`calibration.build_surrogate` (none with
+      ``enrich=False``).
+
+    Each group is made M-orthonormal against the ones before it. The result
+    is M-orthonormal at ``p`` (its new basis point); its terms are the old
+    ones under the congruence, so it stays exact in p. No full-size solve: the
+    only n-sized work is the product ``basis @ Z``.
+
+    Returns (Surrogate, basis (n, r')).
+    """
+    p = np.asarray(p, float)
+    low, high = float(band_hz[0]), float(band_hz[1])
+    Kp, Mp = _sym(sur.K.at(p)), _sym(sur.M.at(p))
+    lam, X = reduced_modes(sur, p)
+    fhz = np.sqrt(np.clip(lam, 0.0, None)) / (2 * np.pi)
+    keep = fhz <= basis_factor * high
+    Phi = X[:, keep]
+    s = (2 * np.pi * default_shift_hz(band_hz)) ** 2
+    A = Kp + s * Mp
+    loads = np.hstack([sur.inputs, sur.outputs.T])
+    S1 = np.linalg.solve(A, loads)
+    S = np.hstack([S1, np.linalg.solve(A, Mp @ S1)])
+    S = S / np.maximum(np.sqrt(np.abs(np.einsum("ij,ij->j", S, Mp @ S))), np.finfo(float).tiny)[None, :]
+    sel = np.flatnonzero((fhz <= enrich_factor * high) & (fhz > sur.rigid_hz) & (lam > 0))
+    R = []
+    for j in range(sur.n_params):
+        dK, dM = np.asarray(sur.K.derivative(p, j)), np.asarray(sur.M.derivative(p, j))
+        if np.any(dK) or np.any(dM):
+            R.append(dK @ X[:, sel] - (dM @ X[:, sel]) * lam[sel][None, :])
+    E = np.linalg.solve(A, np.hstack(R)) if enrich and R and sel.size else np.zeros((sur.size, 0))
+    # M-orthonormal groups in the Euclidean coordinates y = L^T z of M_r(p) = L L^T: projected off the
+    # groups before twice, then an SVD cut (the singular values squared are the Gram eigenvalues the cold
+    # build cuts); directions that were already in the span (round-off after the projection) are dropped
+    Lm = np.linalg.cholesky(Mp)
+    Q = Lm.T @ Phi
+    sizes = []
+    for G, tol in ((S, static_tol), (E, enrich_tol)):
+        Y = Lm.T @ G
+        scale = float(np.linalg.norm(Y, axis=0).max(initial=0.0))
+        for _ in range(2):
+            Y = Y - Q @ (Q.T @ Y)
+        U, sv, _ = np.linalg.svd(Y, full_matrices=False)
+        k = int(np.count_nonzero((sv**2 > tol * sv.max(initial=0.0) ** 2) & (sv > 1e-10 * scale)))
+        Q = np.hstack([Q, U[:, :k]])
+        sizes.append(k)
+    n_static, n_enrich = sizes
+    Z = sla.solve_triangular(Lm.T, Q, lower=False)  # Z^T M_r(p) Z = Q^T Q = I
+
+    def cut(Ar):
+        return replace(Ar, matrices=tuple(_sym(Z.T @ np.asarray(m) @ Z) for m in Ar.matrices))
+
+    out = replace(sur, K=cut(sur.K), M=cut(sur.M), inputs=Z.T @ sur.inputs, outputs=sur.outputs @ Z,
+                  p_basis=p.copy(), basis_frequencies_hz=fhz[keep], n_static=n_static, n_enrich=n_enrich)
+    return out, np.asarray(basis) @ Z
+
+
 def rebased(model: FRFModel, sur: Surrogate, basis: np.ndarray | None, p, band_hz, basis_factor: float = 2.0,
             enrich: bool = True, rebasis: str = "iterated", refresh: bool = True):
     """The basis re-made at ``p`` after a calibration cycle: (Surrogate, basis, Correction or None).
 
     ``rebasis="corrected"`` adds one round of residual corrections
     (:func:`corrected_surrogate`, no new factorization; the basis grows by
-    those vectors). The other kinds, and "corrected" when the model keeps no
-    factorization from an earlier build, rebuild the basis at ``p``
-    (:func:`calibration.build_surrogate`; "corrected" then as "iterated";
-    ``refresh=False``: a cold build).
+    those vectors); ``"compressed"`` then cuts the corrected basis back to a
+    cold build's vectors at ``p`` (:func:`compressed`; no growth). The other
+    kinds, both of those when the model keeps no factorization from an
+    earlier build, and "compressed" on a model small enough for dense
+    solutions (a rebuild costs less there), rebuild the basis at ``p``
+    (:func:`calibration.build_surrogate`; "corrected" and "compressed" then as
+    "iterated"; ``refresh=False``: a cold build).
     """
-    if rebasis == "corrected" and basis is not None:
+    small = model.K.shape[0] <= DENSE_BELOW
+    if rebasis in ("corrected", "compressed") and basis is not None and not (rebasis == "compressed" and small):
         got = corrected_surrogate(model, sur, basis, p, band_hz, basis_factor)
+        if got is not None and rebasis == "compressed":
+            t0 = time.perf_counter()
+            new, T, info = got
+            new, T = compressed(new, T, p, band_hz, basis_factor, enrich=enrich)
+            return new, T, replace(info, compressed_to=new.size, time_s=info.time_s + time.perf_counter() - t0)
         if got is not None:
             return got
-    kind = "iterated" if rebasis == "corrected" else rebasis
+    kind = "iterated" if rebasis in ("corrected", "compressed") else rebasis
     new, T = build_surrogate(model, p, band_hz, basis_factor, enrich=enrich,
                              previous_basis=basis if refresh else None, rebasis=kind,
                              previous_layout=basis_layout(sur))

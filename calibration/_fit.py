@@ -681,12 +681,14 @@ class CycleOptions(FitOptions):
         times the half-power bandwidth 2 zeta0 f (eta <= 4 basis_tol zeta0):
         a new basis would give the same surrogate there up to that. None:
         re-basis whenever p moved by more than ``tol``.
-    rebasis : {"iterated", "kept", "solved", "corrected"}
+    rebasis : {"iterated", "kept", "solved", "corrected", "compressed"}
         The enrichment of a refreshed basis (:func:`calibration.build_surrogate`):
         the inverse-iterated old basis, the old enrichment columns, or new
         derivative solves at p; or "corrected": no rebuild, the old basis plus
         the solved residuals of its modes and static solutions at p
-        (:func:`calibration._correct.corrected_surrogate`).
+        (:func:`calibration._correct.corrected_surrogate`); "compressed": that,
+        cut back to a cold build's vectors at p (:func:`calibration._correct.compressed`).
+        The library default stays "iterated"; the campaign's is "compressed".
     """
 
     max_cycles: int = 4

@@ -51,6 +51,8 @@ from labdata import FRF_QUANTITIES
 from labdata import quantity_factor as _quantity_factor
 
 _QUANTITIES = FRF_QUANTITIES
+#: Models up to this many DOF are solved dense (all modes, a dense Cholesky): a cold rebuild costs little there.
+DENSE_BELOW = 1500
 
 
 @dataclass(frozen=True)
@@ -340,7 +342,7 @@ def _dense_shift_inverted(K: np.ndarray, M: np.ndarray, s: float):
     return lam, X, solve
 
 
-def full_modes(K, M, max_hz: float, shift_hz: float, max_modes: int = 600, dense_below: int = 1500,
+def full_modes(K, M, max_hz: float, shift_hz: float, max_modes: int = 600, dense_below: int = DENSE_BELOW,
                cache: dict | None = None):
     """Undamped modes of (K, M) up to ``max_hz`` and a solver for K + s M.
 
@@ -391,7 +393,7 @@ def refreshed_modes(K, M, T_old, max_hz: float, shift_hz: float, extra=None, cac
     """
     s = (2 * np.pi * shift_hz) ** 2
     n = K.shape[0]
-    if n <= 1500:
+    if n <= DENSE_BELOW:
         f, Phi, solve = full_modes(K, M, max_hz, shift_hz)
         out = (f, Phi, solve, None, M @ Phi, None)
         return out if extra is None else (*out, solve(extra))
@@ -459,7 +461,7 @@ def build_surrogate(
     basis_factor : float
         Mode cut-off as a multiple of the band top (>= 1.2 recommended).
     shift_hz : float, optional
-        Static-correction / shift-invert shift (default: band low / 4).
+        Static-correction / shift-invert shift (default: :func:`default_shift_hz`).
     max_modes : int
         Cap on the number of modes.
     enrich : bool
@@ -515,7 +517,7 @@ def build_surrogate(
     if not 0 <= low < high:
         raise CalibrationError(f"band_hz: need 0 <= low < high, got {band_hz}")
     if shift_hz is None:
-        shift_hz = max(low / 4.0, high / 50.0)
+        shift_hz = default_shift_hz(band_hz)
     cache = model.factor_cache
     cache.pop("factor_s", None)
     cache.pop("last_solve", None)  # the previous basis point's factor: free it before the new one is made
@@ -598,6 +600,11 @@ def build_surrogate(
                    "orthonormalize": t5 - t4, "project": t6 - t5},
     )
     return sur, T
+
+
+def default_shift_hz(band_hz) -> float:
+    """The static-correction shift of a basis for ``band_hz``: band low / 4, at least band top / 50 (Hz)."""
+    return max(float(band_hz[0]) / 4.0, float(band_hz[1]) / 50.0)
 
 
 def basis_layout(sur: Surrogate) -> tuple[int, int]:
@@ -701,9 +708,8 @@ def basis_residuals(model: FRFModel, sur: Surrogate, basis: np.ndarray, p, band_
         p_b, s, solve = kept
         exact = bool(np.array_equal(p_b, p))
     else:
-        low, high = float(band_hz[0]), float(band_hz[1])
-        s = (2 * np.pi * max(low / 4.0, high / 50.0)) ** 2
-        if K.shape[0] <= 1500:
+        s = (2 * np.pi * default_shift_hz(band_hz)) ** 2
+        if K.shape[0] <= DENSE_BELOW:
             Kd = K.toarray() if sp.issparse(K) else np.asarray(K)
             Md = M.toarray() if sp.issparse(M) else np.asarray(M)
             solve = _dense_shift_inverted(Kd, Md, s)[2]

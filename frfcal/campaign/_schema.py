@@ -200,16 +200,17 @@ class CalibrationSection(_Strict):
     rebasis_hold: float = Field(
         0.0, ge=0, description="in the raw stage after a re-basis, hold parameter combinations whose relative "
         "singular value is far below this at their value before the re-basis (0 = off; docs/calibration.md)")
-    rebasis: Literal["iterated", "kept", "solved", "corrected"] = Field(
-        "iterated", description="how a cycle re-makes the basis at its end point: rebuilt with the enrichment "
-        "of the inverse-iterated old basis, the old parameter-derivative columns kept as they are, or new "
-        "derivative solves; or 'corrected': not rebuilt, the old basis plus the solved residuals of its modes "
-        "and static solutions at the new point (no new factorization; the basis grows, and every later stage "
-        "pays for it; docs/calibration.md)")
-    refine_rebasis: Literal["iterated", "kept", "solved", "corrected"] = Field(
-        "iterated", description="how the raw-line stage's second and later re-basis cycles re-make the basis "
-        "(the first one, after the refinement's large step, as rebasis); 'corrected' adds the solved residuals "
-        "of the basis at the new point with the kept factorization: a faster calibration, a larger final basis "
+    rebasis: Literal["iterated", "kept", "solved", "corrected", "compressed"] = Field(
+        "compressed", description="how a cycle re-makes the basis at its end point: 'compressed' (default): the "
+        "old basis plus the solved residuals of its modes and static solutions at the new point (no new "
+        "factorization), cut back to a cold build's vectors made inside that span (no growth); 'corrected': the "
+        "same without the cut (the basis grows, and every later stage pays for it); or rebuilt with the "
+        "enrichment of the inverse-iterated old basis ('iterated'), the old parameter-derivative columns kept as "
+        "they are ('kept'), or new derivative solves ('solved'). Models up to 1500 DOF are rebuilt "
+        "('iterated') for 'compressed' (docs/calibration.md)")
+    refine_rebasis: Literal["iterated", "kept", "solved", "corrected", "compressed"] = Field(
+        "compressed", description="how the raw-line stage's second and later re-basis cycles re-make the basis "
+        "(the first one, after the refinement's large step, as rebasis); the same choices as rebasis "
         "(docs/calibration.md)")
     ensemble: Literal["all", "article", "group"] = Field("all", description="calibrate on all articles, each, or each group")
     n_groups: int | None = Field(None, ge=1, description="number of article groups (default: largest gap)")

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from calibration import build_surrogate, full_order_frf, surrogate_frf
-from calibration._correct import corrected_surrogate, rebased
+from calibration._correct import compressed, corrected_surrogate, rebased
 from tests.calibration._models import beam_model
 
 BAND = (20.0, 400.0)
@@ -63,3 +63,29 @@ def test_rebased_corrects_or_rebuilds(beam):
     model.factor_cache.clear()  # nothing kept: the basis is rebuilt at p (inverse iteration)
     new, B, info = rebased(model, sur, T, p, BAND, rebasis="corrected")
     assert info is None and np.array_equal(new.p_basis, p) and B.shape == (model.K.shape[0], new.size)
+
+
+def test_compressed_cuts_the_corrected_basis_to_a_cold_builds_size(beam):
+    """rebasis="compressed": a corrected round, then the cold build's vectors at p made inside its span.
+    Measured: largest FRF log error at p against the full model 8.1e-3 on the nominal basis (24 columns),
+    4.2e-5 corrected (33), 4.3e-5 compressed (26), 5.1e-5 on a cold build at p (25)."""
+    model, sur, T, p, f, ref = beam
+    cold, _ = build_surrogate(model, p, BAND)
+    floor = _error(surrogate_frf(cold, p, f, ZETA), ref)
+    s, B = build_surrogate(model, np.zeros(model.n_params), BAND)  # the nominal basis and factorization again
+    sc, Bc, _ = corrected_surrogate(model, s, B, p, BAND)
+    sz, Bz = compressed(sc, Bc, p, BAND)
+    err_c, err_z = _error(surrogate_frf(sc, p, f, ZETA), ref), _error(surrogate_frf(sz, p, f, ZETA), ref)
+    assert sz.size < sc.size and sz.size <= cold.size + sz.n_static
+    assert err_z < 1.5 * floor + 1e-4, (err_z, err_c, floor)
+    # the new basis point is p: M-orthonormal there, and still exact in p (the old terms under the congruence)
+    assert np.array_equal(sz.p_basis, p) and sz.size == len(sz.basis_frequencies_hz) + sz.n_static + sz.n_enrich
+    np.testing.assert_allclose(Bz.T @ (model.M.at(p) @ Bz), np.eye(sz.size), atol=1e-9)
+    q = -0.5 * p
+    np.testing.assert_allclose(sz.K.at(q), Bz.T @ (model.K.at(q) @ Bz), rtol=1e-8, atol=1e-6 * np.abs(sz.K.at(q)).max())
+    np.testing.assert_allclose(sz.M.at(q), Bz.T @ (model.M.at(q) @ Bz), rtol=1e-8, atol=1e-9)
+    # through rebased: corrected, then compressed, and the report says both sizes
+    build_surrogate(model, np.zeros(model.n_params), BAND)
+    new, B2, info = rebased(model, sur, T, p, BAND, rebasis="compressed")
+    assert info is not None and info.size == sc.size and info.compressed_to == new.size == sz.size
+    assert "compressed to" in info.describe()
