@@ -182,7 +182,7 @@ def compressed(sur: Surrogate, basis: np.ndarray, p, band_hz, basis_factor: floa
     Returns (Surrogate, basis (n, r')).
     """
     p = np.asarray(p, float)
-    low, high = float(band_hz[0]), float(band_hz[1])
+    high = float(band_hz[1])
     Kp, Mp = _sym(sur.K.at(p)), _sym(sur.M.at(p))
     lam, X = reduced_modes(sur, p)
     fhz = np.sqrt(np.clip(lam, 0.0, None)) / (2 * np.pi)

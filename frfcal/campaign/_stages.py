@@ -718,7 +718,8 @@ def _refined(camp: Campaign, model, arts, cyc, band, lower, upper, log, label):
         t0 = time.perf_counter()
         old_sur, old_basis = sur, basis
         # the first re-basis follows the refinement's large step from the equalized basis (rebasis); the later
-        # ones follow smaller steps (refine_rebasis: "corrected" adds one round of residual corrections instead)
+        # ones follow smaller steps (refine_rebasis); "compressed" (both defaults) corrects the basis with the
+        # first build's factorization and cuts it back to a cold build's size
         kind = c.rebasis if k == 0 else c.refine_rebasis
         sur, basis, corr = rebased(model, sur, basis, ref.p, band, c.basis_factor, c.enrich, kind)
         if corr is not None:

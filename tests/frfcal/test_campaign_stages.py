@@ -1,6 +1,7 @@
 """Campaign stages: stored results, fingerprints, rerun and resume."""
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -328,6 +329,37 @@ def test_a_corrected_second_raw_line_rebasis_lands_where_a_rebuilt_one_does(stag
     (logged,) = [x for x in lines if "raw-line SD (identified damping)" in x]
     assert f"(identified damping) {m.refinement.sd_raw_start:.4g} -> " in logged, (logged, m.refinement.sd_raw_start)
     _lands_where_the_campaign_did(m, model, first)
+
+
+def test_the_default_compressed_rebasis_lands_where_rebuilt_bases_do(staged):
+    """Default ``rebasis = "compressed"``: the raw-line re-basis corrects the basis with the first build's
+    factorization and cuts it back to a cold build's size (logged with both sizes); a campaign that rebuilds
+    every basis instead (``"iterated"``, the default until stop 36) puts the parameters the data see where the
+    default run put them."""
+    from calibration import SerialExecutor
+    from frfcal.campaign import build_model, calibrate_stage, equalize_stage, group_stage, identify_stage, load_stage
+
+    camp, first = staged
+    assert camp.calibration.rebasis == "compressed" and camp.calibration.refine_rebasis == "compressed"
+    quiet = lambda m: None  # noqa: E731
+    load = load_stage(camp, quiet)
+    pm, model = build_model(camp, load, quiet)
+    assert model.K.shape[0] > 1500  # the sparse path (below it a re-basis is a dense cold solution)
+    arts = identify_stage(camp, load.articles, quiet).attached(load.articles)
+    eq = equalize_stage(camp, arts)
+    groups = group_stage(camp, arts, eq, quiet)
+    lines = []
+    cal = calibrate_stage(camp, model, arts, eq, groups, SerialExecutor(), lines.append)
+    (logged,) = [x for x in lines if "raw-line re-basis 1: basis corrected" in x]
+    grown, cut = (int(v) for v in re.search(r"-> (\d+), compressed to (\d+)", logged).groups())
+    m = cal.members[0]
+    assert cut < grown and m.surrogate.size <= cal.surrogate.size + m.surrogate.n_static, (logged, m.surrogate.size)
+    rebuilt = camp.model_copy(update={"calibration": camp.calibration.model_copy(
+        update={"rebasis": "iterated", "refine_rebasis": "iterated"})})
+    lines = []
+    other = calibrate_stage(rebuilt, model, arts, eq, groups, SerialExecutor(), lines.append).members[0]
+    assert not [x for x in lines if "basis corrected" in x]
+    _lands_where_the_campaign_did(other, model, first)
 
 
 def test_a_drive_named_by_its_point_but_not_in_the_runs_names_the_channel_there(staged):
