@@ -244,24 +244,27 @@ def _shifted(K, M, s: float, cache: dict | None = None) -> sp.csc_matrix:
                 and np.array_equal(mp, M.indptr) and np.array_equal(mi, M.indices)):
             hit = None
     if hit is None:
-        n = K.shape[0]
+        # where K's and M's entries land in the union: the union's entry ranks picked out by an elementwise
+        # product with each pattern (linear merges, no (nnz,) int64 key arrays: 0.6-0.7 s at 200k DOF where
+        # keys and searchsorted took 0.8 s; the same positions)
+        ones = lambda A: sp.csr_matrix((np.ones(A.nnz), A.indices, A.indptr), shape=A.shape)  # noqa: E731
+        U = ones(K) + ones(M)  # structural: no cancellation
+        U.sort_indices()
+        rank = sp.csr_matrix((np.arange(1, U.nnz + 1, dtype=float), U.indices, U.indptr), shape=U.shape)
 
-        def keys(A):  # ascending for canonical CSR
-            rows = np.repeat(np.arange(n, dtype=np.int64), np.diff(A.indptr))
-            return rows * n + A.indices
+        def positions(A):
+            picked = sp.csr_matrix(rank.multiply(ones(A)))
+            picked.sort_indices()
+            if not (np.array_equal(picked.indptr, A.indptr) and np.array_equal(picked.indices, A.indices)):
+                raise CalibrationError("internal: a pattern is not inside the union of K and M")
+            return picked.data.astype(np.int64) - 1
 
-        kk, km = keys(K), keys(M)
-        pos_m = np.minimum(np.searchsorted(kk, km), max(kk.size - 1, 0))
-        if kk.size and np.array_equal(kk[pos_m], km):  # the usual case: M's pattern inside K's
+        pos_m = positions(M)
+        if U.nnz == K.nnz:  # the usual case: M's pattern inside K's
             U, pos_k = sp.csr_matrix((np.zeros(K.nnz), K.indices, K.indptr), shape=K.shape), None
         else:
-            ones = lambda A: sp.csr_matrix((np.ones(A.nnz), A.indices, A.indptr), shape=A.shape)  # noqa: E731
-            U = ones(K) + ones(M)  # structural: no cancellation
-            U.sort_indices()
-            ku = keys(U)
-            pos_k = np.searchsorted(ku, kk)
-            pos_m = np.searchsorted(ku, km)
-        del kk, km
+            pos_k = positions(K)
+        del rank
         if cache is not None:
             cache["union"] = (K.indptr.copy(), K.indices.copy(), M.indptr.copy(), M.indices.copy(), U, pos_k, pos_m)
     if pos_k is None:  # U is K's pattern
