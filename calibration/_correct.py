@@ -234,7 +234,9 @@ def rebased(model: FRFModel, sur: Surrogate, basis: np.ndarray | None, p, band_h
     ``rebasis="corrected"`` adds one round of residual corrections
     (:func:`corrected_surrogate`, no new factorization; the basis grows by
     those vectors); ``"compressed"`` then cuts the corrected basis back to a
-    cold build's vectors at ``p`` (:func:`compressed`; no growth). The other
+    cold build's vectors at ``p`` (:func:`compressed`; no growth; where the
+    reduced mass is not definite at ``p`` the corrected basis is kept uncut,
+    and the report then has ``compressed_to`` None). The other
     kinds, both of those when the model keeps no factorization from an
     earlier build, and "compressed" on a model small enough for dense
     solutions (a rebuild costs less there), rebuild the basis at ``p``
@@ -247,7 +249,10 @@ def rebased(model: FRFModel, sur: Surrogate, basis: np.ndarray | None, p, band_h
         if got is not None and rebasis == "compressed":
             t0 = time.perf_counter()
             new, T, info = got
-            new, T = compressed(new, T, p, band_hz, basis_factor, enrich=enrich)
+            try:
+                new, T = compressed(new, T, p, band_hz, basis_factor, enrich=enrich)
+            except (np.linalg.LinAlgError, CalibrationError):  # reduced mass not definite at p: keep it uncut
+                return got
             return new, T, replace(info, compressed_to=new.size, time_s=info.time_s + time.perf_counter() - t0)
         if got is not None:
             return got

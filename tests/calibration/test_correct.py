@@ -116,3 +116,20 @@ def test_compressed_on_a_lumped_mass_frame_above_the_dense_limit(tmp_path):
     fixed, err = _error(surrogate_frf(sur, p, f, ZETA), ref), _error(surrogate_frf(new, p, f, ZETA), ref)
     floor = _error(surrogate_frf(cold, p, f, ZETA), ref)
     assert err < 1.5 * floor + 1e-4 and err < fixed / 3, (err, floor, fixed)
+
+
+def test_rebased_keeps_the_corrected_basis_where_it_cannot_be_compressed(beam, monkeypatch):
+    """A reduced mass that is not definite at p (the cut's Cholesky fails): the corrected basis is returned uncut,
+    with ``compressed_to`` None, instead of an error."""
+    import calibration._correct as correct
+
+    model, sur, T, p, f, ref = beam
+    build_surrogate(model, np.zeros(model.n_params), BAND)
+
+    def fails(*args, **kwargs):
+        raise np.linalg.LinAlgError("Matrix is not positive definite")
+
+    monkeypatch.setattr(correct, "compressed", fails)
+    new, B, info = rebased(model, sur, T, p, BAND, rebasis="compressed")
+    assert info is not None and info.compressed_to is None and new.size == info.size > sur.size
+    assert "compressed" not in info.describe() and B.shape == (model.K.shape[0], new.size)
