@@ -77,6 +77,8 @@ class Correction:
     time_s : float
     compressed_to : int or None
         Basis size after :func:`compressed` (``rebasis="compressed"``), else None.
+    note : str
+        Why a wanted compression was not made ("" otherwise).
     """
 
     eta_max: float
@@ -85,15 +87,17 @@ class Correction:
     size: int
     time_s: float
     compressed_to: int | None = None
+    note: str = ""
 
     def describe(self) -> str:
         cut = "" if self.compressed_to is None else f", compressed to {self.compressed_to}"
+        cut += f", {self.note}" if self.note else ""
         return (f"Ritz residual {self.eta_max:.2e}, static energy error {self.static_max:.2e}: "
                 f"+{self.added} vectors -> {self.size}{cut} ({self.time_s:.1f} s)")
 
     def to_dict(self) -> dict:
         return {"eta_max": self.eta_max, "static_max": self.static_max, "added": self.added, "size": self.size,
-                "time_s": self.time_s, "compressed_to": self.compressed_to}
+                "time_s": self.time_s, "compressed_to": self.compressed_to, "note": self.note}
 
 
 def corrected_surrogate(model: FRFModel, sur: Surrogate, basis: np.ndarray, p, band_hz, basis_factor: float = 2.0,
@@ -236,7 +240,7 @@ def rebased(model: FRFModel, sur: Surrogate, basis: np.ndarray | None, p, band_h
     those vectors); ``"compressed"`` then cuts the corrected basis back to a
     cold build's vectors at ``p`` (:func:`compressed`; no growth; where the
     reduced mass is not definite at ``p`` the corrected basis is kept uncut,
-    and the report then has ``compressed_to`` None). The other
+    and the report says so in its ``note``). The other
     kinds, both of those when the model keeps no factorization from an
     earlier build, and "compressed" on a model small enough for dense
     solutions (a rebuild costs less there), rebuild the basis at ``p``
@@ -252,7 +256,7 @@ def rebased(model: FRFModel, sur: Surrogate, basis: np.ndarray | None, p, band_h
             try:
                 new, T = compressed(new, T, p, band_hz, basis_factor, enrich=enrich)
             except (np.linalg.LinAlgError, CalibrationError):  # reduced mass not definite at p: keep it uncut
-                return got
+                return new, T, replace(info, note="not compressed (the reduced mass is not definite at p)")
             return new, T, replace(info, compressed_to=new.size, time_s=info.time_s + time.perf_counter() - t0)
         if got is not None:
             return got
