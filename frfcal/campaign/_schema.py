@@ -183,6 +183,10 @@ class CalibrationSection(_Strict):
         "the half-power bandwidth 2 zeta0 f (0: whenever p moved by more than cycle_tol); also gates the raw-line "
         "stage's second and later re-bases, against the least damped estimated mode (docs/calibration.md)")
     max_evaluations: int = Field(100, ge=5, description="residual evaluations per start and stage")
+    level_factor: float = Field(
+        4.0, ge=0, description="refuse the calibration when the model's FRF level at the nominal parameters "
+        "differs from the data's by more than this factor (median over lines and channel-drive pairs; a unit "
+        "mismatch: an mm-t-s deck read as SI is 1000x, g read as m/s^2 9.81x; 0 = no check)")
     refine: bool = Field(True, description="refine the equalized optimum on the raw calibration lines "
                          "(damping continuation down to the identified damping; see docs/calibration.md)")
     refine_floors: list[float] = Field(

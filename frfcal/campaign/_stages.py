@@ -41,6 +41,8 @@ from calibration import (
     estimate_std_error,
     noise_floor_sd,
     pairwise_sd,
+    reduced_modes,
+    surrogate_frf,
     validate,
     with_spread,
     expected_from_std_error,
@@ -767,6 +769,102 @@ def _identifiability(camp: Campaign, cyc, data, ref, p, sur, arts, lower, upper,
     return identifiability(obj.jacobian(p), obj.residual(p), p, lower, upper, names, stride=stride)
 
 
+def _unit_hint(factor: float, units: str) -> str:
+    """The unit systems whose deck, read as ``units``, makes the model's FRFs ``factor`` x the data's."""
+    from femodel import UNIT_SYSTEMS, unit_system
+
+    read = unit_system(units)
+    per = read.force_n / read.length_m  # an FRF of length over force: SI value per deck number read as ``units``
+    fits = [name for name, u in UNIT_SYSTEMS.items() if name not in (read.name, "consistent")
+            and abs(np.log10(factor * per * u.length_m / u.force_n)) < 0.15]
+    if fits:
+        return (f"that is what a deck in {' or '.join(repr(f) for f in fits)} read as {units!r} gives: set "
+                f"[model] units (or \"units\" in the parameter file) to the deck's unit system")
+    return (f"no unit system of the deck explains it (read as {units!r}); check the data files' units "
+            f"(accelerations in g labelled m/s^2 are 9.81 x off) and the channels' grids")
+
+
+def _log_spacing(f) -> np.ndarray:
+    """Per line, the log-frequency interval it stands for: half the distance in ln f to its neighbours."""
+    lf = np.log(np.maximum(np.asarray(f, float), 1e-12))
+    if lf.size < 2:
+        return np.ones(lf.size)
+    order = np.argsort(lf)
+    ls = lf[order]
+    edges = np.concatenate([[ls[0]], 0.5 * (ls[1:] + ls[:-1]), [ls[-1]]])
+    w = np.empty(lf.size)
+    w[order] = np.maximum(np.diff(edges), np.finfo(float).tiny)
+    return w
+
+
+def _weighted_median(x, w) -> float:
+    """The value below which half the weight ``w`` of ``x`` lies."""
+    order = np.argsort(x)
+    c = np.cumsum(np.asarray(w, float)[order])
+    return float(np.asarray(x)[order][np.searchsorted(c, 0.5 * c[-1])])
+
+
+def level_check(camp: Campaign, sur: Surrogate, articles, units: str = "si", log=print) -> dict:
+    """The model's FRF level at the nominal parameters against each article's lines (calibration and hold-out
+    channels).
+
+    Per channel-drive pair, the median over the lines of log10 |H_model| / |H_data|, each line weighted by
+    the log-frequency interval it stands for (a grid dense at the resonances, where the model at
+    ``[calibration] zeta0`` and the lightly damped data differ most, does not pull it; resonance offsets move
+    single lines, not the median); per article the median over its pairs. An article off by more than ``[calibration] level_factor`` is refused with the
+    factor and its likely cause (:func:`_unit_hint`); a channel off the article's level by more than that is
+    named in the log (its units, its grid or its direction). Offsets within the bounds change levels by tens of
+    percents, never by a factor of 4; beyond it the cause is an input error, usually the deck's unit system
+    (an mm-t-s deck read as SI is 1000 x the data; g labelled m/s^2 9.81 x). ``level_factor = 0``: no check.
+
+    Returns {article: factor} (model over data).
+    """
+    limit = float(camp.calibration.level_factor)
+    if limit <= 0:
+        return {}
+    chans = list(camp.channels.calibrate) + list(camp.channels.holdout)
+    rows = [sur.output_names.index(n) for n in chans]
+    p0 = np.zeros(sur.n_params)
+    modes = reduced_modes(sur, p0)
+    out, bad = {}, []
+    for a in articles:
+        d = raw_data(a, chans)
+        if d.freq_hz.size == 0:
+            continue
+        cols = [sur.input_names.index(n) for n in a.drives]
+        H = surrogate_frf(sur, p0, d.freq_hz, camp.calibration.zeta0, a.quantity, outputs=rows, modes=modes)[:, :, cols]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            r = np.log10(np.abs(H)) - np.log10(np.abs(d.frf))
+        ok = np.isfinite(r) if d.mask is None else np.isfinite(r) & d.mask
+        w = _log_spacing(d.freq_hz)
+        pair = np.full(r.shape[1:], np.nan)
+        for i, j in zip(*np.nonzero(ok.any(axis=0))):
+            pair[i, j] = _weighted_median(r[ok[:, i, j], i, j], w[ok[:, i, j]])
+        if not np.isfinite(pair).any():
+            continue
+        level = float(np.nanmedian(pair))
+        out[a.name] = 10.0**level
+        if abs(level) > np.log10(limit):
+            bad.append((a.name, 10.0**level, int(ok.any(axis=(1, 2)).sum()), int(np.isfinite(pair).sum())))
+            continue
+        for i, name in enumerate(chans):
+            if np.isfinite(pair[i]).any() and abs(np.nanmedian(pair[i]) - level) > np.log10(limit):
+                log(f"{a.name}: channel {name!r}: the model's FRFs are {10.0 ** np.nanmedian(pair[i]):.3g} x the "
+                    f"data's where the other channels' are {10.0 ** level:.3g} x: check its units, grid and direction")
+    if bad:
+        name, factor, n_lines, n_pairs = bad[0]
+        others = "".join(f"; {n}: {f:.3g} x" for n, f, _, _ in bad[1:])
+        raise CalibrationError(
+            f"{name}: at the nominal parameters the model's FRFs are {factor:.3g} x the measured ones (the median "
+            f"over {n_lines} lines and {n_pairs} channel-drive pairs of the calibration and hold-out channels{others}); no "
+            f"parameter within its bounds closes more than a factor {limit:g} ([calibration] level_factor): "
+            f"{_unit_hint(factor, units)}")
+    if out:
+        log("level check: model over data at the nominal parameters (median) "
+            + ", ".join(f"{n} {f:.3g}" for n, f in out.items()))
+    return out
+
+
 def calibrate_stage(camp: Campaign, model, articles, equalize: EqualizeResult, groups: GroupResult, executor,
                     log=print) -> CalibrateResult:
     """Nominal surrogate, then per member: equalized multi-start with re-basis cycles, raw-line refinement,
@@ -784,6 +882,7 @@ def calibrate_stage(camp: Campaign, model, articles, equalize: EqualizeResult, g
     basis_s = time.perf_counter() - t
     log(f"surrogate: {sur0.size} ({len(sur0.basis_frequencies_hz)} modes, {sur0.n_static} static, "
         f"{sur0.n_enrich} enrichment) in {basis_s:.1f} s")
+    level_check(camp, sur0, articles, getattr(pm, "units", "si"), log)
     opts = CycleOptions(n_starts=c.starts, seed=c.seed, quantity=articles[0].quantity, max_cycles=c.max_cycles,
                         adaptive_starts=c.adaptive_starts,
                         tol=c.cycle_tol, basis_factor=c.basis_factor, enrich=c.enrich, max_nfev=c.max_evaluations,

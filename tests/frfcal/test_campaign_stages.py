@@ -378,3 +378,41 @@ def test_a_drive_named_by_its_point_but_not_in_the_runs_names_the_channel_there(
     with pytest.raises(CalibrationError, match=rf"drives \[\"IMP-C \({re.escape(point)}\) \(the run's '{drive.name}' is at grid "
                                                rf"{drive.grid} along .*: that name\?\)\"\] are not drives of the run"):
         load_stage(bad, lambda _: None)
+
+
+def test_level_check_refuses_a_unit_mismatch_and_names_a_channel_off_the_others(staged):
+    """The model's FRF level against the data's at the nominal point: about 1 on the campaign's own data; a
+    deck in mm-t-s read as SI (the model 1000 x the data) refused with the unit system named; a factor no
+    unit system gives (g against m/s^2) refused with the data's units named; one channel 1000 x off the
+    others named in the log, the calibration not refused."""
+    from dataclasses import replace
+
+    from calibration import build_surrogate
+    from frfcal.campaign import build_model, load_stage
+    from frfcal.campaign._stages import level_check
+
+    camp, _ = staged
+    quiet = lambda m: None  # noqa: E731
+    load = load_stage(camp, quiet)
+    pm, model = build_model(camp, load, quiet)
+    sur, _ = build_surrogate(model, np.zeros(pm.n_params), (camp.band.low_hz, camp.band.high_hz))
+    arts = load.articles
+    factors = level_check(camp, sur, arts, "si", quiet)
+    assert set(factors) == {a.name for a in arts}
+    assert all(0.7 < f < 1.4 for f in factors.values()), factors  # 5-8 % offsets, 1 % noise
+
+    mm = [replace(a, frf=a.frf * 1e-3) for a in arts]
+    with pytest.raises(CalibrationError, match=r"'mm-t-s' read as 'si'") as err:
+        level_check(camp, sur, mm, "si", quiet)
+    assert re.search(r"FRFs are (9\d\d|1\.0\de\+03) x the measured", str(err.value)), str(err.value)
+
+    g = [replace(a, frf=a.frf / 9.80665) for a in arts]
+    with pytest.raises(CalibrationError, match=r"no unit system of the deck explains it.*in g"):
+        level_check(camp, sur, g, "si", quiet)
+
+    lines = []
+    one = [replace(a, frf=a.frf * np.where(np.arange(a.frf.shape[1]) == 1, 1e3, 1.0)[None, :, None]) for a in arts]
+    level_check(camp, sur, one, "si", lines.append)
+    name = camp.channels.calibrate[1]
+    assert any(f"channel {name!r}" in m and "check its units, grid and direction" in m for m in lines), lines
+    assert not any(f"channel {n!r}" in m for m in lines for n in camp.channels.calibrate if n != name)
