@@ -769,6 +769,12 @@ def _identifiability(camp: Campaign, cyc, data, ref, p, sur, arts, lower, upper,
     return identifiability(obj.jacobian(p), obj.residual(p), p, lower, upper, names, stride=stride)
 
 
+#: A channel whose FRF level (model over data) is off its article's by more than this factor is named in the
+#: level check's log: the smallest unit slip, g against m/s^2, is 9.81x; physics the model lacks changes a
+#: channel's level less (the demo's closed gap: 4.2x on the channel beside it).
+CHANNEL_FACTOR = 8.0
+
+
 def _unit_hint(factor: float, units: str) -> str:
     """The unit systems whose deck, read as ``units``, makes the model's FRFs ``factor`` x the data's."""
     from femodel import UNIT_SYSTEMS, unit_system
@@ -781,7 +787,8 @@ def _unit_hint(factor: float, units: str) -> str:
         return (f"that is what a deck in {' or '.join(repr(f) for f in fits)} read as {units!r} gives: set "
                 f"[model] units (or \"units\" in the parameter file) to the deck's unit system")
     return (f"no unit system of the deck explains it (read as {units!r}); check the data files' units "
-            f"(accelerations in g labelled m/s^2 are 9.81 x off) and the channels' grids")
+            f"(accelerations in g labelled m/s^2 are 9.81 x off) and the channels' grids; a model that does lack "
+            f"that much may raise [calibration] level_factor")
 
 
 def _log_spacing(f) -> np.ndarray:
@@ -812,8 +819,8 @@ def level_check(camp: Campaign, sur: Surrogate, articles, units: str = "si", log
     the log-frequency interval it stands for (a grid dense at the resonances, where the model at
     ``[calibration] zeta0`` and the lightly damped data differ most, does not pull it; resonance offsets move
     single lines, not the median); per article the median over its pairs. An article off by more than ``[calibration] level_factor`` is refused with the
-    factor and its likely cause (:func:`_unit_hint`); a channel off the article's level by more than that is
-    named in the log (its units, its grid or its direction). Offsets within the bounds change levels by tens of
+    factor and its likely cause (:func:`_unit_hint`); a channel off the article's level by more than
+    :data:`CHANNEL_FACTOR` is named in the log (its units, its grid or its direction). Offsets within the bounds change levels by tens of
     percents, never by a factor of 4; beyond it the cause is an input error, usually the deck's unit system
     (an mm-t-s deck read as SI is 1000 x the data; g labelled m/s^2 9.81 x). ``level_factor = 0``: no check.
 
@@ -848,9 +855,10 @@ def level_check(camp: Campaign, sur: Surrogate, articles, units: str = "si", log
             bad.append((a.name, 10.0**level, int(ok.any(axis=(1, 2)).sum()), int(np.isfinite(pair).sum())))
             continue
         for i, name in enumerate(chans):
-            if np.isfinite(pair[i]).any() and abs(np.nanmedian(pair[i]) - level) > np.log10(limit):
+            if np.isfinite(pair[i]).any() and abs(np.nanmedian(pair[i]) - level) > np.log10(CHANNEL_FACTOR):
                 log(f"{a.name}: channel {name!r}: the model's FRFs are {10.0 ** np.nanmedian(pair[i]):.3g} x the "
-                    f"data's where the other channels' are {10.0 ** level:.3g} x: check its units, grid and direction")
+                    f"data's where the other channels' are {10.0 ** level:.3g} x: check its units, grid and "
+                    f"direction (or physics the model lacks near it)")
     if bad:
         name, factor, n_lines, n_pairs = bad[0]
         others = "".join(f"; {n}: {f:.3g} x" for n, f, _, _ in bad[1:])
