@@ -818,11 +818,12 @@ def level_check(camp: Campaign, sur: Surrogate, articles, units: str = "si", log
     Per channel-drive pair, the median over the lines of log10 |H_model| / |H_data|, each line weighted by
     the log-frequency interval it stands for (a grid dense at the resonances, where the model at
     ``[calibration] zeta0`` and the lightly damped data differ most, does not pull it; resonance offsets move
-    single lines, not the median); per article the median over its pairs. An article off by more than ``[calibration] level_factor`` is refused with the
-    factor and its likely cause (:func:`_unit_hint`); a channel off the article's level by more than
-    :data:`CHANNEL_FACTOR` is named in the log (its units, its grid or its direction). Offsets within the bounds change levels by tens of
-    percents, never by a factor of 4; beyond it the cause is an input error, usually the deck's unit system
-    (an mm-t-s deck read as SI is 1000 x the data; g labelled m/s^2 9.81 x). ``level_factor = 0``: no check.
+    single lines, not the median); per article the median over its pairs. An article off by more than
+    ``[calibration] level_factor`` is refused with the factor and its likely cause (:func:`_unit_hint`); a
+    channel off the article's level by more than :data:`CHANNEL_FACTOR` is named in the log (its units, its
+    grid or its direction). Offsets within the bounds change levels by tens of percents, never by a factor of
+    4; beyond it the cause is an input error, usually the deck's unit system (an mm-t-s deck read as SI is
+    1000 x the data; g labelled m/s^2 9.81 x). ``level_factor = 0``: no check.
 
     Returns {article: factor} (model over data).
     """
@@ -839,7 +840,8 @@ def level_check(camp: Campaign, sur: Surrogate, articles, units: str = "si", log
         if d.freq_hz.size == 0:
             continue
         cols = [sur.input_names.index(n) for n in a.drives]
-        H = surrogate_frf(sur, p0, d.freq_hz, camp.calibration.zeta0, a.quantity, outputs=rows, modes=modes)[:, :, cols]
+        H = surrogate_frf(sur, p0, d.freq_hz, camp.calibration.zeta0, a.quantity, outputs=rows,
+                          modes=modes)[:, :, cols]
         with np.errstate(divide="ignore", invalid="ignore"):
             r = np.log10(np.abs(H)) - np.log10(np.abs(d.frf))
         ok = np.isfinite(r) if d.mask is None else np.isfinite(r) & d.mask
@@ -864,9 +866,9 @@ def level_check(camp: Campaign, sur: Surrogate, articles, units: str = "si", log
         others = "".join(f"; {n}: {f:.3g} x" for n, f, _, _ in bad[1:])
         raise CalibrationError(
             f"{name}: at the nominal parameters the model's FRFs are {factor:.3g} x the measured ones (the median "
-            f"over {n_lines} lines and {n_pairs} channel-drive pairs of the calibration and hold-out channels{others}); no "
-            f"parameter within its bounds closes more than a factor {limit:g} ([calibration] level_factor): "
-            f"{_unit_hint(factor, units)}")
+            f"over {n_lines} lines and {n_pairs} channel-drive pairs of the calibration and hold-out channels"
+            f"{others}); no parameter within its bounds closes more than a factor {limit:g} "
+            f"([calibration] level_factor): {_unit_hint(factor, units)}")
     if out:
         log("level check: model over data at the nominal parameters (median) "
             + ", ".join(f"{n} {f:.3g}" for n, f in out.items()))

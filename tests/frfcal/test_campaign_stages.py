@@ -411,7 +411,8 @@ def test_level_check_refuses_a_unit_mismatch_and_names_a_channel_off_the_others(
         level_check(camp, sur, g, "si", quiet)
 
     lines = []
-    one = [replace(a, frf=a.frf * np.where(np.arange(a.frf.shape[1]) == 1, 1e3, 1.0)[None, :, None]) for a in arts]
+    scale = np.where(np.arange(arts[0].frf.shape[1]) == 1, 1e3, 1.0)[None, :, None]
+    one = [replace(a, frf=a.frf * scale) for a in arts]
     level_check(camp, sur, one, "si", lines.append)
     name = camp.channels.calibrate[1]
     assert any(f"channel {name!r}" in m and "check its units, grid and direction" in m for m in lines), lines
