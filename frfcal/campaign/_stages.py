@@ -666,11 +666,13 @@ class MemberCalibration:
 
 @dataclass(frozen=True)
 class CalibrateResult:
-    """The calibrate stage: the nominal surrogate and every member's calibration."""
+    """The calibrate stage: the nominal surrogate and every member's calibration; ``level``: per article the
+    model's FRF level over the data's at the nominal parameters (:func:`level_check`; empty when it is off)."""
 
     surrogate: Surrogate
     members: tuple  # of MemberCalibration
     basis_s: float = 0.0
+    level: dict = field(default_factory=dict)
 
 
 def raw_rebasis_tol(c, cycle: int | None) -> float:
@@ -892,7 +894,7 @@ def calibrate_stage(camp: Campaign, model, articles, equalize: EqualizeResult, g
     basis_s = time.perf_counter() - t
     log(f"surrogate: {sur0.size} ({len(sur0.basis_frequencies_hz)} modes, {sur0.n_static} static, "
         f"{sur0.n_enrich} enrichment) in {basis_s:.1f} s")
-    level_check(camp, sur0, articles, getattr(pm, "units", "si"), log)
+    level = level_check(camp, sur0, articles, getattr(pm, "units", "si"), log)
     opts = CycleOptions(n_starts=c.starts, seed=c.seed, quantity=articles[0].quantity, max_cycles=c.max_cycles,
                         adaptive_starts=c.adaptive_starts,
                         tol=c.cycle_tol, basis_factor=c.basis_factor, enrich=c.enrich, max_nfev=c.max_evaluations,
@@ -916,7 +918,7 @@ def calibrate_stage(camp: Campaign, model, articles, equalize: EqualizeResult, g
         idf = _identifiability(camp, cyc, data, ref, p_final, sur_final, arts, lower, upper, pm.parameters.names)
         log(f"[{label}] identifiability at the calibrated point:\n{idf.table()}")
         members.append(MemberCalibration(label, tuple(idx), cyc, ref, p_final, sur_final, idf, t_cal, basis_final))
-    return CalibrateResult(sur0, tuple(members), basis_s)
+    return CalibrateResult(sur0, tuple(members), basis_s, level)
 
 
 # ----------------------------------------------------------------------------- validate

@@ -51,6 +51,7 @@ def _members(res):
 def test_first_run_stores_every_stage(staged):
     camp, first = staged
     assert list(first["stages"]) == list(STAGES)
+    assert all(0.7 < f < 1.4 for f in first["level_check"].values()) and first["level_check"]  # model over data
     assert all(s == "ran" for s in _status(first).values())
     stages = camp.resolve(camp.output.dir) / "stages"
     for name in STAGES:
