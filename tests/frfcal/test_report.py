@@ -155,6 +155,9 @@ def test_parameter_table_holds_the_calibrated_values(campaign):
             assert cells[5] == ("yes" if m.identifiability.identifiable[j] else f"NO: {m.identifiability.reasons[j]}")
     for m in members:  # how many starts ran, and into how many minima
         assert f"Multi-start (equalized stage): {m.cycle.calibration.describe_starts()}." in text
+    level = r.calibrate.level  # the level check before the fit: the model about level with the data
+    assert level and all(0.7 < f < 1.4 for f in level.values())
+    assert "Level check, the model's FRFs over the data's at the nominal parameters" in text
     # the reported values are the calibration's, and it moved towards the truth: the one-article member (which
     # of three alike articles stands alone under n_groups = 2 is the identified models' chance)
     (single,) = [m for m in members if len(m.articles) == 1]
