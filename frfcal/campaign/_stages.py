@@ -39,6 +39,7 @@ from calibration import (
     half_bandwidth_frequencies,
     identifiability,
     estimate_std_error,
+    log_frequency_weights,
     noise_floor_sd,
     pairwise_sd,
     reduced_modes,
@@ -793,19 +794,6 @@ def _unit_hint(factor: float, units: str) -> str:
             f"that much may raise [calibration] level_factor")
 
 
-def _log_spacing(f) -> np.ndarray:
-    """Per line, the log-frequency interval it stands for: half the distance in ln f to its neighbours."""
-    lf = np.log(np.maximum(np.asarray(f, float), 1e-12))
-    if lf.size < 2:
-        return np.ones(lf.size)
-    order = np.argsort(lf)
-    ls = lf[order]
-    edges = np.concatenate([[ls[0]], 0.5 * (ls[1:] + ls[:-1]), [ls[-1]]])
-    w = np.empty(lf.size)
-    w[order] = np.maximum(np.diff(edges), np.finfo(float).tiny)
-    return w
-
-
 def _weighted_median(x, w) -> float:
     """The value below which half the weight ``w`` of ``x`` lies."""
     order = np.argsort(x)
@@ -847,7 +835,7 @@ def level_check(camp: Campaign, sur: Surrogate, articles, units: str = "si", log
         with np.errstate(divide="ignore", invalid="ignore"):
             r = np.log10(np.abs(H)) - np.log10(np.abs(d.frf))
         ok = np.isfinite(r) if d.mask is None else np.isfinite(r) & d.mask
-        w = _log_spacing(d.freq_hz)
+        w = log_frequency_weights(d.freq_hz)
         pair = np.full(r.shape[1:], np.nan)
         for i, j in zip(*np.nonzero(ok.any(axis=0))):
             pair[i, j] = _weighted_median(r[ok[:, i, j], i, j], w[ok[:, i, j]])
