@@ -407,6 +407,12 @@ def test_level_check_refuses_a_unit_mismatch_and_names_a_channel_off_the_others(
         level_check(camp, sur, mm, "si", quiet)
     assert re.search(r"FRFs are (9\d\d|1\.0\de\+03) x the measured", str(err.value)), str(err.value)
 
+    inch = [replace(a, frf=a.frf * 0.0254 / 4.4482216152605) for a in arts]  # an in-lbf-s deck read as SI
+    with pytest.raises(CalibrationError, match=r"'in-lbf-s' read as 'si'"):
+        level_check(camp, sur, inch, "si", quiet)
+    with pytest.raises(CalibrationError, match=r"'si' read as 'mm-t-s'"):  # an SI deck declared mm-t-s
+        level_check(camp, sur, [replace(a, frf=a.frf * 1e3) for a in arts], "mm-t-s", quiet)
+
     g = [replace(a, frf=a.frf / 9.80665) for a in arts]
     with pytest.raises(CalibrationError, match=r"no unit system of the deck explains it.*in g"):
         level_check(camp, sur, g, "si", quiet)
