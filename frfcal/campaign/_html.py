@@ -405,7 +405,7 @@ def _parameters(camp, r: ReportResults, tmp: Path) -> str:
         cal = getattr(getattr(m, "cycle", None), "calibration", None)
         if cal is not None:  # how many starts ran and into how many minima (docs/calibration.md, the stopping rule)
             out.append(f"<p>Multi-start (equalized stage): {_esc(cal.describe_starts())}.</p>")
-    level = getattr(r.calibrate, "level", None)
+    level = r.calibrate.level
     if level:  # the level check before the fit (docs/campaign.md): a unit mismatch would read 1000 x or 1e-3 x
         out.append("<p>Level check, the model's FRFs over the data's at the nominal parameters (median over lines "
                    "and channel-drive pairs): " + _esc(", ".join(f"{n} {f:.3g}" for n, f in level.items())) + ".</p>")

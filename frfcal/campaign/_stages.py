@@ -882,7 +882,7 @@ def calibrate_stage(camp: Campaign, model, articles, equalize: EqualizeResult, g
     basis_s = time.perf_counter() - t
     log(f"surrogate: {sur0.size} ({len(sur0.basis_frequencies_hz)} modes, {sur0.n_static} static, "
         f"{sur0.n_enrich} enrichment) in {basis_s:.1f} s")
-    level = level_check(camp, sur0, articles, getattr(pm, "units", "si"), log)
+    level = level_check(camp, sur0, articles, pm.units, log)
     opts = CycleOptions(n_starts=c.starts, seed=c.seed, quantity=articles[0].quantity, max_cycles=c.max_cycles,
                         adaptive_starts=c.adaptive_starts,
                         tol=c.cycle_tol, basis_factor=c.basis_factor, enrich=c.enrich, max_nfev=c.max_evaluations,
