@@ -47,6 +47,7 @@ from femodel import AffineMatrix, FactorizationError, factorize, start_vector
 
 from calibration._errors import CalibrationError
 from calibration._threads import blas_threads as _blas_threads  # module-local name as before; shared with _fit.single_thread
+from calibration._threads import python_blas_threads
 from labdata import FRF_QUANTITIES
 from labdata import quantity_factor as _quantity_factor
 
@@ -292,7 +293,7 @@ def _shift_invert_modes(Ks, Ms, s, solve, max_hz: float, max_modes: int, k0: int
     op = spla.LinearOperator((n, n), matvec=lambda b: solve(np.asarray(b, dtype=float).reshape(n, -1)).ravel(),
                              dtype=float)
     k = min(k0, n - 2)
-    with _blas_threads(1):  # single-vector Lanczos: extra BLAS threads only spin
+    with python_blas_threads(1):  # single-vector Lanczos: ARPACK's BLAS threads only spin (the solves' gain)
         while True:
             ncv = min(n, max(2 * k + 1, k + 20))
             lam, vec = spla.eigsh(Ks, k=k, M=Ms, sigma=-s, which="LM", OPinv=op, mode="normal", ncv=ncv, tol=1e-5,
@@ -803,16 +804,33 @@ def _local_terms(A: AffineMatrix) -> list:
     """
     cached = A.cache.get("calibration.local_rows")
     if cached is None:
-        cached = []
-        for m in A.matrices:
-            if sp.issparse(m):
-                m = sp.csr_matrix(m)
-                rows = np.flatnonzero(np.diff(m.indptr) | np.diff(sp.csc_matrix(m).indptr))
-                cached.append((rows, sp.csr_matrix(m[rows][:, rows])))
-            else:
-                cached.append((None, np.asarray(m)))
+        cached = [_local_term(m) if sp.issparse(m) else (None, np.asarray(m)) for m in A.matrices]
         A.cache["calibration.local_rows"] = cached
     return cached
+
+
+def _local_term(m) -> tuple:
+    """(rows, m[rows][:, rows]) of a sparse term, rows = its non-zero rows and columns.
+
+    Made with NumPy on the CSR arrays (every entry lies in a kept row and
+    column, so the entries stay as they are and only the column numbers are
+    renumbered) instead of scipy's fancy indexing: with :func:`_lower_half`,
+    0.4 s instead of 0.8 s for the K and M terms at 200k DOF, on the thread
+    that runs beside the first basis build's main-thread sparse work.
+    """
+    m = _canonical_csr(m)
+    n = m.shape[0]
+    counts = np.diff(m.indptr)
+    used = counts > 0
+    used[m.indices] = True
+    rows = np.flatnonzero(used)
+    renumber = np.full(n, -1, dtype=m.indices.dtype)
+    renumber[rows] = np.arange(rows.size, dtype=m.indices.dtype)
+    indptr = np.zeros(rows.size + 1, dtype=m.indptr.dtype)
+    np.cumsum(counts[rows], out=indptr[1:])
+    local = sp.csr_matrix((m.data, renumber[m.indices], indptr), shape=(rows.size, rows.size))
+    local.has_sorted_indices = m.has_sorted_indices  # an increasing renumbering keeps the order
+    return rows, local
 
 
 def _derivative_loads(model: FRFModel, p, Phi: np.ndarray, lam: np.ndarray) -> np.ndarray:
@@ -855,10 +873,21 @@ def _local_halves(A: AffineMatrix) -> list:
             if rows is None:
                 cached.append((None, mk))
             else:
-                h = sp.tril(mk, k=-1, format="csr") + sp.diags(0.5 * mk.diagonal(), format="csr")
-                cached.append((rows, sp.csr_matrix(h)))
+                cached.append((rows, _lower_half(mk)))
         A.cache["calibration.local_halves"] = cached
     return cached
+
+
+def _lower_half(m: sp.csr_matrix) -> sp.csr_matrix:
+    """Strict lower triangle plus half the diagonal of a canonical CSR matrix (NumPy on its arrays, in
+    place of scipy's ``tril`` plus ``diags``)."""
+    row = np.repeat(np.arange(m.shape[0], dtype=m.indices.dtype), np.diff(m.indptr))
+    keep = m.indices <= row
+    data = m.data[keep]
+    data[m.indices[keep] == row[keep]] *= 0.5
+    indptr = np.zeros(m.shape[0] + 1, dtype=m.indptr.dtype)
+    np.cumsum(np.bincount(row[keep], minlength=m.shape[0]), out=indptr[1:])
+    return sp.csr_matrix((data, m.indices[keep], indptr), shape=m.shape)
 
 
 def _project_term(T: np.ndarray, item) -> np.ndarray:
