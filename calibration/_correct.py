@@ -100,7 +100,7 @@ class Correction:
                 "time_s": self.time_s, "compressed_to": self.compressed_to, "note": self.note}
 
 
-def corrected_surrogate(model: FRFModel, sur: Surrogate, basis: np.ndarray, p, band_hz, basis_factor: float = 2.0,
+def corrected_surrogate(model: FRFModel, sur: Surrogate, basis: np.ndarray, p, band_hz, basis_factor: float = 1.25,
                         vector_rtol: float = 1e-10, min_novelty: float = 1e-6):
     """One round of residual correction of ``sur``'s basis at ``p`` (module docstring).
 
@@ -159,7 +159,7 @@ def corrected_surrogate(model: FRFModel, sur: Surrogate, basis: np.ndarray, p, b
     return out, Te, info
 
 
-def compressed(sur: Surrogate, basis: np.ndarray, p, band_hz, basis_factor: float = 2.0,
+def compressed(sur: Surrogate, basis: np.ndarray, p, band_hz, basis_factor: float = 1.25,
                enrich: bool = True, enrich_factor: float = 1.25, enrich_tol: float = 1e-4,
                static_tol: float = 1e-10):
     """``sur`` and its basis cut to a cold build's vectors at ``p``, made inside the basis's span.
@@ -171,8 +171,9 @@ def compressed(sur: Surrogate, basis: np.ndarray, p, band_hz, basis_factor: floa
     * the static solutions A^-1 b of every drive and sensor load and their
       first moments A^-1 M_r(p) A^-1 b (the dynamic part of the residual
       flexibility of the modes above the cut-off, which a static solution
-      alone misses in the band), each scaled to unit M-norm and cut at
-      ``static_tol``;
+      alone misses in the band), each column scaled to unit M-norm; the
+      statics and the moments are two groups, each cut at ``static_tol`` on
+      its own scale;
     * the parameter-derivative solutions A^-1 (dK_r/dp_j - lambda_i dM_r/dp_j) x_i
       of the elastic modes up to ``enrich_factor`` x band top, cut at
       ``enrich_tol`` as in :func:`calibration.build_surrogate` (none with
@@ -196,8 +197,11 @@ def compressed(sur: Surrogate, basis: np.ndarray, p, band_hz, basis_factor: floa
     A = Kp + s * Mp
     loads = np.hstack([sur.inputs, sur.outputs.T])
     S1 = np.linalg.solve(A, loads)
-    S = np.hstack([S1, np.linalg.solve(A, Mp @ S1)])
-    S = S / np.maximum(np.sqrt(np.abs(np.einsum("ij,ij->j", S, Mp @ S))), np.finfo(float).tiny)[None, :]
+    S2 = np.linalg.solve(A, Mp @ S1)
+
+    def unit(S):
+        return S / np.maximum(np.sqrt(np.abs(np.einsum("ij,ij->j", S, Mp @ S))), np.finfo(float).tiny)[None, :]
+
     sel = np.flatnonzero((fhz <= enrich_factor * high) & (fhz > sur.rigid_hz) & (lam > 0))
     R = []
     for j in range(sur.n_params):
@@ -211,7 +215,10 @@ def compressed(sur: Surrogate, basis: np.ndarray, p, band_hz, basis_factor: floa
     Lm = np.linalg.cholesky(Mp)
     Q = Lm.T @ Phi
     sizes = []
-    for G, tol in ((S, static_tol), (E, enrich_tol)):
+    # the moments are a group of their own, cut on their own scale: beside the modes and statics their new
+    # directions are ~1e-6 of a unit column, which a cut on the statics' scale would drop (build_surrogate's
+    # _moment_directions; docs/calibration.md, stop 38)
+    for G, tol in ((unit(S1), static_tol), (unit(S2), static_tol), (E, enrich_tol)):
         Y = Lm.T @ G
         scale = float(np.linalg.norm(Y, axis=0).max(initial=0.0))
         for _ in range(2):
@@ -220,7 +227,7 @@ def compressed(sur: Surrogate, basis: np.ndarray, p, band_hz, basis_factor: floa
         k = int(np.count_nonzero((sv**2 > tol * sv.max(initial=0.0) ** 2) & (sv > 1e-10 * scale)))
         Q = np.hstack([Q, U[:, :k]])
         sizes.append(k)
-    n_static, n_enrich = sizes
+    n_static, n_enrich = sizes[0] + sizes[1], sizes[2]
     Z = sla.solve_triangular(Lm.T, Q, lower=False)  # Z^T M_r(p) Z = Q^T Q = I
 
     def cut(Ar):
@@ -231,7 +238,7 @@ def compressed(sur: Surrogate, basis: np.ndarray, p, band_hz, basis_factor: floa
     return out, np.asarray(basis) @ Z
 
 
-def rebased(model: FRFModel, sur: Surrogate, basis: np.ndarray | None, p, band_hz, basis_factor: float = 2.0,
+def rebased(model: FRFModel, sur: Surrogate, basis: np.ndarray | None, p, band_hz, basis_factor: float = 1.25,
             enrich: bool = True, rebasis: str = "iterated", refresh: bool = True):
     """The basis re-made at ``p`` after a calibration cycle: (Surrogate, basis, Correction or None).
 

@@ -666,7 +666,8 @@ class CycleOptions(FitOptions):
     tol : float
         Stop when max |dp| between cycles is below this (normalized p).
     basis_factor : float
-        Modes up to ``basis_factor`` x band top enter the basis.
+        Modes up to ``basis_factor`` x band top enter the basis, beside the loads' statics and their first
+        moments (default 1.25; docs/calibration.md, stop 38).
     enrich : bool
         Parameter-derivative enrichment of the basis.
     refresh : bool
@@ -693,7 +694,7 @@ class CycleOptions(FitOptions):
 
     max_cycles: int = 4
     tol: float = 1e-4
-    basis_factor: float = 2.0
+    basis_factor: float = 1.25
     enrich: bool = True
     refresh: bool = True
     basis_tol: float | None = None

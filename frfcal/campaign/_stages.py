@@ -880,7 +880,7 @@ def calibrate_stage(camp: Campaign, model, articles, equalize: EqualizeResult, g
     t = time.perf_counter()
     sur0, T0 = build_surrogate(model, np.zeros(pm.n_params), band, c.basis_factor, enrich=c.enrich)
     basis_s = time.perf_counter() - t
-    log(f"surrogate: {sur0.size} ({len(sur0.basis_frequencies_hz)} modes, {sur0.n_static} static, "
+    log(f"surrogate: {sur0.size} ({len(sur0.basis_frequencies_hz)} modes, {sur0.n_static} static and moment, "
         f"{sur0.n_enrich} enrichment) in {basis_s:.1f} s")
     level = level_check(camp, sur0, articles, pm.units, log)
     opts = CycleOptions(n_starts=c.starts, seed=c.seed, quantity=articles[0].quantity, max_cycles=c.max_cycles,
