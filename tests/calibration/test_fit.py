@@ -43,11 +43,8 @@ def _data(model, p, zeta, noise=0.0, rng=None, outputs=None):
 
 @pytest.fixture(scope="module")
 def beam():
-    """The beam and its nominal basis with modes to 2 x band top: these tests check the fit's exactness,
-    which needs a basis whose truncation error is below 1e-8 in SD (the default, modes to 1.25 x band top
-    with the loads' first moments, leaves 3.4e-8 and 1.7e-4 in the lumped mass here; docs/calibration.md)."""
     model, _ = beam_model()
-    sur, _ = build_surrogate(model, np.zeros(7), BAND, basis_factor=2.0)
+    sur, _ = build_surrogate(model, np.zeros(7), BAND)
     return model, sur
 
 
@@ -79,7 +76,7 @@ def test_without_continuation_some_start_stalls(beam):
 def test_cycles_rebasis_converge_to_truth(rebasis):
     model, _ = beam_model()
     data = _data(model, P_TRUE, 0.01)
-    res = calibrate_cycles(model, data, BAND, LO, HI, n_starts=0, max_cycles=4, tol=1e-5, basis_factor=2.0,
+    res = calibrate_cycles(model, data, BAND, LO, HI, n_starts=0, max_cycles=4, tol=1e-5,
                            continuation=[(z, _data(model, P_TRUE, z)) for z in SCHEDULE], rebasis=rebasis)
     assert np.abs((1 + res.p) / (1 + P_TRUE) - 1).max() < 1e-4
     assert len(res.cycles) >= 2 and res.cycles[-1]["max_dp"] < 1e-5
