@@ -92,6 +92,7 @@ from calibration._validation import (
     validate,
 )
 from calibration._surrogate import (
+    BASIS_FACTOR,
     BasisCheck,
     FRFModel,
     Surrogate,
@@ -196,6 +197,7 @@ __all__ = [
     "sweep_direction",
     "FRFModel",
     "Surrogate",
+    "BASIS_FACTOR",
     "BasisCheck",
     "basis_layout",
     "basis_residuals",

@@ -48,6 +48,7 @@ from calibration._errors import CalibrationError
 from calibration._extend import bordered
 from calibration._surrogate import (
     FRFModel,
+    BASIS_FACTOR,
     DENSE_BELOW,
     Surrogate,
     _sym,
@@ -100,7 +101,7 @@ class Correction:
                 "time_s": self.time_s, "compressed_to": self.compressed_to, "note": self.note}
 
 
-def corrected_surrogate(model: FRFModel, sur: Surrogate, basis: np.ndarray, p, band_hz, basis_factor: float = 1.25,
+def corrected_surrogate(model: FRFModel, sur: Surrogate, basis: np.ndarray, p, band_hz, basis_factor: float = BASIS_FACTOR,
                         vector_rtol: float = 1e-10, min_novelty: float = 1e-6):
     """One round of residual correction of ``sur``'s basis at ``p`` (module docstring).
 
@@ -159,7 +160,7 @@ def corrected_surrogate(model: FRFModel, sur: Surrogate, basis: np.ndarray, p, b
     return out, Te, info
 
 
-def compressed(sur: Surrogate, basis: np.ndarray, p, band_hz, basis_factor: float = 1.25,
+def compressed(sur: Surrogate, basis: np.ndarray, p, band_hz, basis_factor: float = BASIS_FACTOR,
                enrich: bool = True, enrich_factor: float = 1.25, enrich_tol: float = 1e-4,
                static_tol: float = 1e-10):
     """``sur`` and its basis cut to a cold build's vectors at ``p``, made inside the basis's span.
@@ -238,7 +239,7 @@ def compressed(sur: Surrogate, basis: np.ndarray, p, band_hz, basis_factor: floa
     return out, np.asarray(basis) @ Z
 
 
-def rebased(model: FRFModel, sur: Surrogate, basis: np.ndarray | None, p, band_hz, basis_factor: float = 1.25,
+def rebased(model: FRFModel, sur: Surrogate, basis: np.ndarray | None, p, band_hz, basis_factor: float = BASIS_FACTOR,
             enrich: bool = True, rebasis: str = "iterated", refresh: bool = True):
     """The basis re-made at ``p`` after a calibration cycle: (Surrogate, basis, Correction or None).
 

@@ -22,7 +22,7 @@ from calibration._errors import CalibrationError
 from calibration._executor import SerialExecutor
 from calibration._metric import log_deviation, square_deviation
 from calibration._modal_derivative import FRFRows, eigen_derivatives, parameter_derivatives
-from calibration._surrogate import Surrogate, reduced_modes, surrogate_frf
+from calibration._surrogate import BASIS_FACTOR, Surrogate, reduced_modes, surrogate_frf
 from calibration._threads import blas_threads
 
 
@@ -694,7 +694,7 @@ class CycleOptions(FitOptions):
 
     max_cycles: int = 4
     tol: float = 1e-4
-    basis_factor: float = 1.25
+    basis_factor: float = BASIS_FACTOR
     enrich: bool = True
     refresh: bool = True
     basis_tol: float | None = None

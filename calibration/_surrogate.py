@@ -54,6 +54,10 @@ from labdata import quantity_factor as _quantity_factor
 _QUANTITIES = FRF_QUANTITIES
 #: Models up to this many DOF are solved dense (all modes, a dense Cholesky): a cold rebuild costs little there.
 DENSE_BELOW = 1500
+#: Default mode cut-off of a basis, as a multiple of the band top: with the loads' statics and their first
+#: moments, modes to 1.25 x band top match the full model as modes to 2 x did without the moments
+#: (docs/calibration.md, stop 38).
+BASIS_FACTOR = 1.25
 
 
 @dataclass(frozen=True)
@@ -301,8 +305,7 @@ def _shift_invert_modes(Ks, Ms, s, solve, max_hz: float, max_modes: int, k0: int
     scale = np.zeros(0)  # 1 / (lambda + s) of the found modes: their part of the operator
     with python_blas_threads(1):  # single-vector Lanczos: ARPACK's BLAS threads only spin (the solves' gain)
         while True:
-            left = min(max_modes, n - 2) - found.shape[1]
-            k = min(k0, left, n - 2 - found.shape[1])
+            k = min(k0, min(max_modes, n - 2) - found.shape[1])
             if k < 1:
                 break
             Q, d = found, scale
@@ -471,7 +474,7 @@ def build_surrogate(
     model: FRFModel,
     p,
     band_hz,
-    basis_factor: float = 1.25,
+    basis_factor: float = BASIS_FACTOR,
     shift_hz: float | None = None,
     max_modes: int = 600,
     enrich: bool = True,

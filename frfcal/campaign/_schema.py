@@ -12,7 +12,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from calibration import CalibrationError
+from calibration import BASIS_FACTOR, CalibrationError
 
 
 class _Strict(BaseModel):
@@ -173,7 +173,7 @@ class CalibrationSection(_Strict):
     continuation_zeta: list[float] = Field(
         default_factory=lambda: [0.08, 0.03], description="damping continuation stages before zeta0 ([] = off)"
     )
-    basis_factor: float = Field(1.25, ge=1.1, description="modes up to basis_factor x band top enter the basis (with the first moments of the loads)")
+    basis_factor: float = Field(BASIS_FACTOR, ge=1.1, description="modes up to basis_factor x band top enter the basis (with the first moments of the loads)")
     enrich: bool = Field(True, description="parameter-derivative enrichment of the basis")
     max_cycles: int = Field(3, ge=1, description="re-basis cycles (1 = keep the nominal basis)")
     cycle_tol: float = Field(1e-3, gt=0, description="stop cycling when max |dp| is below this")
