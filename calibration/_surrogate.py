@@ -43,7 +43,7 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from femodel import AffineMatrix, FactorizationError, factorize, start_vector
+from femodel import AffineMatrix, FactorizationError, factorize, start_vector, union_pattern
 
 from calibration._errors import CalibrationError
 from calibration._threads import blas_threads as _blas_threads  # module-local name as before; shared with _fit.single_thread
@@ -250,27 +250,12 @@ def _shifted(K, M, s: float, cache: dict | None = None) -> sp.csc_matrix:
                 and np.array_equal(mp, M.indptr) and np.array_equal(mi, M.indices)):
             hit = None
     if hit is None:
-        # where K's and M's entries land in the union: the union's entry ranks picked out by an elementwise
-        # product with each pattern (linear merges, no (nnz,) int64 key arrays: 0.6-0.7 s at 200k DOF where
-        # keys and searchsorted took 0.8 s; the same positions)
-        ones = lambda A: sp.csr_matrix((np.ones(A.nnz), A.indices, A.indptr), shape=A.shape)  # noqa: E731
-        U = ones(K) + ones(M)  # structural: no cancellation
-        U.sort_indices()
-        rank = sp.csr_matrix((np.arange(1, U.nnz + 1, dtype=float), U.indices, U.indptr), shape=U.shape)
-
-        def positions(A):
-            picked = sp.csr_matrix(rank.multiply(ones(A)))
-            picked.sort_indices()
-            if not (np.array_equal(picked.indptr, A.indptr) and np.array_equal(picked.indices, A.indices)):
-                raise CalibrationError("internal: a pattern is not inside the union of K and M")
-            return picked.data.astype(np.int64) - 1
-
-        pos_m = positions(M)
-        if U.nnz == K.nnz:  # the usual case: M's pattern inside K's
-            U, pos_k = sp.csr_matrix((np.zeros(K.nnz), K.indices, K.indptr), shape=K.shape), None
-        else:
-            pos_k = positions(K)
-        del rank
+        # where K's and M's entries land in the union of their patterns (a merge of sorted keys on two
+        # threads: 0.25 s at 200k DOF, where the union's entry ranks picked out by sparse products took 0.6-1 s)
+        indptr, indices, (pos_k, pos_m) = union_pattern(K, M)
+        U = sp.csr_matrix((np.zeros(indices.shape[0]), indices, indptr), shape=K.shape)
+        if U.nnz == K.nnz:  # M's pattern inside K's: the union is K's pattern
+            pos_k = None
         if cache is not None:
             cache["union"] = (K.indptr.copy(), K.indices.copy(), M.indptr.copy(), M.indices.copy(), U, pos_k, pos_m)
     if pos_k is None:  # U is K's pattern

@@ -11,6 +11,7 @@ from femodel._model import CoordSystem, FEModel, ModelError, RBE2, RBE3, Table
 from femodel._factor import (BackendInfo, Factorization, FactorizationError, NotPositiveDefiniteError,
                              available_backends, default_backend, factorize)
 from femodel._modes import Modes, normal_modes, solve_modes, start_vector
+from femodel._pattern import union_pattern
 from femodel._reader import read_bdf
 from femodel._sensors import MassProperties, mass_properties, rigid_body_vectors, sensor_matrix
 from femodel._units import UNIT_SYSTEMS, UnitSystem, unit_system
@@ -41,4 +42,4 @@ __all__ = [
     "CANDIDATE_FAMILIES", "COMPOUND_EFFECTS", "Candidate", "CandidateContext", "CandidateOptions",
     "candidate_context", "compound_candidates", "generate_candidates", "register_family", "POINT_FAMILIES",
     "PointFamily", "REGION_FAMILIES", "candidate_regions", "contact_on_pairs", "candidate_pairs", "zoom_candidates",
-    "point_coverage"]
+    "point_coverage", "union_pattern"]

@@ -125,6 +125,30 @@ def _shared_pattern(matrices) -> _Pattern:
     return _Pattern(indptr, indices, n, tuple(positions))
 
 
+def union_pattern(*matrices) -> tuple[np.ndarray, np.ndarray, tuple]:
+    """The union of the sparsity patterns of canonical CSR matrices, and where each one's entries lie in it.
+
+    Parameters
+    ----------
+    *matrices : scipy CSR matrices of one shape, canonical (sorted indices, no duplicates)
+
+    Returns
+    -------
+    indptr, indices : the union's CSR arrays (sorted; explicit zeros of the inputs count as entries)
+    positions : tuple of (nnz_k,) int arrays, the k-th matrix's entries' places in the union's data
+    """
+    if not matrices:
+        raise ValueError("union_pattern needs at least one matrix")
+    shape = matrices[0].shape
+    for m in matrices:
+        if m.shape != shape:
+            raise ValueError(f"union_pattern: shapes differ, {m.shape} and {shape}")
+        if not (sp.isspmatrix_csr(m) or isinstance(m, sp.csr_array)) or not m.has_canonical_format:
+            raise ValueError("union_pattern needs canonical CSR matrices (sorted indices, no duplicates)")
+    pat = _shared_pattern(list(matrices))
+    return pat.indptr, pat.indices, pat.positions
+
+
 def _canonical(m) -> sp.csr_matrix:
     m = sp.csr_matrix(m)
     m.sum_duplicates()

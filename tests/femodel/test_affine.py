@@ -77,3 +77,35 @@ def test_cache_slot_is_per_instance_and_not_part_of_the_value():
     c = pickle.loads(pickle.dumps(a))
     np.testing.assert_array_equal(c.cache["rows"][0], np.arange(5))  # derived from the same terms, so it travels
     np.testing.assert_allclose(c.at([0.5, 0.0]).toarray(), a.at([0.5, 0.0]).toarray(), rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("chunk", [1 << 20, 64], ids=["one-chunk", "threaded-chunks"])
+def test_union_pattern_places_every_entry_of_each_matrix(monkeypatch, chunk):
+    """The union of two patterns (one reaching outside the other) and each matrix's positions in it rebuild
+    both matrices exactly, explicit zeros kept; on one chunk and on the two-thread chunked merge."""
+    import femodel._pattern as pattern
+    from femodel import union_pattern
+
+    monkeypatch.setattr(pattern, "_PATTERN_CHUNK", chunk)
+    n = 300
+    A = sp.random(n, n, density=0.04, random_state=3, format="csr")
+    B = sp.random(n, n, density=0.02, random_state=4, format="csr")
+    K = sp.csr_matrix(A + A.T + sp.identity(n))
+    M = sp.csr_matrix(B + B.T)
+    M.data[::7] = 0.0  # explicit zeros are entries
+    K.sort_indices()
+    M.sort_indices()
+    indptr, indices, (pk, pm) = union_pattern(K, M)
+    U = sp.csr_matrix((np.ones(indices.size), indices, indptr), shape=(n, n))
+    assert U.has_sorted_indices
+    assert U.nnz == (abs(sp.csr_matrix((np.ones(K.nnz), K.indices, K.indptr), shape=(n, n)))
+                     + sp.csr_matrix((np.ones(M.nnz), M.indices, M.indptr), shape=(n, n))).nnz
+    for X, pos in ((K, pk), (M, pm)):
+        data = np.zeros(indices.size)
+        data[pos] = X.data
+        np.testing.assert_array_equal(sp.csr_matrix((data, indices, indptr), shape=(n, n)).toarray(), X.toarray())
+        rows = np.repeat(np.arange(n), np.diff(indptr))
+        np.testing.assert_array_equal(rows[pos], np.repeat(np.arange(n), np.diff(X.indptr)))
+        np.testing.assert_array_equal(indices[pos], X.indices)
+    with pytest.raises(ValueError, match="canonical CSR"):
+        union_pattern(K, sp.csc_matrix(M))
