@@ -996,8 +996,10 @@ def _derivative_loads(model: FRFModel, p, Phi: np.ndarray, lam: np.ndarray) -> n
     acting = np.flatnonzero(np.any(np.vstack([dc for _, _, dc in dcs]) != 0, axis=0))
     col = np.full(model.n_params, -1)
     col[acting] = np.arange(acting.size)
-    rhs = np.zeros((n, acting.size * m))
-    view = rhs.reshape(n, acting.size, m)
+    # Fortran order, the solver's: a C-ordered (n, 136) block cost 0.2-0.7 s more to solve at 200k DOF
+    # (its transposed copy, on fresh pages); columns acting-parameter-major as before: view[:, i, j]
+    rhs = np.zeros((n, acting.size * m), order="F")
+    view = rhs.reshape(n, m, acting.size, order="F")
     for A, scale, dc in dcs:
         for (rows, mk), d in zip(_local_terms(A), dc):
             js = np.flatnonzero(d)
@@ -1007,10 +1009,10 @@ def _derivative_loads(model: FRFModel, p, Phi: np.ndarray, lam: np.ndarray) -> n
             if scale is not None:
                 Y = -Y * scale[None, :]
             if rows is None:
-                view += d[None, acting, None] * Y[:, None, :]
+                view += Y[:, :, None] * d[None, None, acting]
             else:
                 for j in js:
-                    view[rows, col[j], :] += d[j] * Y
+                    view[rows, :, col[j]] += d[j] * Y
     return rhs
 
 
