@@ -656,28 +656,40 @@ def build_surrogate(
     t2 = time.perf_counter()
     # kept for basis_residuals (the adequacy test of this basis at later points); freed by the next build
     cache["last_solve"] = (p.copy(), float((2 * np.pi * shift_hz) ** 2), solve)
-    if static is None:
+    sel = np.zeros(0, dtype=int)  # the modes whose derivative loads are solved (none where the old basis serves)
+    iterated = enrich and carried is not None and rebasis == "iterated"
+    kept = enrich and previous_basis is not None and rebasis == "kept"
+    if enrich and not iterated and not kept:
+        sel = np.flatnonzero((freqs <= enrich_factor * high) & (freqs > max(1e-3 * max(low, 1.0), 1e-6 * high)))
+    W = None
+    if static is None and sel.size == 0:
         static = solve(loads)
     t3 = time.perf_counter()
     E = None
-    if enrich and carried is not None and rebasis == "iterated":
-        # the inverse-iterated old basis already spans the mode corrections: keep it
+    if iterated:  # the inverse-iterated old basis already spans the mode corrections: keep it
         E = carried
-    elif enrich and previous_basis is not None and rebasis == "kept":
+    elif kept:
         # the old enrichment columns as they are: the first-order mode corrections at the old point
         skip = int(previous_layout[0]) + int(previous_layout[1])
         E = np.ascontiguousarray(previous_basis[:, skip:]) if previous_basis.shape[1] > skip else None
-    elif enrich:
-        sel = np.flatnonzero((freqs <= enrich_factor * high) & (freqs > max(1e-3 * max(low, 1.0), 1e-6 * high)))
-        if sel.size:
-            lam = (2 * np.pi * freqs[sel]) ** 2
-            warm.result()
-            rhs = _derivative_loads(model, p, Phi[:, sel], lam)
-            if rhs.shape[1]:
-                E = solve(rhs)
+    elif sel.size:
+        lam = (2 * np.pi * freqs[sel]) ** 2
+        warm.result()
+        # the statics (when not solved yet) lead the block: W = [statics, enrichment] comes out of one solve,
+        # with no block copied on fresh pages to join them (docs/calibration.md, stop 39)
+        lead = loads if static is None else np.zeros((loads.shape[0], 0))
+        rhs = _derivative_loads(model, p, Phi[:, sel], lam, lead=lead)
+        if rhs.shape[1] > lead.shape[1] or static is None:
+            X = solve(rhs)
+            del rhs  # freed for the blocks below (fresh pages are the dear part of them)
+            W = X if static is None else np.hstack([static, X])
+            static = W[:, :loads.shape[1]]
+            del X
     t4 = time.perf_counter()
-    W = static if E is None else np.hstack([static, E])
+    if W is None:
+        W = static if E is None else np.hstack([static, E])
     MW = np.hstack([M0 @ static, Mcarried]) if E is not None and E is carried else None
+    del E, carried, Mcarried
     A = _complement_coefficients(W, Phi, MPhi, M0, [static.shape[1], W.shape[1] - static.shape[1]],
                                  [1e-10, enrich_tol], MW)
     del MW
@@ -984,22 +996,26 @@ def _local_term(m) -> tuple:
     return rows, local
 
 
-def _derivative_loads(model: FRFModel, p, Phi: np.ndarray, lam: np.ndarray) -> np.ndarray:
+def _derivative_loads(model: FRFModel, p, Phi: np.ndarray, lam: np.ndarray, lead=None) -> np.ndarray:
     """``(dK/dp_j - lambda_i dM/dp_j) phi_i`` for every acting parameter j and mode i: (n, n_acting * m).
 
     Built term by term from the local AffineMatrix terms (each touches only its
     own rows), not from full-size dK/dp_j matrices. Parameters whose
-    derivative vanishes at p get no columns.
+    derivative vanishes at p get no columns. ``lead`` (n, k), optional:
+    columns put before them in the same (Fortran-ordered) block.
     """
     n, m = Phi.shape
+    lead = np.zeros((n, 0)) if lead is None else lead
+    k0 = lead.shape[1]
     dcs = [(A, scale, A.coefficient_jacobian(p)) for A, scale in ((model.K, None), (model.M, lam))]
     acting = np.flatnonzero(np.any(np.vstack([dc for _, _, dc in dcs]) != 0, axis=0))
     col = np.full(model.n_params, -1)
     col[acting] = np.arange(acting.size)
     # Fortran order, the solver's: a C-ordered (n, 136) block cost 0.2-0.7 s more to solve at 200k DOF
     # (its transposed copy, on fresh pages); columns acting-parameter-major as before: view[:, i, j]
-    rhs = np.zeros((n, acting.size * m), order="F")
-    view = rhs.reshape(n, m, acting.size, order="F")
+    rhs = np.zeros((n, k0 + acting.size * m), order="F")
+    rhs[:, :k0] = lead
+    view = rhs[:, k0:].reshape(n, m, acting.size, order="F")
     for A, scale, dc in dcs:
         for (rows, mk), d in zip(_local_terms(A), dc):
             js = np.flatnonzero(d)
