@@ -286,15 +286,16 @@ def _m_orthonormal(Z: np.ndarray, Ms, Q: np.ndarray, MQ: np.ndarray, floor: floa
             Z = Z - Q @ D
             C += D @ B
         MZ = Ms @ Z
-        g, U = np.linalg.eigh(_sym(Z.T @ MZ))
-        if scale is None:  # the columns' squared M-norms before the projection
-            scale = float(np.max(np.sum(C * C, axis=0) + np.diag(U @ (g[:, None] * U.T)), initial=0.0))
+        G = _sym(Z.T @ MZ)
+        g, U = np.linalg.eigh(G)
+        if scale is None:  # the columns' squared M-norms before the projection (Pythagoras)
+            scale = float(np.max(np.sum(C * C, axis=0) + np.diag(G), initial=0.0))
         keep = g > (floor**2 * scale if rnd == 0 else 1e-14 * max(g.max(initial=0.0), 0.0))
         keep &= g > 0
         V = U[:, keep] / np.sqrt(g[keep])
-        Z = Z @ V
+        Z, MZ = Z @ V, MZ @ V  # (the second round's V is near the identity: MZ V is M Z to round-off)
         B = (np.sqrt(g[keep])[:, None] * U[:, keep].T) @ B
-    return np.ascontiguousarray(Z), Ms @ Z, C, B
+    return Z, MZ, C, B
 
 
 def _shift_invert_modes(Ks, Ms, s, solve, max_hz: float, max_modes: int, block: int = 8, tol: float = 1e-5,

@@ -50,33 +50,6 @@ def blas_threads(n: int):
     return ctl.limit(limits=n, user_api="blas")
 
 
-def python_blas_threads(n: int):
-    """Context limiting the BLAS of NumPy and SciPy to ``n`` threads, not a sparse backend's own.
-
-    In the single-vector Lanczos loop ARPACK's small products (SciPy's BLAS)
-    only spin on a second thread, while CHOLMOD's single right-hand-side solve
-    (on the system BLAS scikit-sparse links) is memory-bound and gains from
-    two: at 200k DOF 63 against 73 ms a solve, 0.5 s over a Lanczos run.
-    Where no BLAS lies inside NumPy's and SciPy's installation, or every one
-    does (one library shared by all), every BLAS is limited, as
-    :func:`blas_threads` does.
-    """
-    ctl = _controller()
-    if ctl is None:
-        import contextlib
-
-        return contextlib.nullcontext()
-    import numpy
-    import scipy
-
-    roots = tuple(os.path.dirname(os.path.dirname(os.path.realpath(m.__file__))) + os.sep for m in (numpy, scipy))
-    blas = ctl.select(user_api="blas")
-    own = [c.filepath for c in blas.lib_controllers if os.path.realpath(c.filepath).startswith(roots)]
-    if not own or len(own) == len(blas.lib_controllers):
-        return blas.limit(limits=n)
-    return ctl.select(filepath=own).limit(limits=n)
-
-
 def data_threads() -> int:
     """Threads for data-parallel kernels of this process (:func:`thread_map`).
 
