@@ -137,10 +137,16 @@ def main(argv=None) -> int:
     t = time.perf_counter()
     c0 = time.process_time()
     o0 = os.times()
+    r0 = resource.getrusage(resource.RUSAGE_SELF)
     load_start = os.getloadavg()[0]
     res = run_campaign(camp, log=lambda m: (lines.append(m), print("  " + m, flush=True)))
     wall = time.perf_counter() - t
     cpu_main = time.process_time() - c0
+    r1 = resource.getrusage(resource.RUSAGE_SELF)
+    # system time and first touches of fresh pages in this process: on a VM that hands freed memory back to
+    # its host (free page reporting) a fresh GB costs 1.5-2 s to page in (docs/calibration.md, stop 39)
+    sys_main = r1.ru_stime - r0.ru_stime
+    faults_gb = (r1.ru_minflt - r0.ru_minflt) * resource.getpagesize() / 1e9
     o1 = os.times()  # the executor's workers have ended: their CPU time is in the children's
     cpu_workers = o1.children_user + o1.children_system - o0.children_user - o0.children_system
     m = res["members"][0]
@@ -202,8 +208,8 @@ def main(argv=None) -> int:
         f"{'final point' if b.get('final') else 'kept' if b['adequate'] else 're-basis'} {b['time_s']:.1f} s"
         f" (CPU {b.get('cpu_s', float('nan')):.1f} s)"
         for b in checks))
-    print(f"peak memory {mem:.2f} GB; campaign wall {wall:.1f} s, CPU main process {cpu_main:.1f} s + workers "
-          f"{cpu_workers:.1f} s; "
+    print(f"peak memory {mem:.2f} GB; campaign wall {wall:.1f} s, CPU main process {cpu_main:.1f} s (of it system "
+          f"{sys_main:.1f} s; fresh pages touched {faults_gb:.2f} GB) + workers {cpu_workers:.1f} s; "
           f"load average at start {load_start:.1f}, at end {os.getloadavg()[0]:.1f}")
     print()
     print(f"{'accuracy':<60}{'value':>12}{'floor':>12}{'ratio':>8}")
@@ -232,7 +238,8 @@ def main(argv=None) -> int:
         "realizations": args.realizations, "cores": os.cpu_count(), "load_avg": os.getloadavg(),
         "malloc_kept_large_blocks": malloc_tuned, "timings_s": T, "paper_s": PAPER, "peak_memory_gb": mem,
         "truth_generation_s": t_truth, "campaign_wall_s": wall, "campaign_main_cpu_s": cpu_main,
-        "campaign_workers_cpu_s": cpu_workers,
+        "campaign_workers_cpu_s": cpu_workers, "campaign_main_system_s": sys_main,
+        "campaign_main_fresh_pages_gb": faults_gb,
         "surrogate": res["surrogate"], "cycles": [{k: v for k, v in c.items() if k != "p"} for c in cyc],
         "basis_checks": [{k: v for k, v in b.items() if k not in ("eta", "freqs_hz")} for b in
                          [c["basis_check"] for c in cyc if "basis_check" in c] + list(ref.get("basis_checks", []))],

