@@ -355,8 +355,8 @@ def _shift_invert_modes(Ks, Ms, s, solve, max_hz: float, max_modes: int, block: 
         H = np.zeros((0, 0))
         while True:
             Z = solve(MQa[:, j0:m])
-            for _ in range(2):  # the locked modes deflated
-                if F.shape[1]:
+            if F.shape[1]:  # the locked modes deflated (twice, as the reorthogonalization)
+                for _ in range(2):
                     Z -= F @ (MF.T @ Z)
             Zn, MZn, C, B = _m_orthonormal(Z, Ms, Qa[:, :m], MQa[:, :m])
             Hn = np.zeros((m, m))
@@ -630,6 +630,7 @@ def build_surrogate(
         raise CalibrationError(f"band_hz: need 0 <= low < high, got {band_hz}")
     if shift_hz is None:
         shift_hz = default_shift_hz(band_hz)
+    rigid_hz = max(1e-3 * max(low, 1.0), 1e-6 * high)  # below it a mode counts as rigid (no enrichment)
     cache = model.factor_cache
     cache.pop("factor_s", None)
     cache.pop("last_solve", None)  # the previous basis point's factor: free it before the new one is made
@@ -661,7 +662,7 @@ def build_surrogate(
     iterated = enrich and carried is not None and rebasis == "iterated"
     kept = enrich and previous_basis is not None and rebasis == "kept"
     if enrich and not iterated and not kept:
-        sel = np.flatnonzero((freqs <= enrich_factor * high) & (freqs > max(1e-3 * max(low, 1.0), 1e-6 * high)))
+        sel = np.flatnonzero((freqs <= enrich_factor * high) & (freqs > rigid_hz))
     W = None
     if static is None and sel.size == 0:
         static = solve(loads)
@@ -721,7 +722,7 @@ def build_surrogate(
         basis_frequencies_hz=freqs,
         n_static=n_static,
         n_enrich=n_enrich,
-        rigid_hz=max(1e-3 * max(low, 1.0), 1e-6 * high),
+        rigid_hz=rigid_hz,
         output_names=tuple(model.output_names),
         input_names=tuple(model.input_names),
         parameter_names=tuple(model.parameter_names),
