@@ -45,10 +45,51 @@ PAPER = {  # seconds, 8 cores (method paper Sec. 2.3.4)
 }
 
 
-def peak_memory_gb() -> float:
-    own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    kids = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
-    return max(own, kids) / 1e6  # ru_maxrss is KiB on Linux
+def _campaign_child(camp_path: str, conn) -> None:
+    """The campaign in this (fresh) process, with its own CPU, system time and page faults, sent back on ``conn``."""
+    from frfcal._malloc import keep_large_allocations
+
+    malloc_tuned = keep_large_allocations()  # as the frfcal command does
+    from frfcal.campaign import load_campaign, run_campaign
+
+    camp = load_campaign(camp_path)
+    lines = []
+    t = time.perf_counter()
+    c0 = time.process_time()
+    o0 = os.times()
+    r0 = resource.getrusage(resource.RUSAGE_SELF)
+    res = run_campaign(camp, log=lambda m: (lines.append(m), print("  " + m, flush=True)))
+    wall = time.perf_counter() - t
+    cpu_main = time.process_time() - c0
+    r1 = resource.getrusage(resource.RUSAGE_SELF)
+    o1 = os.times()  # the executor's workers have ended: their CPU time is in the children's
+    conn.send({
+        "res": res, "lines": lines, "wall_s": wall, "cpu_main_s": cpu_main, "malloc_tuned": malloc_tuned,
+        # system time and first touches of fresh pages in this process: on a VM that hands freed memory back
+        # to its host (free page reporting) a fresh GB costs 1-2 s to page in (docs/calibration.md, stop 39)
+        "sys_main_s": r1.ru_stime - r0.ru_stime,
+        "faults_gb": (r1.ru_minflt - r0.ru_minflt) * resource.getpagesize() / 1e9,
+        "cpu_workers_s": o1.children_user + o1.children_system - o0.children_user - o0.children_system,
+        "peak_memory_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6,  # KiB on Linux
+    })
+    conn.close()
+
+
+def _campaign_in_fresh_process(camp_path) -> dict:
+    import multiprocessing as mp
+
+    ctx = mp.get_context("spawn")
+    recv, send = ctx.Pipe(duplex=False)
+    proc = ctx.Process(target=_campaign_child, args=(str(camp_path), send))
+    proc.start()
+    send.close()
+    try:
+        out = recv.recv()
+    except EOFError:
+        proc.join()
+        raise SystemExit(f"the campaign process ended without a result (exit code {proc.exitcode})") from None
+    proc.join()
+    return out
 
 
 def main(argv=None) -> int:
@@ -79,12 +120,7 @@ def main(argv=None) -> int:
         if not sep:
             ap.error(f"--set {kv!r}: expected KEY=VALUE")
         settings[key.strip()] = tomllib.loads(f"v = {value}")["v"]
-    from frfcal._malloc import keep_large_allocations
-
-    malloc_tuned = keep_large_allocations()  # as the frfcal command does
-
     import femodel
-    from frfcal.campaign import load_campaign, run_campaign
     from frfcal.synth import SynthChannel, synthesize
 
     band = (100.0, 400.0)
@@ -132,23 +168,14 @@ def main(argv=None) -> int:
         crossvalidation={"realizations": args.realizations},
         execution={"workers": args.workers} if args.workers else {}, output={"dir": str(tmp / "out"),
                                                                           "figures": False})
-    camp = load_campaign(camp_path)
-    lines = []
-    t = time.perf_counter()
-    c0 = time.process_time()
-    o0 = os.times()
-    r0 = resource.getrusage(resource.RUSAGE_SELF)
+    # the campaign runs in a fresh interpreter, as the frfcal command would: this process has built a
+    # parametric model of the deck (sensor grids, truth data), and its warm heap and imports would flatter
+    # the timings by 2-3 s (docs/calibration.md, stop 40)
     load_start = os.getloadavg()[0]
-    res = run_campaign(camp, log=lambda m: (lines.append(m), print("  " + m, flush=True)))
-    wall = time.perf_counter() - t
-    cpu_main = time.process_time() - c0
-    r1 = resource.getrusage(resource.RUSAGE_SELF)
-    # system time and first touches of fresh pages in this process: on a VM that hands freed memory back to
-    # its host (free page reporting) a fresh GB costs 1.5-2 s to page in (docs/calibration.md, stop 39)
-    sys_main = r1.ru_stime - r0.ru_stime
-    faults_gb = (r1.ru_minflt - r0.ru_minflt) * resource.getpagesize() / 1e9
-    o1 = os.times()  # the executor's workers have ended: their CPU time is in the children's
-    cpu_workers = o1.children_user + o1.children_system - o0.children_user - o0.children_system
+    run = _campaign_in_fresh_process(camp_path)
+    res, lines = run["res"], run["lines"]
+    wall, cpu_main, sys_main, faults_gb = run["wall_s"], run["cpu_main_s"], run["sys_main_s"], run["faults_gb"]
+    cpu_workers, malloc_tuned = run["cpu_workers_s"], run["malloc_tuned"]
     m = res["members"][0]
     tm, tg = m["timings"], res["timings"]
     cyc = m["calibration"]["cycles"]
@@ -188,7 +215,7 @@ def main(argv=None) -> int:
     if args.split_holdout:  # where the hold-out error sits: in the identifiable parameters or in the others
         split = {"identifiable calibrated, others true": sc.model_sd(np.where(ident, p, p_true), 0, hold, band),
                  "identifiable true, others calibrated": sc.model_sd(np.where(ident, p_true, p), 0, hold, band)}
-    mem = peak_memory_gb()
+    mem = run["peak_memory_gb"]  # the campaign process (its workers are small)
 
     print()
     print(f"{'step':<44}{'paper (8 cores)':>16}{'here (2 cores)':>16}")
