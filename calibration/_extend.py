@@ -32,6 +32,7 @@ import scipy.sparse as sp
 
 from calibration._errors import CalibrationError
 from calibration._surrogate import FRFModel, Surrogate, _factor, _local_terms, _shifted, _sym, m_orthonormalized
+from calibration._threads import thread_map
 
 
 def _range_basis(A: np.ndarray, rtol: float) -> np.ndarray:
@@ -212,17 +213,23 @@ def bordered(sur: Surrogate, T: np.ndarray, model: FRFModel, X: np.ndarray, p_b,
         """[T, W]^T A_k [T, W] for every term, the T-T block from the old surrogate.
 
         A sparse term touches only its own rows (:func:`_local_terms`): the
-        products run on those rows of T and W, not on full-size blocks."""
+        products run on those rows of T and W, not on full-size blocks. The
+        terms are shared out over the cores (:func:`thread_map`: the sparse
+        products and BLAS release the GIL; one thread in a worker process):
+        the whole of :func:`bordered` with 27 new columns at 200k DOF took
+        0.64 s instead of 0.88 s (docs/calibration.md, stop 40)."""
         k_old = len(Ar.matrices)
-        out = []
-        for i, (rows, mk) in enumerate(_local_terms(A)):
+
+        def one(item):
+            i, (rows, mk) = item
             Tl, Wl = (T, W) if rows is None else (T[rows], W[rows])
             mW = np.asarray(mk @ Wl)
             ww = Wl.T @ mW
             tw = Tl.T @ mW
             tt = np.asarray(Ar.matrices[i]) if i < k_old else np.asarray(Tl.T @ (mk @ Tl))
-            out.append(_sym(np.block([[tt, tw], [tw.T, ww]])))
-        return replace(A, matrices=tuple(out))
+            return _sym(np.block([[tt, tw], [tw.T, ww]]))
+
+        return replace(A, matrices=tuple(thread_map(one, list(enumerate(_local_terms(A))))))
 
     Kr = extend(model.K, sur.K)
     Mr = extend(model.M, sur.M)
