@@ -229,6 +229,21 @@ def test_reassembly_shares_one_pattern(subframe):
     assert (pm.K.at(np.full(17, 0.1)) - b).count_nonzero() == 0 or rel(pm.K.at(np.full(17, 0.1)), b) < 1e-15
 
 
+def test_two_thread_sum_on_the_shared_pattern_equals_one_thread_bit_for_bit(subframe, monkeypatch):
+    """K(p), M(p) and dK/dp_j summed on two threads (each over half the rows) equal the one-thread sum exactly."""
+    import femodel._pattern as pattern
+
+    _, _, pm = subframe
+    p = np.linspace(-0.2, 0.2, 17)
+    monkeypatch.setattr(pattern, "_THREADED_COMBINE", 1 << 40)  # one thread
+    one = [pm.stiffness(p), pm.mass(p), pm.dK(p, 3), pm.dM(p, 1)]
+    monkeypatch.setattr(pattern, "_THREADED_COMBINE", 1)  # two threads at any size
+    two = [pm.stiffness(p), pm.mass(p), pm.dK(p, 3), pm.dM(p, 1)]
+    for a, b in zip(one, two):
+        assert a.nnz > 1000 and np.array_equal(a.data, b.data) and np.array_equal(a.indices, b.indices)
+    assert np.abs(one[0].data).max() > 0 and np.abs(one[2].data).max() > 0
+
+
 def test_round_trip_at_nominal_gives_identical_matrices(subframe, tmp_path):
     _, ex, pm = subframe
     out = pm.write_bdf(tmp_path / "same.bdf", np.zeros(17))
