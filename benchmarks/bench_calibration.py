@@ -5,8 +5,9 @@ varying from mode to mode, the exact residual of the higher modes, 0.5-1 % noise
 uneven line grid dense at the resonances), independently of the calibration path. The campaign then
 runs as a user's would: run files -> identification (automatic order) -> equalized multi-start ->
 re-basis cycles -> raw-line refinement -> hold-out validation -> cross-validation
-(``calibration.run_campaign``). Accuracy is reported beside its floor: the SD of the truth itself
-against its own noisy lines.
+(``calibration.run_campaign``), in a fresh interpreter as the ``frfcal`` command would (cold imports and
+heap; this process's own parametric model of the deck would otherwise flatter the timings by ~1.5 s).
+Accuracy is reported beside its floor: the SD of the truth itself against its own noisy lines.
 
     python benchmarks/bench_calibration.py [--dof 200000] [--starts 20] [--realizations 10] [--cache DIR]
 
