@@ -171,7 +171,7 @@ def main(argv=None) -> int:
                                                                           "figures": False})
     # the campaign runs in a fresh interpreter, as the frfcal command would: this process has built a
     # parametric model of the deck (sensor grids, truth data), and its warm heap and imports would flatter
-    # the timings by 2-3 s (docs/calibration.md, stop 40)
+    # the timings by about 1.5 s (docs/calibration.md, stop 40)
     load_start = os.getloadavg()[0]
     run = _campaign_in_fresh_process(camp_path)
     res, lines = run["res"], run["lines"]
