@@ -307,8 +307,8 @@ def _shift_invert_modes(Ks, Ms, s, solve, max_hz: float, max_modes: int, block: 
     M inner product; its largest eigenvalues 1 / (lambda + s) are the lowest
     modes. The Krylov space grows by blocks of ``block`` columns, each a
     solve of ``block`` right-hand sides (a block solve costs a quarter of as
-    many single ones per column: at 200k DOF 72 block columns took 2.6 s
-    where ARPACK's 37 single-vector steps took 3.5 s for the same 14 modes),
+    many single ones per column: at 200k DOF 72 block columns took 2.6-3.0 s
+    where ARPACK's 37 single-vector steps took 4.2 s for the same 14 modes),
     kept M-orthonormal by full reorthogonalization. The start block is a
     seeded random block smoothed by two solves (no rough high-frequency
     content in the Ritz vectors). After every block, Rayleigh-Ritz on the
