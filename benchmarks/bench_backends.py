@@ -88,10 +88,10 @@ def run_calibration(backend: str, dof: int) -> dict:
             return {"calibration_error": lines[-1] if lines else "failed"}
         res = json.loads(out.read_text())
     return {"calibration_total_s": res["timings_s"]["calibration total"],
-            "calibration_cpu_s": res["cpu_s"]["calibration total (main process)"],
+            "calibration_cpu_s": res["campaign_main_cpu_s"],
             "calibration_basis_s": res["timings_s"]["basis + reduced terms"],
             "calibration_rebasis_s": res["timings_s"]["re-basis cycles"],
-            "calibration_max_param_error": res["max_param_error"],
+            "calibration_max_param_error": res["accuracy"]["max_error_identifiable"],
             "calibration_peak_memory_gb": res["peak_memory_gb"]}
 
 
