@@ -92,7 +92,8 @@ def print_result(camp, res) -> None:
             print(f"raw calibration lines SD (identified damping)  {m['sd_raw_calibration_start']:.4g} -> "
                   f"{m['sd_raw_calibration']:.4g}"
                   + ("" if not fl else f", noise floor ~{fl:.2g}{_source({'floor_source': m.get('sd_raw_floor_source')})}"
-                     f" ({m['sd_raw_calibration'] / fl:.1f}x; the articles' scatter adds to it)"))
+                     f" ({m['sd_raw_calibration'] / fl:.1f}x"
+                     + ("; the articles' scatter adds to it" if len(m["articles"]) > 1 else "") + ")"))
         cv = m["crossvalidation"]
         if cv:
             print(f"cross-validation RSE {cv['rse']:.4g} over {cv['realizations']} realizations")
