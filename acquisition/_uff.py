@@ -385,6 +385,47 @@ def _is_binary(path: Path) -> bool:
     return any(ln.strip().startswith("58b") for ln in head.splitlines())
 
 
+#: Significant digits of an ASCII UFF58 abscissa (E13.5 in record 12 of uneven data).
+ASCII_ABSCISSA_DIGITS = 6
+
+
+def _spread_printed_lines(f: np.ndarray) -> tuple[np.ndarray, dict]:
+    """Distinct lines from an abscissa that printed some of them the same.
+
+    An ASCII UFF58 writes an uneven abscissa as E13.5: 6 significant digits.
+    A stepped-sine grid denser than that (a few lines per half-power bandwidth
+    of a lightly damped mode) prints neighbouring lines the same; each was a
+    measurement at its own frequency, somewhere within half a unit of the last
+    printed digit. ``f`` is sorted (stably, so in file order within a group).
+    The k lines of a group are spread evenly inside that interval, narrowed to
+    half the gap to each distinct neighbour, so the order holds: a shift of at
+    most half a unit of the last digit (5e-6 relative), the rounding every
+    other line of the file carries too.
+
+    Returns the new abscissa and a summary {"groups", "lines", "max_shift_hz"}.
+    """
+    f0 = np.asarray(f, dtype=float)
+    f = f0.copy()
+    same = np.flatnonzero(np.diff(f0) == 0)
+    starts = same[np.r_[True, np.diff(same) > 1]] if same.size else same
+    groups = lines = 0
+    max_shift = 0.0
+    for a in starts.tolist():
+        b = a + 1
+        while b + 1 < f0.size and f0[b + 1] == f0[a]:
+            b += 1
+        x = f0[a]
+        half = 0.5 * 10.0 ** (np.floor(np.log10(x)) - (ASCII_ABSCISSA_DIGITS - 1))
+        lo = min(half, 0.5 * (x - f0[a - 1])) if a > 0 else min(half, 0.5 * x)
+        hi = min(half, 0.5 * (f0[b + 1] - x)) if b + 1 < f0.size else half
+        k = b - a + 1
+        f[a:b + 1] = x - lo + (lo + hi) * np.arange(1, k + 1) / (k + 1)
+        max_shift = max(max_shift, float(np.max(np.abs(f[a:b + 1] - x))))
+        groups += 1
+        lines += k
+    return f, {"groups": groups, "lines": lines, "max_shift_hz": max_shift}
+
+
 def _listing(items, limit: int = 6) -> str:
     items = list(items)
     more = f" and {len(items) - limit} more" if len(items) > limit else ""
@@ -422,6 +463,11 @@ def import_uff(path, out, *, article: str | None = None, overwrite: bool = False
     FRFs are left out and listed in the run's ``plan["skipped_records"]``
     (function type name and code -> record numbers).
 
+    An ASCII file's abscissa keeps 6 significant digits: lines of a grid
+    denser than that print the same and are spread within their last digit
+    (:func:`_spread_printed_lines`; summary in ``plan["abscissa_spread"]``).
+    In a binary (58b) file the same frequency twice is refused.
+
     Raises
     ------
     UffError
@@ -429,7 +475,8 @@ def import_uff(path, out, *, article: str | None = None, overwrite: bool = False
         another quantity, unknown or mixed units, a record on
         another abscissa, a direction that is not a translation (+-1..3, or an
         exact vector), a (response, reference) pair given twice or missing, one
-        response or reference named differently in two records.
+        response or reference named differently in two records, a frequency
+        repeated in a binary file.
 
     Notes
     -----
@@ -612,11 +659,12 @@ def import_uff(path, out, *, article: str | None = None, overwrite: bool = False
         f, frf = f[order], frf[order]
     step = np.diff(f)
     if np.any(step == 0):
-        k = int(np.flatnonzero(step == 0)[0])
-        ascii_note = ("; an ASCII UFF58 keeps the abscissa to about 6 significant digits: write binary 58b or "
-                      "space the lines wider" if not _is_binary(path) else "")
-        raise UffError(f"{path}: line {f[k]!r} Hz appears {int(np.sum(f == f[k]))} times in the abscissa "
-                       f"({int(np.sum(step == 0))} repeated in all){ascii_note}")
+        if _is_binary(path):  # doubles: the same frequency twice is a repeated line, not a rounding
+            k = int(np.flatnonzero(step == 0)[0])
+            raise UffError(f"{path}: line {f[k]!r} Hz appears {int(np.sum(f == f[k]))} times in the abscissa "
+                           f"({int(np.sum(step == 0))} repeated in all)")
+        f, spread = _spread_printed_lines(f)
+        plan["abscissa_spread"] = spread
     w = create_run(out, article=article, sensors=sensors, drives=drives, quantity=quantity,
                    plan=plan, hardware={"source": "imported"}, overwrite=overwrite)
     nan_q = LineQuality(force_n=np.full(len(drives), np.nan), std_error=np.full((len(sensors), len(drives)), np.nan),

@@ -259,7 +259,7 @@ def import_target(outdir: Path, entry: RunEntry) -> Path:
 
 def import_stage(camp: Campaign, outdir: Path, log=print) -> RunFiles:
     """Import every ``uff = ...`` entry into a run file (the code of ``frfcal import-uff``)."""
-    from frfcal.commands.import_uff import uff_to_run
+    from frfcal.commands.import_uff import spread_note, uff_to_run
 
     paths, arts = [], []
     seen: dict = {}
@@ -273,7 +273,8 @@ def import_stage(camp: Campaign, outdir: Path, log=print) -> RunFiles:
         log(f"import: {e.uff} -> {out}: {info['n_lines']} lines, {len(info['sensors'])} x {len(info['drives'])}, "
             f"article {info['article']!r}"
             + (f" (left out {len(info['dropped_hz'])} line(s) at 0 Hz)" if info["dropped_hz"] else "")
-            + "".join(f" (left out {len(ns)} {what} record(s))" for what, ns in info["skipped_records"].items()))
+            + "".join(f" (left out {len(ns)} {what} record(s))" for what, ns in info["skipped_records"].items())
+            + (f"; {spread_note(info['abscissa_spread'])}" if info["abscissa_spread"] else ""))
         paths.append(out)
         arts.append(e.article)
     return RunFiles(tuple(paths), tuple(arts))

@@ -36,7 +36,15 @@ def uff_to_run(uff, out, *, article=None, overwrite=False) -> dict:
             "sensor_grids": [c.grid for c in r.sensors], "drive_grids": [c.grid for c in r.drives],
             "band_hz": [float(r.frequency_hz.min()), float(r.frequency_hz.max())],
             "dropped_hz": list(r.plan.get("dropped_hz", [])),
+            "abscissa_spread": r.plan.get("abscissa_spread"),
             "skipped_records": {k: list(v) for k, v in r.plan.get("skipped_records", {}).items()}}
+
+
+def spread_note(spread: dict) -> str:
+    """What the import did to lines an ASCII abscissa printed the same (``plan["abscissa_spread"]``)."""
+    return (f"{spread['lines']} lines in {spread['groups']} group(s) printed at the same frequency (an ASCII UFF58 "
+            f"keeps 6 significant digits): spread within their last digit in file order, shifts up to "
+            f"{spread['max_shift_hz']:.2g} Hz")
 
 
 def run(args) -> int:
@@ -58,6 +66,8 @@ def run(args) -> int:
                   f"{', ...' if len(ns) > 6 else ''})")
         if info["dropped_hz"]:
             print(f"left out {len(info['dropped_hz'])} line(s) at 0 Hz (the analyzer's DC line: no FRF line)")
+        if info["abscissa_spread"]:
+            print(spread_note(info["abscissa_spread"]))
         print("references: " + ", ".join(info["drives"]))
         # the names to put in a campaign's [channels] (they come from the records' node, direction and entity)
         print("responses: " + ", ".join(info["sensors"]))

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from acquisition import ChannelSpec, LineQuality, UffError, create_run, export_uff, import_uff, read_run
+from acquisition._uff import _spread_printed_lines
 from frfcal.cli import main
 
 SENS = (
@@ -359,14 +360,32 @@ def test_direction_codes_are_in_the_nodes_displacement_system(tmp_path):
         import_uff(_skewed_file(tmp_path / "d.uff", [_cs2420(12, Rx, typ=1), _nodes([12, 0])]), tmp_path / "d.h5")
 
 
-def test_repeated_lines_are_refused_at_import_and_unordered_ones_sorted(tmp_path):
-    """ASCII UFF58 keeps the abscissa to ~6 digits: an over-dense grid repeats lines, which the noise estimate
-    and calibration refuse much later; import names the line instead. Distinct lines out of order are sorted."""
-    x = np.array([5.0, 5.25, 5.5, 5.5, 6.0])
-    cells = [(101, 3, 1, 3, (1.0 + 0.1 * np.arange(5)) * (1 + 1j), {"abscissa_spacing": 0, "x": x})]
-    _foreign(tmp_path / "dup.uff", cells)
-    with pytest.raises(UffError, match=r"dup.uff: line 5.5 Hz appears 2 times in the abscissa .*ASCII UFF58 keeps"):
-        import_uff(tmp_path / "dup.uff", tmp_path / "dup.h5")
+def test_lines_an_ascii_abscissa_printed_the_same_are_kept_in_order_and_unordered_ones_sorted(tmp_path, monkeypatch):
+    """ASCII UFF58 keeps the abscissa to 6 digits (E13.5): an over-dense grid prints neighbouring lines the
+    same. Every line is kept, spread within half a unit of the last digit in file order, never past a
+    neighbour. Distinct lines out of order are sorted."""
+    # 150.0702 and 150.0704 Hz both print as 1.50070e+02; three lines at 5.5 (a repeated line)
+    x = np.array([5.0, 5.25, 5.5, 5.5, 5.5, 6.0, 150.0702, 150.0704, 150.1])
+    data = (1.0 + 0.1 * np.arange(x.size)) * (1 + 1j)
+    _foreign(tmp_path / "dup.uff", [(101, 3, 1, 3, data, {"abscissa_spacing": 0, "x": x})])
+    run = import_uff(tmp_path / "dup.uff", tmp_path / "dup.h5")
+    f = run.frequency_hz
+    assert f.size == x.size and np.all(np.diff(f) > 0)
+    np.testing.assert_allclose(run.frf[:, 0, 0], data, rtol=1e-12)  # every measurement kept, in file order
+    printed = np.array([float(f"{v:.5e}") for v in x])
+    assert np.all(np.abs(f - printed) <= 0.5 * 10.0 ** (np.floor(np.log10(printed)) - 5) * (1 + 1e-12))
+    assert f[2] < 5.5 < f[4] and f[6] < 150.07 < f[7]  # each group straddles its printed value
+    assert run.plan["abscissa_spread"]["groups"] == 2 and run.plan["abscissa_spread"]["lines"] == 5
+    # an abscissa written with more digits: a distinct neighbour closer than half a unit of the 6th digit
+    # narrows the group's interval to half the gap
+    g, spread = _spread_printed_lines(np.array([5.49, 5.5, 5.5, 5.500002]))
+    assert np.all(np.diff(g) > 0) and g[2] < 5.500001 and spread == {"groups": 1, "lines": 2,
+                                                                       "max_shift_hz": pytest.approx(3e-6)}
+    # a binary file's doubles are exact: the same frequency twice is a repeated line, refused (pyuff writes no
+    # foreign 58b record with an uneven abscissa, so the file is taken for binary here)
+    monkeypatch.setattr("acquisition._uff._is_binary", lambda path: True)
+    with pytest.raises(UffError, match=r"dup.uff: line 5.5 Hz appears 3 times in the abscissa \(3 repeated in all\)$"):
+        import_uff(tmp_path / "dup.uff", tmp_path / "dup2.h5")
     order = np.array([5.5, 5.0, 6.0, 5.25])
     data = np.array([3.0, 1.0, 4.0, 2.0]) + 0j
     _foreign(tmp_path / "unordered.uff", [(101, 3, 1, 3, data, {"abscissa_spacing": 0, "x": order})])
