@@ -159,6 +159,12 @@ def _named_point(name: str):
     return int(m.group(1)), d
 
 
+def _entity_name(name: str) -> str | None:
+    """The UFF entity name of a channel import-uff named ``"acc12 (101+Z)"`` (``"acc12"``); None otherwise."""
+    m = re.fullmatch(r"(.+) \(\d+[+-][XYZ]\)", name)
+    return m.group(1) if m else None
+
+
 def _by_point(channels, names, first: dict, what: str, path, log) -> tuple[list, np.ndarray]:
     """Indices of ``names`` among a run's ``channels``, and the sign of each: by name, else by the point
     (grid and direction) the name has in the campaign's first run.
@@ -166,7 +172,9 @@ def _by_point(channels, names, first: dict, what: str, path, log) -> tuple[list,
     Run files imported per article often name one point differently (a UFF entity name that carries the
     transducer's serial number: ``PCB-1234 (101+Z)`` in one file, ``PCB-5678 (101+Z)`` in the next): the
     campaign's names are the first run's, and another run's channel at the same grid and direction is that
-    channel (logged). A channel at the same grid along the opposite direction (a sensor mounted the other way
+    channel (logged). A name that is a channel's UFF entity name alone (``acc12`` for ``acc12 (101+Z)``, as
+    import-uff names it) is that channel when exactly one channel carries it (logged). A channel at the same
+    grid along the opposite direction (a sensor mounted the other way
     round in one article: ``101-Z``) is that channel with its sign turned (-1: its FRF row, or a drive's
     column, is negated; logged). A name found in the run at another point is used as named, with a warning.
     """
@@ -183,6 +191,17 @@ def _by_point(channels, names, first: dict, what: str, path, log) -> tuple[list,
             out.append(lookup[n])
             signs.append(1.0)
             continue
+        if ref is None:  # the UFF entity name alone, as a lab calls the channel: "acc12" for "acc12 (101+Z)"
+            ent = [i for i, c in enumerate(channels) if _entity_name(c.name) == n]
+            if len(ent) == 1:
+                log(f"{Path(path).name}: {what[:-1]} {n!r} is {channels[ent[0]].name!r} (its entity name)")
+                out.append(ent[0])
+                signs.append(1.0)
+                continue
+            if len(ent) > 1:
+                missing.append(f"{n} (the entity name of {len(ent)} channels: "
+                               + ", ".join(repr(channels[i].name) for i in ent) + "; name one of them)")
+                continue
         hits = [] if ref is None else [i for i, c in enumerate(channels) if _same_point(c, ref)]
         flips = [] if ref is None or hits else [i for i, c in enumerate(channels) if _same_point(c, ref, -1.0)]
         if len(hits) == 1:
@@ -300,8 +319,9 @@ def load_stage(camp: Campaign, log=print) -> LoadResult:
                         "signs are the file's, not the campaign's): identified again")
                     stored, stored_channels = None, ()
         if geometry is None:
-            spec = {s.name: s for s in run.sensors}
-            geometry = (tuple(Transducer(n, int(spec[n].grid), tuple(spec[n].direction)) for n in names),
+            # the campaign's names at the points of the run's channels they matched (by name, entity or point)
+            geometry = (tuple(Transducer(n, int(run.sensors[r].grid), tuple(run.sensors[r].direction))
+                              for n, r in zip(names, rows)),
                         tuple(Transducer(run.drives[c].name, int(run.drives[c].grid), tuple(run.drives[c].direction))
                               for c in cols))
         out.append(Article(

@@ -243,6 +243,37 @@ def test_runs_naming_one_point_differently_are_matched_by_grid_and_direction(sta
     assert any("warning: sensor 'acc2' is at grid 1000000000" in ln for ln in lines), lines
 
 
+def test_channels_named_by_their_uff_entity_name_are_found_in_every_run(staged, tmp_path):
+    """import-uff names a foreign file's channel "<entity> (<node><dir>)"; a lab's campaign names it by the
+    entity alone ("acc2"). That is the channel when exactly one channel carries the entity name (logged), in
+    every run, with the campaign's names and the run's points; a name two channels carry is refused, naming
+    both."""
+    from acquisition.runfile import read_run
+    from frfcal.campaign import load_stage
+
+    camp, _ = staged
+    first = camp.resolve(camp.run[0].path)
+    run0 = read_run(first)
+    point = {c.name: f"{c.name} ({c.grid}{'+' if max(c.direction) > 0 else '-'}{'XYZ'[int(np.argmax(np.abs(c.direction)))]})"
+             for c in run0.sensors + run0.drives}
+    uffa = _renamed_copy(first, tmp_path / "uffa.h5", point)
+    uffb = _renamed_copy(first, tmp_path / "uffb.h5", point)
+    two = camp.model_copy(update={"run": [camp.run[0].model_copy(update={"path": uffa}),
+                                          camp.run[0].model_copy(update={"path": uffb})]})
+    lines = []
+    a, b = load_stage(two, lines.append).articles
+    names = tuple(camp.channels.calibrate) + tuple(camp.channels.holdout)
+    assert a.channels == b.channels == names
+    np.testing.assert_array_equal(a.frf, load_stage(camp, lines.append).articles[0].frf)
+    assert any(f"sensor 'acc2' is {point['acc2']!r} (its entity name)" in ln for ln in lines), lines
+    # two channels carrying one entity name: refused, naming them
+    dup = _renamed_copy(first, tmp_path / "dup.h5", dict(point, acc9="acc2 (999999+Z)"))
+    bad = camp.model_copy(update={"run": [camp.run[0].model_copy(update={"path": dup})]})
+    with pytest.raises(CalibrationError, match=r"acc2 \(the entity name of 2 channels: 'acc2 \(\d+[+-][XYZ]\)', "
+                                               r"'acc2 \(999999[+-][XYZ]\)'; name one of them\)"):
+        load_stage(bad, lines.append)
+
+
 def test_a_run_in_another_quantity_with_a_sensor_mounted_the_other_way_is_converted(staged, tmp_path):
     """Outside labs: one article's file holds mobility (or receptance) and one sensor pointing -Z where the
     first run's points +Z. The load stage converts to the first run's quantity (exactly, x (i w)^k) and
