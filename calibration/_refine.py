@@ -364,8 +364,8 @@ class Refinement:
 
 def article_damping(sur: Surrogate, p, modes: IdentifiedModes, mac_min: float = 0.6, band_hz=None):
     """Per-reduced-mode damping at p from one article's identified modes (MAC-paired), the pairs, and
-    the reduced modes whose damping the raw stage estimates (the paired ones and every FE mode within
-    the band +- 5 %).
+    the reduced modes whose damping the raw stage estimates (every FE mode within the band +- 5 %, paired
+    or not; without ``band_hz`` the paired ones).
 
     Unpaired FE modes take the median identified damping: an unobserved or
     out-of-band mode's damping barely shows in the band, and the median is a
@@ -376,10 +376,14 @@ def article_damping(sur: Surrogate, p, modes: IdentifiedModes, mac_min: float = 
     lam, _ = reduced_modes(sur, p)
     fe_hz = np.sqrt(np.clip(lam, 0, None)) / (2 * np.pi)
     paired = [int(np.argmin(np.abs(fe_hz - q["fe_hz"]))) for q in pairs]
-    if band_hz is not None:  # FE modes in the band the identification missed: their damping is unknown too
+    if band_hz is not None:
+        # the FE modes in the band (+- 5 %), paired or missed by the identification; a paired mode outside keeps
+        # its identified damping: the band's lines hardly see it, and a fitted value there absorbed what the
+        # basis's static part leaves undamped (the higher modes' damping), fitting the calibration channels and
+        # mispredicting the hold-out ones near the band top (docs/calibration.md, stop 41)
         lo, hi = band_hz
         near = np.flatnonzero((fe_hz > sur.rigid_hz) & (fe_hz >= 0.95 * lo) & (fe_hz <= 1.05 * hi))
-        paired = sorted(set(paired) | set(near.tolist()))
+        paired = sorted(near.tolist())
     return zeta, pairs, np.array(paired, int)
 
 
@@ -525,11 +529,13 @@ def refine(
         Per-mode damping at ``p_start`` for each data set (default: mapped
         from ``modes`` by MAC).
     fit_damping : bool
-        In the last (raw) stage, estimate the damping of the MAC-paired modes
-        and of every FE mode in the band together with p (nuisance unknowns
-        within a factor 4 of the identified, or median identified, value). The identified damping is a noisy estimate; held fixed, its
-        error leaves a systematic misfit at every resonance that p would
-        partly absorb.
+        In the last (raw) stage, estimate the damping of every FE mode in
+        the band (+- 5 %) together with p (nuisance unknowns within a factor
+        4 of the identified, or median identified, value). The identified
+        damping is a noisy estimate; held fixed, its error leaves a
+        systematic misfit at every resonance that p would partly absorb. A
+        paired mode outside the band keeps its identified damping (see
+        :func:`article_damping`).
     fit_modes : sequence of int arrays, optional
         With ``zeta`` given: per data set, the reduced modes (indices at
         ``p_start``) whose damping the last stage estimates (e.g. carried
