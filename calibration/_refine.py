@@ -343,6 +343,12 @@ class Refinement:
     basis_checks : tuple of dict
         The basis adequacy checks of the re-basis cycles that followed
         (:meth:`calibration.BasisCheck.to_dict`), when the campaign ran them.
+    unpaired : tuple of lists of dict
+        Per data set, the FE modes in the band that no identified mode pairs
+        with (``fe_hz``, ``zeta_start``: the median identified damping they
+        started from, ``zeta_fitted``): the identification missed them (a
+        mode these drives and channels hardly excite or see, or one it merged
+        with a neighbour), so their damping comes from the raw lines alone.
     """
 
     p: np.ndarray
@@ -355,11 +361,27 @@ class Refinement:
     articles: tuple = ()
     basis_checks: tuple = ()
     fit_modes: tuple = field(repr=False, default=())
+    unpaired: tuple = ()
 
     def to_dict(self) -> dict:
         return {"p": self.p.tolist(), "sd_raw": self.sd_raw, "sd_raw_start": self.sd_raw_start,
                 "stages": [s.to_dict() for s in self.stages], "damping_pairs": list(self.damping),
+                "unpaired_in_band": [list(u) for u in self.unpaired],
                 "articles": list(self.articles), "basis_checks": list(self.basis_checks)}
+
+    def describe_unpaired(self, names=None) -> list[str]:
+        """One line per data set with FE modes in the band that no identified mode pairs with (none: [])."""
+        out = []
+        for k, u in enumerate(self.unpaired):
+            if u:
+                who = f"{names[k]}: " if names is not None and k < len(names) else ""
+                out.append(f"{who}FE mode(s) in the band with no identified partner: "
+                           + ", ".join(f"{q['fe_hz']:.1f} Hz" for q in u)
+                           + " (the identification did not find them: weakly excited or seen by these drives and "
+                             "channels, or merged with a neighbour); their damping is estimated from the raw lines "
+                             "alone, from the median identified " + f"{100 * u[0]['zeta_start']:.3g} %: "
+                           + ", ".join(f"{100 * q['zeta_fitted']:.3g} %" for q in u))
+        return out
 
 
 def article_damping(sur: Surrogate, p, modes: IdentifiedModes, mac_min: float = 0.6, band_hz=None):
@@ -621,6 +643,13 @@ def refine(
     for pairs, z in zip(pairs_all, zeta):  # report the damping the model ends with
         for q in pairs:
             q["zeta_fitted"] = float(z[int(np.argmin(np.abs(fe0 - q["fe_hz"])))])
+    unpaired = []
+    for pairs, idx, z, m in zip(pairs_all, paired, zeta, modes):  # in-band FE modes no identified mode pairs with
+        taken = {int(np.argmin(np.abs(fe0 - q["fe_hz"]))) for q in pairs}
+        start = float(np.median(m.damping)) if len(m.damping) else 0.01
+        unpaired.append([{"fe_hz": float(fe0[k]), "zeta_start": start, "zeta_fitted": float(z[k])}
+                         for k in np.asarray(idx, int).tolist() if k not in taken])
     return Refinement(p=p, sd_raw=plain.sd_unweighted(p), sd_raw_start=sd_raw_start, stages=tuple(stages),
                       damping=tuple(pairs_all), zeta=tuple(zeta), p_zeta=p0,
-                      fit_modes=tuple(paired) if fit_damping else tuple(np.zeros(0, int) for _ in raw))
+                      fit_modes=tuple(paired) if fit_damping else tuple(np.zeros(0, int) for _ in raw),
+                      unpaired=tuple(unpaired) if pairs_all else ())

@@ -173,6 +173,29 @@ def test_raw_stage_estimates_the_damping_of_the_modes_in_the_band_only(chain):
         assert k not in fit and zeta[k] == pytest.approx(q["zeta"])
 
 
+def test_a_mode_the_identification_missed_is_reported_and_its_damping_estimated(chain):
+    """An FE mode in the band with no identified partner (here: the 155 Hz mode dropped from the identified
+    set) is listed with its starting (median identified) and fitted damping; the refinement still ends at
+    the floor."""
+    model, sur, T, ident, modes, raw, floor, _ = chain
+    keep = np.abs(modes.frequency_hz - 155.0) > 5.0
+    assert (~keep).sum() == 1
+    fewer = IdentifiedModes(modes.frequency_hz[keep], modes.damping[keep], modes.shapes[:, keep], modes.channels)
+    ref = refine(sur, P_TRUE, [raw], [(ident, raw.outputs)], [fewer], LO, HI, 0.01, band_hz=BAND)
+    (missed,) = ref.unpaired
+    assert [round(q["fe_hz"]) for q in missed] == [155]
+    assert missed[0]["zeta_start"] == pytest.approx(np.median(fewer.damping))
+    truth = modes.damping[~keep][0]  # the identified value of the dropped mode: close to its truth
+    assert abs(np.log(missed[0]["zeta_fitted"] / truth)) < np.log(1.3), (missed[0], truth)
+    assert ref.sd_raw < 1.3 * floor
+    (line,) = ref.describe_unpaired()
+    assert line.startswith("FE mode(s) in the band with no identified partner: 155.0 Hz")
+    assert ref.to_dict()["unpaired_in_band"] == [missed]
+    # with every mode identified nothing is listed
+    assert refine(sur, P_TRUE, [raw], [(ident, raw.outputs)], [modes], LO, HI, 0.01,
+                  band_hz=BAND).unpaired == ([],)
+
+
 def test_estimated_damping_follows_each_mode_to_a_new_basis():
     """carried_damping: after a re-basis every in-band mode keeps the damping estimated for it, also when p moved."""
     from calibration._refine import carried_damping
