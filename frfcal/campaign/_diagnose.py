@@ -1195,7 +1195,8 @@ def _holdout_at(camp, arts, sur, x, quantity, damping, channels) -> float:
     errs, src = floors_of(arts, channels)
     v = validate(sur, sur, x, [raw_data(a, channels) for a in arts], [identified_modes(a) for a in arts],
                  camp.calibration.zeta0, None, camp.validation.mac_min, quantity,
-                 (camp.band.low_hz, camp.band.high_hz), std_error=errs, damping=damping, floor_source=src)
+                 (camp.band.low_hz, camp.band.high_hz), std_error=errs, damping=damping, floor_source=src,
+                 with_floor_range=False)
     return float(v.sd_calibrated)
 
 

@@ -987,7 +987,8 @@ def _per_article(camp: Campaign, sur0, sur, arts, p, band, lower, upper, log, la
         if camp.channels.holdout:
             errs, src = floors_of([a], camp.channels.holdout)
             v = validate(sur0, sur, r.p, [raw_data(a, camp.channels.holdout)], modes, c.zeta0, None,
-                         camp.validation.mac_min, a.quantity, band, std_error=errs, floor_source=src)
+                         camp.validation.mac_min, a.quantity, band, std_error=errs, floor_source=src,
+                         with_floor_range=False)
             row["sd_holdout"] = v.sd_calibrated
             row["sd_holdout_floor"] = v.sd_floor
         out.append(row)

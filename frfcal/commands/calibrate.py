@@ -75,13 +75,18 @@ def _extended_deck(res, member: str) -> tuple:
 
 def print_result(camp, res) -> None:
     """The calibration result as a table per member (parameters, SDs, identifiability)."""
+    from calibration import range_text
+
     for m in res["members"]:
         print(f"\n== {m['member']} ({', '.join(m['articles'])})")
         print(f"calibration SD (equalized test model, zeta0={100 * camp.calibration.zeta0:g} %)  "
               f"{m['sd_calibration_nominal']:.4g} -> {m['sd_calibration']:.4g}")
         v = m["validation"]
         if v:
-            floor = f", floor ~{v['sd_floor']:.2g}{_source(v)} ({v['floor_ratio']:.1f}x)" if v.get("sd_floor") else ""
+            rng = v.get("floor_range")
+            floor = (f", floor ~{v['sd_floor']:.2g}{_source(v)} ({v['floor_ratio']:.1f}x"
+                     + (f"; at its floor a model scores {range_text(*rng)} in 90 % of noise draws" if rng else "")
+                     + ")") if v.get("sd_floor") else ""
             print(f"hold-out SD (raw lines, identified damping)  {v['sd_nominal']:.4g} -> {v['sd_calibrated']:.4g}"
                   f"{floor}  ({v['verdict']})")
             if v.get("scatter") is not None and v.get("floor_with_scatter_ratio") is not None:

@@ -149,7 +149,7 @@ def test_campaign_reports_identifiability_floor_and_per_article_damping(tmp_path
     floor = 0.01**2 / np.log(10) ** 2
     assert v["sd_floor"] == pytest.approx(floor, rel=0.02)
     assert v["verdict"] == "improved" and "passed" not in v
-    assert f"floor ~{v['sd_floor']:.2g} ({v['floor_ratio']:.1f}x)" in text
+    assert f"floor ~{v['sd_floor']:.2g} ({v['floor_ratio']:.1f}x; at its floor a model scores " in text
     # two articles: their test-to-test scatter on the hold-out channels is reported beside the noise floor
     assert v["scatter"] > 0 and "hold-out floor of one parameter set for 2 articles" in text
     assert v["floor_with_scatter_ratio"] == pytest.approx(v["sd_calibrated"] / (v["sd_floor"] + v["scatter"]))

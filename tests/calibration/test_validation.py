@@ -8,8 +8,10 @@ from calibration import (
     FitData,
     IdentifiedModes,
     build_surrogate,
+    floor_range,
     full_order_frf,
     noise_floor_sd,
+    range_text,
     reduced_modes,
     validate,
 )
@@ -72,7 +74,11 @@ def test_noise_floor_predicts_the_sd_of_the_truth(beam, noise):
     assert 0.9 < v.floor_ratio < 1.15
     assert v.improved and v.below_target is None and v.verdict == "improved"
     s = v.summary()
-    assert s.startswith("hold-out SD (raw lines, identified damping) ") and f"({v.floor_ratio:.1f}x)" in s
+    assert s.startswith("hold-out SD (raw lines, identified damping) ") and f"({v.floor_ratio:.1f}x;" in s
+    # the truth's SD is one draw of the noise: inside the 90 % range of a model at its floor
+    lo, hi = v.floor_range
+    assert lo < v.sd_floor < hi and lo <= v.sd_calibrated <= hi, (v.floor_range, v.sd_calibrated)
+    assert f"at its floor a model scores {range_text(lo, hi)} in 90 % of noise draws)" in s
     assert "pass" not in s.lower()
     d_json = v.to_dict()
     assert "passed" not in d_json and d_json["verdict"] == "improved" and d_json["sd_floor"] == v.sd_floor
@@ -139,3 +145,23 @@ def test_the_floor_of_an_anti_resonance_is_the_error_its_noise_leaves():
     assert first_order > 2 * floor  # measured 2.45x
     assert 0.6 < np.median(from_noisy) / floor < 1.2 and np.max(from_noisy) < 1.5 * floor  # 0.83x, 1.0x
     assert np.max(first_noisy) > 20 * floor  # 204x
+
+
+def test_floor_range_covers_a_correct_models_sd_where_a_few_values_hold_the_floor():
+    """1000 values at 1 % noise and three below their noise (|H| = 0.25-0.5 sigma, an anti-resonance): the
+    three hold most of the realized floor, which scatters by several times its expectation. The 5-95 % range
+    about the model's values holds a correct model's SD in about 90 % of independent noise draws."""
+    rng = np.random.default_rng(4)
+    H = np.exp(1j * rng.uniform(0, 2 * np.pi, 1003)) * np.r_[np.ones(1000), 0.25, 0.35, 0.5]
+    s = np.r_[np.full(1000, 0.01), np.ones(3)]
+    lo, hi = floor_range(H, s)
+    realized = []
+    for _ in range(300):
+        n = s / np.sqrt(2) * (rng.standard_normal(H.size) + 1j * rng.standard_normal(H.size))
+        realized.append(np.mean(np.abs(np.log10(H / (H + n))) ** 2))
+    realized = np.array(realized)
+    inside = np.mean((realized >= lo) & (realized <= hi))
+    assert 0.84 < inside < 0.96, inside
+    assert hi > 3 * lo  # the three values make the range wide
+    with pytest.raises(CalibrationError, match="3 model values but 2 standard errors"):
+        floor_range(H[:3], s[:2])
