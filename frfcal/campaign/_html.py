@@ -413,7 +413,7 @@ def _parameters(camp, r: ReportResults, tmp: Path) -> str:
 
 
 def _validation(camp, r: ReportResults, tmp: Path) -> str:
-    from calibration import crossvalidation_figure, mac_figure
+    from calibration import crossvalidation_figure, mac_figure, range_text
 
     if r.calibrate is None:
         raise _Skip("the calibrate stage did not run")
@@ -435,13 +435,20 @@ def _validation(camp, r: ReportResults, tmp: Path) -> str:
                       f"{val.sd_calibrated:.4g}"),
                      ("hold-out noise floor SD" + (f" ({val.floor_source})" if getattr(val, "floor_source", None)
                                                    and "estimated" in val.floor_source else ""), val.sd_floor),
-                     ("hold-out SD / floor", val.floor_ratio),
-                     ("verdict", val.verdict), ("compared values", val.n_values)]
+                     ("hold-out SD / floor", val.floor_ratio)]
+            if getattr(val, "floor_range", None):
+                rows.append(("hold-out SD of a model at its floor (5-95 % of noise draws)",
+                             range_text(*val.floor_range)))
+            rows += [("verdict", val.verdict), ("compared values", val.n_values)]
         cv = xv.get(m.label)
         if cv is not None:
             rows += [("cross-validation RSE (mean SD on the held-back half)", cv.rse),
                      ("cross-validation realizations", int(cv.p.shape[0]))]
         out.append(f"<h3>{_esc(m.label)}</h3>" + _kv(rows))
+        if ref is not None:
+            member_names = [names[i] for i in m.articles] if names and len(m.articles) > 1 else None
+            for line in ref.describe_unpaired(member_names):
+                out.append(_note(line))
         if val is None:
             out.append(_note("no hold-out validation (no hold-out channels or the validate stage did not run)"))
         else:
