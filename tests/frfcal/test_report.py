@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 
 import femodel
+from calibration import range_text
 from frfcal.campaign import LoadResult, load_campaign, run_campaign
 from frfcal.campaign._html import SECTIONS, ReportResults, write_report
 from frfcal.campaign._report_figures import sweep_quality
@@ -174,6 +175,11 @@ def test_validation_numbers_and_floor(campaign):
         assert val.sd_calibrated < 0.1 * val.sd_nominal
         assert f"{val.sd_nominal:.4g} -&gt; {val.sd_calibrated:.4g}" in text
         assert [f"{val.floor_ratio:.4g}"] == _rows(text, "hold-out SD / floor")[r.validate.members.index(v)][1:]
+        # the range a model at its floor scores, as the validation has it
+        lo, hi = val.floor_range
+        assert lo < val.sd_floor < hi
+        row = _rows(text, "hold-out SD of a model at its floor (5-95 % of noise draws)")[r.validate.members.index(v)]
+        assert row[1:] == [range_text(lo, hi)]
 
 
 def test_frf_overlay_deviation_against_the_floor(campaign):
