@@ -74,6 +74,12 @@ class IdentifiedModes:
         object.__setattr__(self, "channels", tuple(self.channels))
 
 
+def median_damping(modes: IdentifiedModes, default: float) -> float:
+    """The damping an FE mode without an identified partner takes: the median identified damping
+    (``default`` when nothing was identified)."""
+    return float(np.median(modes.damping)) if len(modes.damping) else float(default)
+
+
 def mapped_damping(
     sur: Surrogate, p, modes: IdentifiedModes, zeta0: float = 0.01, mac_min: float = 0.6, band_hz=None
 ):

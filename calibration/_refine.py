@@ -57,7 +57,7 @@ from calibration._surrogate import (
     quantity_factor,
     reduced_modes,
 )
-from calibration._damping import IdentifiedModes, mapped_damping
+from calibration._damping import IdentifiedModes, mapped_damping, median_damping
 
 #: Default damping floors of the refinement stages, as multiples of zeta0 (the last, 0, is the raw data).
 DEFAULT_FLOORS = (1.0, 0.3, 0.1, 0.0)
@@ -370,11 +370,12 @@ class Refinement:
                 "articles": list(self.articles), "basis_checks": list(self.basis_checks)}
 
     def describe_unpaired(self, names=None) -> list[str]:
-        """One line per data set with FE modes in the band that no identified mode pairs with (none: [])."""
+        """One line per data set with FE modes in the band that no identified mode pairs with (none: []);
+        with ``names`` of several data sets each line starts with its name."""
         out = []
         for k, u in enumerate(self.unpaired):
             if u:
-                who = f"{names[k]}: " if names is not None and k < len(names) else ""
+                who = f"{names[k]}: " if names is not None and len(names) > 1 and k < len(names) else ""
                 out.append(f"{who}FE mode(s) in the band with no identified partner: "
                            + ", ".join(f"{q['fe_hz']:.1f} Hz" for q in u)
                            + " (the identification did not find them: weakly excited or seen by these drives and "
@@ -393,8 +394,7 @@ def article_damping(sur: Surrogate, p, modes: IdentifiedModes, mac_min: float = 
     out-of-band mode's damping barely shows in the band, and the median is a
     better guess for it than the equalization's zeta0.
     """
-    fallback = float(np.median(modes.damping)) if len(modes.damping) else 0.01
-    zeta, pairs, _, _ = mapped_damping(sur, p, modes, fallback, mac_min, band_hz)
+    zeta, pairs, _, _ = mapped_damping(sur, p, modes, median_damping(modes, 0.01), mac_min, band_hz)
     lam, _ = reduced_modes(sur, p)
     fe_hz = np.sqrt(np.clip(lam, 0, None)) / (2 * np.pi)
     paired = [int(np.argmin(np.abs(fe_hz - q["fe_hz"]))) for q in pairs]
@@ -646,10 +646,11 @@ def refine(
     unpaired = []
     for pairs, idx, z, m in zip(pairs_all, paired, zeta, modes):  # in-band FE modes no identified mode pairs with
         taken = {int(np.argmin(np.abs(fe0 - q["fe_hz"]))) for q in pairs}
-        start = float(np.median(m.damping)) if len(m.damping) else 0.01
+        start = median_damping(m, 0.01)
         unpaired.append([{"fe_hz": float(fe0[k]), "zeta_start": start, "zeta_fitted": float(z[k])}
                          for k in np.asarray(idx, int).tolist() if k not in taken])
+    # only where the raw stage estimated their damping (otherwise they kept the median, as every unpaired mode)
     return Refinement(p=p, sd_raw=plain.sd_unweighted(p), sd_raw_start=sd_raw_start, stages=tuple(stages),
                       damping=tuple(pairs_all), zeta=tuple(zeta), p_zeta=p0,
                       fit_modes=tuple(paired) if fit_damping else tuple(np.zeros(0, int) for _ in raw),
-                      unpaired=tuple(unpaired) if pairs_all else ())
+                      unpaired=tuple(unpaired) if pairs_all and fit_damping else ())

@@ -37,7 +37,7 @@ from calibration._errors import CalibrationError
 from calibration._fit import FitData
 from calibration._metric import log_deviation, log_noise_floor, square_deviation
 from calibration._surrogate import Surrogate, modal_frf, reduced_modes
-from calibration._damping import IdentifiedModes, mapped_damping, pair_modes  # noqa: F401 (re-exported)
+from calibration._damping import IdentifiedModes, mapped_damping, median_damping, pair_modes  # noqa: F401 (re-exported)
 from calibration._refine import ModalDampingObjective
 from labdata import mac  # noqa: F401 (re-exported)
 
@@ -88,6 +88,11 @@ def noise_floor_sd(data: FitData, std_error) -> float:
             f"standard errors of {data.article or 'the hold-out data'}: NaN/inf or a zero FRF value among the compared lines"
         )
     return float(np.mean(q))
+
+
+def floor_range_note(low: float, high: float) -> str:
+    """How the hold-out line states the floor's range (:func:`floor_range`), printed and in the report."""
+    return f"at its floor a model scores {range_text(low, high)} in 90 % of noise draws"
 
 
 def range_text(low: float, high: float) -> str:
@@ -204,8 +209,7 @@ class Validation:
         if self.sd_floor:
             src = f" ({self.floor_source})" if self.floor_source and "estimated" in self.floor_source else ""
             txt += f", floor ~{self.sd_floor:.2g}{src} ({self.floor_ratio:.1f}x"
-            txt += (f"; at its floor a model scores {range_text(*self.floor_range)} in 90 % of noise draws)"
-                    if self.floor_range else ")")
+            txt += f"; {floor_range_note(*self.floor_range)})" if self.floor_range else ")"
         return f"{txt} ({self.verdict})"
 
     def to_dict(self) -> dict:
@@ -299,7 +303,7 @@ def validate(
         e_all, pr_all, M_all = [], [], []
         for k, (d, m) in enumerate(zip(datas, modes_per)):
             if m is not None:
-                fallback = float(np.median(m.damping)) if len(m.damping) else zeta0
+                fallback = median_damping(m, zeta0)
                 zeta, pr, M, _ = mapped_damping(sur, p, m, fallback, mac_min, band_hz)
             else:
                 lam, _ = reduced_modes(sur, p)

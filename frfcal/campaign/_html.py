@@ -446,8 +446,7 @@ def _validation(camp, r: ReportResults, tmp: Path) -> str:
                      ("cross-validation realizations", int(cv.p.shape[0]))]
         out.append(f"<h3>{_esc(m.label)}</h3>" + _kv(rows))
         if ref is not None:
-            member_names = [names[i] for i in m.articles] if names and len(m.articles) > 1 else None
-            for line in ref.describe_unpaired(member_names):
+            for line in ref.describe_unpaired([names[i] for i in m.articles] if names else None):
                 out.append(_note(line))
         if val is None:
             out.append(_note("no hold-out validation (no hold-out channels or the validate stage did not run)"))

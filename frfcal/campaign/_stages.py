@@ -771,7 +771,7 @@ def _refined(camp: Campaign, model, arts, cyc, band, lower, upper, log, label):
             chk, _ = raw_basis_check(model, sur, basis, ref, band, tol)
             checks.append({**chk.to_dict(), "final": True})
             log(f"[{label}] raw-line re-basis cycles used up; final basis at the final point: {chk.describe()}")
-    for line in ref.describe_unpaired([a.name for a in arts] if len(arts) > 1 else None):
+    for line in ref.describe_unpaired([a.name for a in arts]):
         log(f"[{label}] note: {line}")
     return replace(ref, stages=tuple(stages), basis_checks=tuple(checks), sd_raw_start=start), ref.p, sur, basis
 

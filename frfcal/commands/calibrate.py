@@ -75,7 +75,7 @@ def _extended_deck(res, member: str) -> tuple:
 
 def print_result(camp, res) -> None:
     """The calibration result as a table per member (parameters, SDs, identifiability)."""
-    from calibration import range_text
+    from calibration import floor_range_note
 
     for m in res["members"]:
         print(f"\n== {m['member']} ({', '.join(m['articles'])})")
@@ -85,7 +85,7 @@ def print_result(camp, res) -> None:
         if v:
             rng = v.get("floor_range")
             floor = (f", floor ~{v['sd_floor']:.2g}{_source(v)} ({v['floor_ratio']:.1f}x"
-                     + (f"; at its floor a model scores {range_text(*rng)} in 90 % of noise draws" if rng else "")
+                     + (f"; {floor_range_note(*rng)}" if rng else "")
                      + ")") if v.get("sd_floor") else ""
             print(f"hold-out SD (raw lines, identified damping)  {v['sd_nominal']:.4g} -> {v['sd_calibrated']:.4g}"
                   f"{floor}  ({v['verdict']})")
