@@ -362,6 +362,27 @@ def contributions(data: _Data, A, B, C, blocks) -> np.ndarray:
     return out
 
 
+def _one_blas_thread(fn):
+    """Run ``fn`` with BLAS limited to one thread (threadpoolctl; unlimited without it).
+
+    The identification's products are skinny (lines x a state of 10-100) and many: OpenBLAS's threads cost
+    more than they give there (docs/identification.md, "Threads").
+    """
+    import functools
+
+    @functools.wraps(fn)
+    def limited(*args, **kwargs):
+        try:
+            from threadpoolctl import threadpool_limits
+        except ImportError:
+            return fn(*args, **kwargs)
+        with threadpool_limits(limits=1, user_api="blas"):
+            return fn(*args, **kwargs)
+
+    return limited
+
+
+@_one_blas_thread
 def identify(
     freq_hz,
     H,
