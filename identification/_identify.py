@@ -362,22 +362,30 @@ def contributions(data: _Data, A, B, C, blocks) -> np.ndarray:
     return out
 
 
-def _one_blas_thread(fn):
-    """Run ``fn`` with BLAS limited to one thread (threadpoolctl; unlimited without it).
+#: Below this many lines :func:`identify` runs with one BLAS thread (:func:`_one_blas_thread`).
+ONE_THREAD_BELOW_LINES = 10_000
 
-    The identification's products are skinny (lines x a state of 10-100) and many: OpenBLAS's threads cost
-    more than they give there (docs/identification.md, "Threads").
+
+def _one_blas_thread(fn):
+    """Run ``fn(freq_hz, ...)`` with BLAS limited to one thread when it has fewer than
+    :data:`ONE_THREAD_BELOW_LINES` lines (threadpoolctl; unlimited without it).
+
+    The identification's products are skinny (lines x a state of 10-100) and many. On stepped-sine data
+    (hundreds to a few thousand lines) OpenBLAS's threads cost more than they give; on long FFT data
+    (tens of thousands of lines) they pay (docs/identification.md, "Threads").
     """
     import functools
 
     @functools.wraps(fn)
-    def limited(*args, **kwargs):
+    def limited(freq_hz, *args, **kwargs):
         try:
             from threadpoolctl import threadpool_limits
         except ImportError:
-            return fn(*args, **kwargs)
+            return fn(freq_hz, *args, **kwargs)
+        if np.size(freq_hz) >= ONE_THREAD_BELOW_LINES:
+            return fn(freq_hz, *args, **kwargs)
         with threadpool_limits(limits=1, user_api="blas"):
-            return fn(*args, **kwargs)
+            return fn(freq_hz, *args, **kwargs)
 
     return limited
 
