@@ -148,6 +148,7 @@ def export_uff(run_or_path, path, *, binary: bool = True) -> int:
     """
     run = run_or_path if isinstance(run_or_path, Run) else read_run(run_or_path)
     path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)  # as import-uff and the other writers do
     if run.n_lines < 2:
         raise UffError(f"{run.path}: a UFF58 function needs at least 2 lines, the run has {run.n_lines}")
     order = np.argsort(run.frequency_hz, kind="stable")

@@ -39,6 +39,16 @@ def test_binary_round_trip_is_exact(tmp_path):
     assert run.article == "SF-01" and run.quantity == "accelerance"
 
 
+def test_export_makes_the_folders_of_its_file(tmp_path):
+    """``frfcal export-uff RUN --out new/dir/FILE.uff`` as ``import-uff --out`` does: the folders are made."""
+    f, frf = _run(tmp_path / "r.h5")
+    for binary in (True, False):
+        out = tmp_path / ("b" if binary else "a") / "sub" / "r.uff"
+        assert export_uff(tmp_path / "r.h5", out, binary=binary) == 6
+        back = import_uff(out, tmp_path / f"back_{binary}.h5")
+        assert np.allclose(back.frf, frf, rtol=1e-10)
+
+
 def test_ascii_and_foreign_mapping(tmp_path):
     f, frf = _run(tmp_path / "r.h5")
     export_uff(tmp_path / "r.h5", tmp_path / "a.uff", binary=False)
