@@ -10,6 +10,7 @@ docs/architecture.md).
 
 from __future__ import annotations
 
+import difflib
 import re
 import time
 from dataclasses import dataclass, field, replace
@@ -222,6 +223,11 @@ def _by_point(channels, names, first: dict, what: str, path, log) -> tuple[list,
                         and np.allclose(np.asarray(c.direction, float), at[1], atol=1e-6)]
                 if same:
                     n = f"{n} (the run's {same[0]!r} is at grid {at[0]} along {tuple(at[1])}: that name?)"
+                else:  # a name that differs in case or by a character or two
+                    folded = [c for c in lookup if c.casefold() == n.casefold()]
+                    close = folded or difflib.get_close_matches(n, list(lookup), n=1, cutoff=0.8)
+                    if close:
+                        n = f"{n} (did you mean {close[0]!r}?)"
             missing.append(n if ref is None else
                            f"{n} (grid {ref.grid}, direction {tuple(ref.direction)}: "
                            + (f"{len(hits)} channels along it" if hits else "none along it or opposite")

@@ -274,6 +274,23 @@ def test_channels_named_by_their_uff_entity_name_are_found_in_every_run(staged, 
         load_stage(bad, lines.append)
 
 
+def test_a_channel_name_typed_in_another_case_is_refused_with_the_run_s_name(staged):
+    """A campaign naming "ACC2" or "acc2x" for the run's "acc2" is refused, and the message says which
+    channel was meant (case, or one character off); a name like no channel gets no guess."""
+    from frfcal.campaign import load_stage
+
+    camp, _ = staged
+    for typed in ("ACC2", "acc2x"):
+        cal = [typed if c == "acc2" else c for c in camp.channels.calibrate]
+        bad = camp.model_copy(update={"channels": camp.channels.model_copy(update={"calibrate": cal})})
+        with pytest.raises(CalibrationError, match=rf"\[\"{typed} \(did you mean 'acc2'\?\)\"\] are not sensors"):
+            load_stage(bad, print)
+    cal = ["strain7" if c == "acc2" else c for c in camp.channels.calibrate]
+    bad = camp.model_copy(update={"channels": camp.channels.model_copy(update={"calibrate": cal})})
+    with pytest.raises(CalibrationError, match=r"\['strain7'\] are not sensors"):
+        load_stage(bad, print)
+
+
 def test_a_run_in_another_quantity_with_a_sensor_mounted_the_other_way_is_converted(staged, tmp_path):
     """Outside labs: one article's file holds mobility (or receptance) and one sensor pointing -Z where the
     first run's points +Z. The load stage converts to the first run's quantity (exactly, x (i w)^k) and
