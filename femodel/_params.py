@@ -91,20 +91,27 @@ NOMINAL_RTOL = 1e-4
 
 _PSI = _LBF_N / _INCH_M**2
 _SLINCH = _LBF_N / _INCH_M
+#: the pound as a mass (lbm): a lab's table of CONM2 masses or densities in lb means it, whatever WTMASS the
+#: deck carries (declared values are compared with the deck's SI value, WTMASS applied)
+_LBM = 0.45359237
+_SLUG = _LBF_N / 0.3048
 #: physical kind -> {unit label: SI value of one unit}. Labels are case-sensitive; ``N/mm2``,
 #: ``N mm/rad``, ``N.mm/rad``, ``N·mm/rad`` are read as ``N/mm^2``, ``N*mm/rad``.
 UNITS: dict[str, dict[str, float]] = {
     "stress": {"Pa": 1.0, "kPa": 1e3, "MPa": 1e6, "GPa": 1e9, "N/m^2": 1.0, "N/mm^2": 1e6,
                "psi": _PSI, "ksi": 1e3 * _PSI, "lbf/in^2": _PSI},
     "density": {"kg/m^3": 1.0, "g/cm^3": 1e3, "t/m^3": 1e3, "kg/mm^3": 1e9, "t/mm^3": 1e12,
-                "lbf*s^2/in^4": _SLINCH / _INCH_M**3},
+                "lbf*s^2/in^4": _SLINCH / _INCH_M**3, "lb/in^3": _LBM / _INCH_M**3, "lbm/in^3": _LBM / _INCH_M**3,
+                "lb/ft^3": _LBM / 0.3048**3, "lbm/ft^3": _LBM / 0.3048**3},
     "length": {"m": 1.0, "cm": 1e-2, "mm": 1e-3, "in": _INCH_M},
     "area": {"m^2": 1.0, "cm^2": 1e-4, "mm^2": 1e-6, "in^2": _INCH_M**2},
     "area_moment": {"m^4": 1.0, "cm^4": 1e-8, "mm^4": 1e-12, "in^4": _INCH_M**4},
-    "mass": {"kg": 1.0, "g": 1e-3, "t": 1e3, "lbf*s^2/in": _SLINCH},
+    "mass": {"kg": 1.0, "g": 1e-3, "t": 1e3, "lbf*s^2/in": _SLINCH, "slinch": _SLINCH, "lb": _LBM, "lbm": _LBM,
+             "slug": _SLUG},
     "trans_spring": {"N/m": 1.0, "N/mm": 1e3, "kN/m": 1e3, "kN/mm": 1e6, "lbf/in": _LBF_N / _INCH_M},
     "rot_spring": {"N*m/rad": 1.0, "N*mm/rad": 1e-3, "kN*m/rad": 1e3, "lbf*in/rad": _LBF_N * _INCH_M},
-    "rot_mass": {"kg*m^2": 1.0, "kg*mm^2": 1e-6, "t*mm^2": 1e-3, "lbf*s^2*in": _SLINCH * _INCH_M**2},
+    "rot_mass": {"kg*m^2": 1.0, "kg*mm^2": 1e-6, "t*mm^2": 1e-3, "lbf*s^2*in": _SLINCH * _INCH_M**2,
+                 "lb*in^2": _LBM * _INCH_M**2, "lbm*in^2": _LBM * _INCH_M**2},
 }
 
 _NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_.\-]*$")

@@ -240,6 +240,9 @@ def test_other_extensions_are_refused(tmp_path):
     (dict(card="PELAS", id=11, field="K", nominal=1.23e5, unit="N/m"), True),
     (dict(card="PBUSH", id=8, field="K4", nominal=0.4, unit="N*m/rad"), True),   # 400 N mm/rad
     (dict(card="PBUSH", id=8, field="K4", nominal=0.4, unit="N m/rad"), True),
+    (dict(card="MAT1", id=3, field="RHO", nominal=0.2836, unit="lb/in^3"), True),    # a US table: pound-mass
+    (dict(card="CONM2", id=7, field="M", nominal=4.409, unit="lb"), True),           # 2 kg
+    (dict(card="CONM2", id=7, field="M", nominal=4.409, unit="lbf*s^2/in"), False),  # 772 kg: not the pound
 ])
 def test_nominal_is_checked_against_the_deck(deckdir, field, ok):
     prm = dict(name="x", lower=-0.1, upper=0.1, **field)
