@@ -56,7 +56,7 @@ from calibration._refine import ModalDampingObjective, Refinement, carried_dampi
 from calibration._surrogate import assembled
 from calibration._signal import signal_pairs
 from labdata._quantities import quantity_factor, quantity_power
-from frfcal.campaign._identify import identify_lines, refit_line
+from frfcal.campaign._identify import identify_lines, refit_line, unexplained_line
 from frfcal.campaign._schema import Campaign
 
 # ----------------------------------------------------------------------------- load
@@ -431,6 +431,8 @@ def identify_stage(camp: Campaign, articles, log=print) -> IdentifyResult:
         log(f"{a.path.name}: identified order {ident.order} ({how}), {ident.modal.n_modes} modes in "
             f"{blo:.0f}-{bhi:.0f} Hz, weights {ident.settings['weights']} ({time.perf_counter() - t0:.1f} s)")
         log(f"{a.path.name}: {refit_line(ident)}")
+        if unexplained_line(ident):
+            log(f"{a.path.name}: note: {unexplained_line(ident)}")
         idents.append(ident)
         chans.append(a.channels)
     return IdentifyResult(tuple(idents), tuple(chans))

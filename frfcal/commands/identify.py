@@ -48,7 +48,7 @@ def run(args: argparse.Namespace) -> int:
     import identification as idf
     from acquisition.runfile import read_run, write_analysis
     from frfcal.campaign import identify_run
-    from frfcal.campaign._identify import identification_weights, refit_line, run_std_error
+    from frfcal.campaign._identify import identification_weights, refit_line, run_std_error, unexplained_line
 
     path = Path(args.run)
     run_ = read_run(path)
@@ -101,6 +101,8 @@ def run(args: argparse.Namespace) -> int:
             "fit_deviation": result.fit_deviation_total,
             "n_states": int(result.model.A.shape[0]),
             "modal_refit": result.settings.get("modal_refit"),
+            # where the model leaves > 10 sigma away from its modes (null: the weights are not the noise)
+            "unexplained_residual": result.settings.get("unexplained"),
             "zeta0": args.zeta0,
             "stored": stored,
             "plots": plots,
@@ -113,6 +115,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"order chosen automatically: {sel.reason}")
     print("poles: " + ", ".join(f"{v} {k}" for k, v in labels.items()))
     print(refit_line(result))
+    if unexplained_line(result):
+        print(unexplained_line(result))
     print(f"{'mode':>4} {'f_n [Hz]':>11} {'zeta [%]':>9} {'importance':>11}")
     phys = np.flatnonzero(result.poles.physical)
     for i, (f, z, k) in enumerate(zip(m.frequency_hz, m.damping, phys), start=1):
