@@ -153,9 +153,11 @@ def unexplained_residual(frequency_hz, frf, valid, sigma, result, threshold: flo
     sel = np.asarray(valid, bool) & (f >= lo) & (f <= hi)
     if sel.sum() < 2:
         return []
-    fs = f[sel]
-    s = np.asarray(sigma, float)[sel]
-    e2 = np.abs(result.model.frf(fs) - np.asarray(frf)[sel]) ** 2 / np.where(s > 0, s, np.inf) ** 2
+    idx = np.flatnonzero(sel)
+    idx = idx[np.argsort(f[idx], kind="stable")]  # adjacent in frequency, whatever order the run holds
+    fs = f[idx]
+    s = np.asarray(sigma, float)[idx]
+    e2 = np.abs(result.model.frf(fs) - np.asarray(frf)[idx]) ** 2 / np.where(s > 0, s, np.inf) ** 2
     r = e2.reshape(fs.size, -1).mean(axis=1)
     near = np.zeros(fs.size, bool)
     for fk, zk in zip(result.modal.frequency_hz, result.modal.damping):
