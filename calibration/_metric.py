@@ -44,6 +44,14 @@ def log_deviation(h_model: np.ndarray, h_test: np.ndarray) -> np.ndarray:
     return np.log(h_model / h_test) / LN10
 
 
+def true_runs(mask) -> list[tuple[int, int]]:
+    """``(first, last)`` index of every run of consecutive True values of a 1-D mask (``last`` inclusive), in order:
+    the bands of adjacent lines that a per-line test flags."""
+    m = np.concatenate([[False], np.asarray(mask, bool), [False]])
+    edges = np.flatnonzero(m[1:] != m[:-1])
+    return [(int(a), int(b) - 1) for a, b in zip(edges[0::2], edges[1::2])]
+
+
 def square_deviation(eps: np.ndarray) -> float:
     """delta = eps^H eps / N (paper Eq. 2.5 and 2.23); dimensionless."""
     eps = np.asarray(eps).ravel()

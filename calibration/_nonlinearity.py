@@ -39,7 +39,7 @@ from typing import Sequence
 import numpy as np
 
 from calibration._errors import CalibrationError
-from calibration._metric import LN10, log_deviation, square_deviation
+from calibration._metric import LN10, log_deviation, square_deviation, true_runs
 from labdata import FRF_QUANTITIES, quantity_factor, quantity_power
 
 
@@ -1050,15 +1050,8 @@ def sweep_direction(
     z_all = _chi2_z(float(t_line.sum()), dof * ia.size)
     bad = z_line > z_threshold
     bands = []
-    k = 0
     a_up, a_dn = np.abs(Hu).sum(axis=1), np.abs(Hd).sum(axis=1)
-    while k < ia.size:
-        if not bad[k]:
-            k += 1
-            continue
-        j = k
-        while j + 1 < ia.size and bad[j + 1]:
-            j += 1
+    for k, j in true_runs(bad):
         w = max(j - k + 1, 2)  # look a band-width either side for the two peaks
         lo, hi = max(k - w, 0), min(j + w, ia.size - 1) + 1
         rel = np.sqrt(d2[k : j + 1] / Hm[k : j + 1] ** 2).max()
@@ -1073,7 +1066,6 @@ def sweep_direction(
                 peak_down_hz=float(f[lo + np.argmax(a_dn[lo:hi])]),
             )
         )
-        k = j + 1
     ev = []
     for b in bands:
         kind = (

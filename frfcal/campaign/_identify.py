@@ -13,6 +13,7 @@ from typing import Literal
 import numpy as np
 
 from calibration import CalibrationError
+from calibration._metric import true_runs
 
 
 def line_weights(std_error, frf, valid):
@@ -162,21 +163,12 @@ def unexplained_residual(frequency_hz, frf, valid, sigma, result, threshold: flo
     near = np.zeros(fs.size, bool)
     for fk, zk in zip(result.modal.frequency_hz, result.modal.damping):
         near |= np.abs(fs - fk) <= max(6.0 * zk * fk, 1e-3 * fk)
-    hot = (r > threshold) & ~near
     out = []
-    k = 0
-    while k < fs.size:
-        if not hot[k]:
-            k += 1
-            continue
-        j = k
-        while j + 1 < fs.size and hot[j + 1]:
-            j += 1
+    for k, j in true_runs((r > threshold) & ~near):
         if j > k:
             m = k + int(np.argmax(r[k:j + 1]))
             out.append({"frequency_hz": float(fs[m]), "window_hz": [float(fs[k]), float(fs[j])],
                         "residual_sigma": float(np.sqrt(r[m])), "lines": int(j - k + 1)})
-        k = j + 1
     out.sort(key=lambda d: -d["residual_sigma"])
     return out[:max_windows]
 

@@ -431,8 +431,9 @@ def identify_stage(camp: Campaign, articles, log=print) -> IdentifyResult:
         log(f"{a.path.name}: identified order {ident.order} ({how}), {ident.modal.n_modes} modes in "
             f"{blo:.0f}-{bhi:.0f} Hz, weights {ident.settings['weights']} ({time.perf_counter() - t0:.1f} s)")
         log(f"{a.path.name}: {refit_line(ident)}")
-        if unexplained_line(ident):
-            log(f"{a.path.name}: note: {unexplained_line(ident)}")
+        unexplained = unexplained_line(ident)
+        if unexplained:
+            log(f"{a.path.name}: note: {unexplained}")
         idents.append(ident)
         chans.append(a.channels)
     return IdentifyResult(tuple(idents), tuple(chans))

@@ -115,8 +115,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"order chosen automatically: {sel.reason}")
     print("poles: " + ", ".join(f"{v} {k}" for k, v in labels.items()))
     print(refit_line(result))
-    if unexplained_line(result):
-        print(unexplained_line(result))
+    unexplained = unexplained_line(result)
+    if unexplained:
+        print(unexplained)
     print(f"{'mode':>4} {'f_n [Hz]':>11} {'zeta [%]':>9} {'importance':>11}")
     phys = np.flatnonzero(result.poles.physical)
     for i, (f, z, k) in enumerate(zip(m.frequency_hz, m.damping, phys), start=1):
