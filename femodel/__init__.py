@@ -9,7 +9,7 @@ from femodel._dofs import DofMap
 from femodel._matrices import ImportedMatrices, read_dmig, read_matrices, read_op2_matrices, read_op4
 from femodel._model import CoordSystem, FEModel, ModelError, RBE2, RBE3, Table
 from femodel._factor import (BackendInfo, Factorization, FactorizationError, NotPositiveDefiniteError,
-                             available_backends, default_backend, factorize)
+                             analyze_ahead, available_backends, default_backend, factorize)
 from femodel._modes import Modes, normal_modes, solve_modes, start_vector
 from femodel._pattern import union_pattern
 from femodel._reader import read_bdf
@@ -38,7 +38,7 @@ __all__ = [
     "Parameter", "ParameterError", "ParameterSet", "read_parameters", "ParametricModel", "SeriesAffineMatrix", "parametric_model",
     "write_bdf", "fixed_field_card", "SubframeExample", "example_subframe", "FrameExample", "example_frame",
     "AddedMass", "AddedSpring", "ElementFactor", "ExtendedAffineMatrix", "BackendInfo", "Factorization",
-    "FactorizationError", "NotPositiveDefiniteError", "available_backends", "default_backend", "factorize",
+    "FactorizationError", "NotPositiveDefiniteError", "analyze_ahead", "available_backends", "default_backend", "factorize",
     "CANDIDATE_FAMILIES", "COMPOUND_EFFECTS", "Candidate", "CandidateContext", "CandidateOptions",
     "candidate_context", "compound_candidates", "generate_candidates", "register_family", "POINT_FAMILIES",
     "PointFamily", "REGION_FAMILIES", "candidate_regions", "contact_on_pairs", "candidate_pairs", "zoom_candidates",

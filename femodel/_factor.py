@@ -5,10 +5,14 @@ calibration surrogate's basis) factorizes K - sigma M (or K + s M) through
 :func:`factorize`.  Backends (``backend="auto"`` tries cholmod, cholespy, superlu):
 
 ``cholmod``
-    scikit-sparse's CHOLMOD (supernodal Cholesky, METIS ordering, the system
-    BLAS).  Needs SuiteSparse headers to build (Debian ``libsuitesparse-dev``);
-    the only backend whose symbolic analysis is reused across factorizations
-    of the same pattern (``cache``).
+    The system's CHOLMOD (supernodal Cholesky, METIS ordering, the system
+    BLAS), called through ctypes where its library loads and its structures
+    are the expected ones (:mod:`femodel._cholmod`: the GIL released, wide
+    solves split over the cores, the analysis can run ahead,
+    :func:`analyze_ahead`), else through scikit-sparse (which needs SuiteSparse
+    headers to build, Debian ``libsuitesparse-dev``); the only backend whose
+    symbolic analysis is reused across factorizations of the same pattern
+    (``cache``).
 ``cholespy``
     CHOLMOD bundled in the cholespy wheel (Linux x86-64, macOS, Windows); its wheel
     links the reference BLAS, so it is slower than scikit-sparse's.
@@ -33,6 +37,7 @@ from __future__ import annotations
 import functools
 import os
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Callable
 
@@ -122,6 +127,10 @@ def _probe(name: str) -> BackendInfo:
 
         return BackendInfo("superlu", True, f"scipy {scipy.__version__} SuperLU (always available)")
     if name == "cholmod":
+        from femodel import _cholmod as direct
+
+        if direct.available():
+            return BackendInfo("cholmod", True, direct.DETAIL, True)
         try:
             import sksparse.cholmod  # noqa: F401
         except ImportError as exc:
@@ -193,11 +202,99 @@ def _contiguous(F) -> np.ndarray:
 
 
 def _cholmod(A: sp.csc_matrix, cache: dict | None):
+    from femodel import _cholmod as direct
+
+    if direct.available():
+        try:
+            return _cholmod_direct(A, cache, direct)
+        except direct.NotPositiveDefinite as exc:
+            raise NotPositiveDefiniteError(f"CHOLMOD: {exc}") from None
+        except direct.CholmodError as exc:
+            if not _sksparse_importable():
+                raise FactorizationError(f"CHOLMOD: {exc}") from None
+            # e.g. a factor too large for CHOLMOD's int indices: scikit-sparse chooses its long version
+    return _cholmod_sksparse(A, cache)
+
+
+def _sksparse_importable() -> bool:
+    try:
+        import sksparse.cholmod  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def _cholmod_direct(A: sp.csc_matrix, cache: dict | None, direct):
+    """CHOLMOD through ctypes (:mod:`femodel._cholmod`): the GIL released, wide solves split over the cores."""
+    symbolic, reused = None, False
+    hit = None if cache is None else cache.get("cholmod")
+    if hit is not None and np.array_equal(hit[0], A.indptr) and np.array_equal(hit[1], A.indices):
+        symbolic = hit[2]
+        if isinstance(symbolic, Future):  # analysed ahead (analyze_ahead): wait for it
+            try:
+                symbolic = symbolic.result()
+            except direct.CholmodError:
+                symbolic = None
+            if cache is not None and symbolic is not None:
+                cache["cholmod"] = (hit[0], hit[1], symbolic)
+        if not isinstance(symbolic, direct.Symbolic):
+            symbolic = None
+        reused = symbolic is not None
+    if symbolic is None:
+        symbolic = direct.Symbolic(A.indptr, A.indices, A.shape[0])
+        if cache is not None:
+            cache["cholmod"] = (A.indptr.copy(), A.indices.copy(), symbolic)
+    return symbolic.factor(A).solve, reused
+
+
+def analyze_ahead(A, cache: dict) -> bool:
+    """Start CHOLMOD's symbolic analysis of A's pattern on a background thread.
+
+    A later :func:`factorize` of a matrix with this pattern and the same
+    ``cache`` waits for it and does only the numeric factorization. The
+    analysis (METIS, one core: about 2 s at 200k DOF) runs with the GIL
+    released, so the caller's next work (e.g. the campaign's identification)
+    runs beside it. Only with the ctypes CHOLMOD path (:mod:`femodel._cholmod`)
+    and when ``backend="auto"`` means cholmod; otherwise nothing is started.
+
+    Parameters
+    ----------
+    A : (n, n) sparse
+        The matrix, or any matrix of its pattern (values are not read).
+    cache : dict
+        The cache later passed to :func:`factorize`.
+
+    Returns
+    -------
+    bool
+        Whether an analysis was started (or one of this pattern is already cached).
+    """
+    from femodel import _cholmod as direct
+
+    try:
+        if default_backend() != "cholmod" or not direct.available():
+            return False
+    except FactorizationError:
+        return False
+    A = _as_csc(A)
+    hit = cache.get("cholmod")
+    if hit is not None and np.array_equal(hit[0], A.indptr) and np.array_equal(hit[1], A.indices):
+        return True
+    indptr, indices, n = A.indptr.copy(), A.indices.copy(), A.shape[0]
+    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="frfcal-analyze")
+    future = pool.submit(direct.Symbolic, indptr, indices, n)
+    pool.shutdown(wait=False)
+    cache["cholmod"] = (indptr, indices, future)
+    return True
+
+
+def _cholmod_sksparse(A: sp.csc_matrix, cache: dict | None):
     from sksparse.cholmod import CholmodNotPositiveDefiniteError, analyze
 
     symbolic, reused = None, False
     hit = None if cache is None else cache.get("cholmod")
-    if hit is not None and np.array_equal(hit[0], A.indptr) and np.array_equal(hit[1], A.indices):
+    if (hit is not None and hasattr(hit[2], "cholesky") and np.array_equal(hit[0], A.indptr)
+            and np.array_equal(hit[1], A.indices)):
         symbolic, reused = hit[2], True
     if symbolic is None:
         # supernodal LL^T always: CHOLMOD's "auto" mode takes a simplicial LDL^T for small
