@@ -42,7 +42,7 @@ import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
 
-from femodel import AffineMatrix, FactorizationError, factorize, union_pattern
+from femodel import AffineMatrix, FactorizationError, analyze_ahead as _analyze_pattern_ahead, factorize, union_pattern
 
 from calibration._errors import CalibrationError
 from calibration._threads import blas_threads as _blas_threads  # module-local name as before; shared with _fit.single_thread
@@ -545,6 +545,30 @@ def assembled(model: FRFModel, p) -> tuple:
     K, M = model.stiffness(p), model.mass(p)
     model.factor_cache["assembled"] = (p.copy(), K, M)
     return K, M
+
+
+def analyze_ahead(model: FRFModel, p) -> bool:
+    """Start the symbolic analysis of the first basis's factorization on a background thread.
+
+    :func:`build_surrogate` at any point of ``model`` factorizes K + s M, whose
+    pattern does not depend on p; its CHOLMOD analysis (METIS on one core,
+    about 2 s at 200k DOF) can therefore run while the caller does other work
+    (the campaign: the identification, which then has the other core). K(p)
+    and M(p) are assembled here and kept for a basis built at the same p
+    (:func:`assembled`). Nothing is started for models small enough for the
+    dense path or when the sparse backend is not the ctypes CHOLMOD path
+    (:func:`femodel.analyze_ahead`).
+
+    Returns
+    -------
+    bool
+        Whether the analysis runs (or is already cached).
+    """
+    if model.K.shape[0] <= DENSE_BELOW:
+        return False
+    K, M = assembled(model, p)
+    return _analyze_pattern_ahead(_shifted(sp.csr_matrix(K), sp.csr_matrix(M), 1.0, model.factor_cache),
+                                  model.factor_cache)
 
 
 def build_surrogate(

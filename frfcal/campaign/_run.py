@@ -27,7 +27,7 @@ from typing import Any, Callable
 import numpy as np
 import scipy.sparse as sp
 
-from calibration import make_executor
+from calibration import analyze_ahead, make_executor
 from frfcal.campaign._diagnose import DiagnosisResult, diagnose_stage, write_diagnosis
 from frfcal.campaign._report import write_outputs
 from calibration import CalibrationError
@@ -318,11 +318,16 @@ def run_campaign(camp: Campaign, log=print, upto: str | None = None, force: str 
             raise _Done  # stop before the outputs: they need every stage through cross-validation
         return got
 
+    def will_compute(name: str, key: str) -> bool:
+        """Whether ``stage`` will run ``name`` rather than reuse a stored result (or stop before it)."""
+        k = names.index(name)
+        return k <= last and (k >= forced or not store.holds(name, key))
+
     executor = _Executor(camp)
     ctx = StageContext(camp, outdir, log, executor.get, names=names, last=last, records=records)
     try:
         try:
-            return _stages(camp, ctx, stage, records, timings, t_all)
+            return _stages(camp, ctx, stage, will_compute, records, timings, t_all)
         finally:
             executor.close()
     except _Done:
@@ -330,8 +335,9 @@ def run_campaign(camp: Campaign, log=print, upto: str | None = None, force: str 
                 "time_s": time.perf_counter() - t_all}
 
 
-def _stages(camp, ctx, stage, records, timings, t_all):
-    """The stages in order (``stage(name, key, compute)`` runs or reuses one)."""
+def _stages(camp, ctx, stage, will_compute, records, timings, t_all):
+    """The stages in order (``stage(name, key, compute)`` runs or reuses one; ``will_compute(name, key)``
+    says beforehand which it will do)."""
     outdir = ctx.outdir
     fk = front_keys(camp)
     layout = camp.resolve(camp.layout.file) if camp.layout is not None else None
@@ -355,6 +361,10 @@ def _stages(camp, ctx, stage, records, timings, t_all):
     ctx.pm, ctx.model = pm, model
     timings["model_s"] = time.perf_counter() - t
     keys = stage_keys(camp, model, records["load"]["fingerprint"])
+    if will_compute("calibrate", keys["calibrate"]):
+        # CHOLMOD's analysis of the first basis's K + sM (METIS, one core) beside the identification, which
+        # runs on one BLAS thread below 10,000 lines (docs/calibration.md, "Toward 30 s: measured at stop 43")
+        analyze_ahead(model, np.zeros(pm.n_params))
     t = time.perf_counter()
     ident = stage("identify", keys["identify"], lambda: identify_stage(camp, load.articles, ctx.log))
     articles = ident.attached(load.articles)
