@@ -318,8 +318,9 @@ def run_campaign(camp: Campaign, log=print, upto: str | None = None, force: str 
             raise _Done  # stop before the outputs: they need every stage through cross-validation
         return got
 
-    def will_compute(name: str, key: str) -> bool:
-        """Whether ``stage`` will run ``name`` rather than reuse a stored result (or stop before it)."""
+    def will_compute(name: str, key: str | None = None) -> bool:
+        """Whether ``stage`` will run ``name`` rather than reuse a stored result (or stop before it). Before
+        its key is known (``key`` None): whether no result of ``name`` is stored at all."""
         k = names.index(name)
         return k <= last and (k >= forced or not store.holds(name, key))
 
@@ -356,6 +357,10 @@ def _stages(camp, ctx, stage, will_compute, records, timings, t_all):
     t = time.perf_counter()
     load = stage("load", load_key(camp), lambda: load_stage(camp, ctx.log))
     timings["load_s"] = time.perf_counter() - t
+    if will_compute("calibrate"):
+        # the multi-start's worker processes start Python and their imports beside pyNastran's parse, which
+        # leaves a core idle, rather than beside the first basis (docs/calibration.md, stop 43)
+        ctx.executor()
     t = time.perf_counter()
     pm, model = build_model(camp, load, ctx.log)  # every time: the report needs it, its fingerprint guards calibrate
     ctx.pm, ctx.model = pm, model

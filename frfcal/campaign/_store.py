@@ -153,14 +153,16 @@ class StageStore:
         except (OSError, ValueError, KeyError, TypeError, CalibrationError):
             return None  # damaged or foreign: the stage runs again
 
-    def holds(self, stage: str, key: str) -> bool:
-        """Whether a result of ``stage`` with fingerprint ``key`` is stored (its head read, not its arrays)."""
+    def holds(self, stage: str, key: str | None) -> bool:
+        """Whether a result of ``stage`` with fingerprint ``key`` (any, when None) is stored (its head read,
+        not its arrays)."""
         jpath, npath = self._paths(stage)
         try:
             head = json.loads(jpath.read_text())
         except (OSError, ValueError):
             return False
-        return npath.exists() and head.get("format") == FORMAT and head.get("fingerprint") == key
+        return (npath.exists() and head.get("format") == FORMAT
+                and (key is None or head.get("fingerprint") == key))
 
     def save(self, stage: str, key: str, result, time_s: float) -> None:
         """Write ``result`` atomically (the JSON, which names the fingerprint, last)."""

@@ -378,6 +378,23 @@ def test_an_acquiring_campaign_plans_the_layout_then_acquires_and_resumes_an_int
 
 
 
+def test_a_rerun_that_reuses_the_calibration_starts_no_workers_and_no_analysis(small, capsys, monkeypatch):
+    """The multi-start's workers (started before the parametric model) and CHOLMOD's analysis ahead of the
+    first basis are started only when the calibrate stage will run."""
+    import frfcal.campaign._run as run
+
+    tmp, camp, ref = small
+    same = tmp / "small_ref_rerun.toml"
+    same.write_text(camp.read_text().replace('dir = "out"', 'dir = "ref"'))
+    started = []
+    make, ahead = run.make_executor, run.analyze_ahead
+    monkeypatch.setattr(run, "make_executor", lambda *a, **k: started.append("workers") or make(*a, **k))
+    monkeypatch.setattr(run, "analyze_ahead", lambda *a, **k: started.append("analysis") or ahead(*a, **k))
+    assert main(["calibrate", str(same), "--json", "--quiet"]) == 0
+    assert set(_status(json.loads(capsys.readouterr().out)).values()) == {"reused"}
+    assert started == []
+
+
 @pytest.mark.parametrize("text, expect", [
     ("[model]\nparameters = 'p.toml'\n[channels]\ncalibrate = ['a']\n[band]\nlow_hz = 1.0\nhigh_hz = 2.0\n",
      "no data: give [[run]] entries"),
