@@ -5,8 +5,9 @@ varying from mode to mode, the exact residual of the higher modes, 0.5-1 % noise
 uneven line grid dense at the resonances), independently of the calibration path. The campaign then
 runs as a user's would: run files -> identification (automatic order) -> equalized multi-start ->
 re-basis cycles -> raw-line refinement -> hold-out validation -> cross-validation
-(``calibration.run_campaign``), in a fresh interpreter as the ``frfcal`` command would (cold imports and
-heap; this process's own parametric model of the deck would otherwise flatter the timings by ~1.5 s).
+(``calibration.run_campaign``), in a fresh interpreter started as the ``frfcal`` command is (cold imports
+and heap, a main process: this process's own parametric model of the deck would flatter the timings by
+~1.5 s, and a multiprocessing child is taken for a pool's worker and given one data thread).
 Accuracy is reported beside its floor: the SD of the truth itself against its own noisy lines.
 
     python benchmarks/bench_calibration.py [--dof 200000] [--starts 20] [--realizations 10] [--cache DIR]
@@ -46,8 +47,9 @@ PAPER = {  # seconds, 8 cores (method paper Sec. 2.3.4)
 }
 
 
-def _campaign_child(camp_path: str, conn) -> None:
-    """The campaign in this (fresh) process, with its own CPU, system time and page faults, sent back on ``conn``."""
+def _campaign_child(camp_path: str, out_path: str) -> None:
+    """The campaign in this (fresh) process, with its own CPU, system time and page faults, pickled to
+    ``out_path``."""
     from frfcal._malloc import keep_large_allocations
 
     malloc_tuned = keep_large_allocations()  # as the frfcal command does
@@ -64,7 +66,7 @@ def _campaign_child(camp_path: str, conn) -> None:
     cpu_main = time.process_time() - c0
     r1 = resource.getrusage(resource.RUSAGE_SELF)
     o1 = os.times()  # the executor's workers have ended: their CPU time is in the children's
-    conn.send({
+    Path(out_path).write_bytes(pickle.dumps({
         "res": res, "lines": lines, "wall_s": wall, "cpu_main_s": cpu_main, "malloc_tuned": malloc_tuned,
         # system time and first touches of fresh pages in this process: on a VM that hands freed memory back
         # to its host (free page reporting) a fresh GB costs 1-2 s to page in (docs/calibration.md, stop 39)
@@ -72,25 +74,21 @@ def _campaign_child(camp_path: str, conn) -> None:
         "faults_gb": (r1.ru_minflt - r0.ru_minflt) * resource.getpagesize() / 1e9,
         "cpu_workers_s": o1.children_user + o1.children_system - o0.children_user - o0.children_system,
         "peak_memory_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6,  # KiB on Linux
-    })
-    conn.close()
+    }))
 
 
 def _campaign_in_fresh_process(camp_path) -> dict:
-    import multiprocessing as mp
+    """The campaign in a new interpreter started as the ``frfcal`` command is (a main process: not a
+    multiprocessing child, which frfcal would take for a pool's worker and give one data thread)."""
+    import subprocess
 
-    ctx = mp.get_context("spawn")
-    recv, send = ctx.Pipe(duplex=False)
-    proc = ctx.Process(target=_campaign_child, args=(str(camp_path), send))
-    proc.start()
-    send.close()
-    try:
-        out = recv.recv()
-    except EOFError:
-        proc.join()
-        raise SystemExit(f"the campaign process ended without a result (exit code {proc.exitcode})") from None
-    proc.join()
-    return out
+    with tempfile.TemporaryDirectory(prefix="bench_cal_res_") as d:
+        out = Path(d) / "result.pkl"
+        proc = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--campaign-child", str(camp_path),
+                               str(out)])
+        if proc.returncode != 0 or not out.exists():
+            raise SystemExit(f"the campaign process ended without a result (exit code {proc.returncode})")
+        return pickle.loads(out.read_bytes())
 
 
 def main(argv=None) -> int:
@@ -112,7 +110,11 @@ def main(argv=None) -> int:
                          "(identifiable parameters calibrated, the others true; and the reverse): two more "
                          "full-order solves")
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "calibration.json"))
+    ap.add_argument("--campaign-child", nargs=2, metavar=("CAMPAIGN", "RESULT"), help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    if args.campaign_child:
+        _campaign_child(*args.campaign_child)
+        return 0
     import tomllib
 
     settings = {}
