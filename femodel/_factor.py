@@ -212,7 +212,7 @@ def _cholmod(A: sp.csc_matrix, cache: dict | None):
         except direct.CholmodError as exc:
             if not _sksparse_importable():
                 raise FactorizationError(f"CHOLMOD: {exc}") from None
-            # e.g. a factor too large for CHOLMOD's int indices: scikit-sparse chooses its long version
+            # e.g. a factor too large for CHOLMOD's int indices: scikit-sparse's call, as before this path
     return _cholmod_sksparse(A, cache)
 
 
