@@ -18,13 +18,15 @@ CHOLMOD's structures is checked when the library is loaded: the fields of
 ``cholmod_common`` that are set (``supernodal``, ``print``) are found at the
 offsets where the defaults written by ``cholmod_start`` must be; on any
 mismatch this path is not used (:func:`available` says why) and
-:mod:`femodel._factor` calls scikit-sparse as before.
+:mod:`femodel._factor` calls scikit-sparse as before; ``FRFCAL_CHOLMOD_DIRECT=0`` does the same on
+purpose (read when the module is first imported).
 """
 
 from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import os
 import threading
 import weakref
 
@@ -74,8 +76,14 @@ _LAYOUT = ((0, ctypes.c_double, 0.0), (8, ctypes.c_double, 1.2), (16, ctypes.c_d
 _OFFSET_SUPERNODAL, _OFFSET_PRINT = 48, 144
 
 
+#: Environment variable: ``0`` keeps this path off (scikit-sparse is called instead, as before stop 43).
+ENV_VAR = "FRFCAL_CHOLMOD_DIRECT"
+
+
 def _load():
     """(library or None, what was loaded or why not)."""
+    if os.environ.get(ENV_VAR, "").strip() == "0":
+        return None, f"the ctypes path is off ({ENV_VAR}=0)"
     name = ctypes.util.find_library("cholmod")
     if name is None:
         return None, "libcholmod not found (Debian: apt-get install libsuitesparse-dev)"

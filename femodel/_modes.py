@@ -102,6 +102,15 @@ _SOLVER_LABEL = {
 }
 
 
+def _solver_label(backend: str) -> str:
+    """The factorization named in ``Modes.solver``: which CHOLMOD binding for ``cholmod``."""
+    if backend == "cholmod":
+        from femodel import _cholmod as direct
+
+        return "CHOLMOD Cholesky (system library through ctypes)" if direct.available() else _SOLVER_LABEL[backend]
+    return _SOLVER_LABEL[backend]
+
+
 def _factorize(A: sp.csc_matrix, solver: str):
     """Return (solve(b), backend name) for K - sigma M; see :func:`femodel._factor.factorize`."""
     if solver not in ("auto",) + PREFERENCE:
@@ -215,7 +224,7 @@ def normal_modes(K, M, n_modes: int, *, shift_hz=None, solver: str = "auto", n_t
                 lam, vec = spla.eigsh(K, k=k, M=M, sigma=sigma, which="LM", OPinv=op, mode="normal", ncv=ncv, tol=tol,
                                       v0=start_vector(n))
             t2 = time.perf_counter()
-            name = f"shift-invert Lanczos (ARPACK) with {_SOLVER_LABEL[fname]}"
+            name = f"shift-invert Lanczos (ARPACK) with {_solver_label(fname)}"
     order = np.argsort(lam)
     lam, vec = lam[order], vec[:, order]
     gm = np.einsum("ij,ij->j", vec, M @ vec)

@@ -86,6 +86,12 @@ def test_an_unknown_common_layout_disables_the_path(monkeypatch):
     assert lib is None and f"byte {offset}" in detail and "unknown layout" in detail
 
 
+def test_the_path_can_be_switched_off(monkeypatch):
+    monkeypatch.setenv(direct.ENV_VAR, "0")
+    lib, detail = direct._load()
+    assert lib is None and direct.ENV_VAR in detail
+
+
 def test_concurrent_callers_of_one_factor_get_their_own_answers():
     A = _plate(50)
     n = A.shape[0]
