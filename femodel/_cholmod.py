@@ -81,16 +81,21 @@ ENV_VAR = "FRFCAL_CHOLMOD_DIRECT"
 
 
 def _load():
-    """(library or None, what was loaded or why not)."""
+    """(library or None, what was loaded or why not): the system's CHOLMOD."""
     if os.environ.get(ENV_VAR, "").strip() == "0":
         return None, f"the ctypes path is off ({ENV_VAR}=0)"
     name = ctypes.util.find_library("cholmod")
     if name is None:
         return None, "libcholmod not found (Debian: apt-get install libsuitesparse-dev)"
+    return _open(name, name)
+
+
+def _open(path: str, label: str):
+    """(library or None, detail) for the shared object at ``path`` that holds CHOLMOD's API."""
     try:
-        lib = ctypes.CDLL(name)
+        lib = ctypes.CDLL(path)
     except OSError as exc:
-        return None, f"{name} does not load: {exc}"
+        return None, f"{label} does not load: {exc}"
     vp = ctypes.c_void_p
     try:
         lib.cholmod_start.argtypes = [vp]
@@ -106,15 +111,15 @@ def _load():
                                        ctypes.POINTER(ctypes.POINTER(_Dense)), vp, ctypes.POINTER(vp),
                                        ctypes.POINTER(vp), vp]
     except AttributeError as exc:
-        return None, f"{name} lacks a CHOLMOD entry point ({exc})"
+        return None, f"{label} lacks a CHOLMOD entry point ({exc})"
     common = ctypes.create_string_buffer(_COMMON_BYTES)
     if not lib.cholmod_start(common):
-        return None, f"{name}: cholmod_start failed"
+        return None, f"{label}: cholmod_start failed"
     try:
         for offset, ctype, value in _LAYOUT:
             got = ctype.from_buffer(common, offset).value
             if got != value:
-                return None, (f"{name}: cholmod_common field at byte {offset} holds {got!r} where CHOLMOD's "
+                return None, (f"{label}: cholmod_common field at byte {offset} holds {got!r} where CHOLMOD's "
                               f"default {value!r} belongs (unknown layout)")
     finally:
         lib.cholmod_finish(common)
@@ -123,15 +128,35 @@ def _load():
         v = (ctypes.c_int * 3)()
         lib.cholmod_version(v)
         version = f" {v[0]}.{v[1]}.{v[2]}"
-    return lib, f"{name} (CHOLMOD{version}, called through ctypes)"
+    return lib, f"{label} (CHOLMOD{version}, called through ctypes)"
 
 
 _LIB, DETAIL = _load()
 
 
 def available() -> bool:
-    """Whether this path can be used (:data:`DETAIL` says what was loaded, or why not)."""
+    """Whether the system's CHOLMOD can be used (:data:`DETAIL` says what was loaded, or why not)."""
     return _LIB is not None
+
+
+_BUNDLED: tuple | None = None
+
+
+def bundled():
+    """(library or None, detail): the CHOLMOD inside cholespy's wheel (its extension module exports the
+    API; its BLAS is the reference BLAS bundled with it), loaded on first call."""
+    global _BUNDLED
+    if _BUNDLED is None:
+        if os.environ.get(ENV_VAR, "").strip() == "0":
+            _BUNDLED = (None, f"the ctypes path is off ({ENV_VAR}=0)")
+        else:
+            try:
+                import cholespy._cholespy_core as core
+            except ImportError as exc:
+                _BUNDLED = (None, f"cholespy not importable ({exc})")
+            else:
+                _BUNDLED = _open(core.__file__, "cholespy's extension module")
+    return _BUNDLED
 
 
 class CholmodError(RuntimeError):
@@ -146,23 +171,23 @@ class NotPositiveDefinite(CholmodError):
         self.column = column
 
 
-def _common():
+def _common(lib):
     c = ctypes.create_string_buffer(_COMMON_BYTES)
-    if not _LIB.cholmod_start(c):
+    if not lib.cholmod_start(c):
         raise CholmodError("cholmod_start failed")
     ctypes.c_int.from_buffer(c, _OFFSET_PRINT).value = 0  # no messages on stdout (they would corrupt --json)
     ctypes.c_int.from_buffer(c, _OFFSET_SUPERNODAL).value = _CHOLMOD_SUPERNODAL
     return c
 
 
-def _free_factor(pointer: int, common) -> None:
+def _free_factor(lib, pointer: int, common) -> None:
     handle = ctypes.c_void_p(pointer)
-    _LIB.cholmod_free_factor(ctypes.byref(handle), common)
+    lib.cholmod_free_factor(ctypes.byref(handle), common)
 
 
-def _finish(commons) -> None:
+def _finish(lib, commons) -> None:
     for c in commons:
-        _LIB.cholmod_finish(c)
+        lib.cholmod_finish(c)
 
 
 class _Matrix:
@@ -184,16 +209,19 @@ class Symbolic:
     """CHOLMOD's analysis of a symmetric pattern (fill-reducing ordering, supernodes), reusable for every
     matrix of that pattern (:meth:`factor`)."""
 
-    def __init__(self, indptr, indices, n: int):
+    def __init__(self, indptr, indices, n: int, lib=None):
         self.n = int(n)
+        self._lib = lib = _LIB if lib is None else lib
+        if lib is None:
+            raise CholmodError(DETAIL)
         matrix = _Matrix(indptr, indices, None, self.n)
-        self._common = _common()
-        pointer = _LIB.cholmod_analyze(ctypes.byref(matrix.struct), self._common)  # GIL released meanwhile
+        self._common = _common(lib)
+        pointer = lib.cholmod_analyze(ctypes.byref(matrix.struct), self._common)  # GIL released meanwhile
         if not pointer:
-            _finish([self._common])
+            _finish(lib, [self._common])
             raise CholmodError("cholmod_analyze failed (out of memory, or the factor too large for int indices)")
         self._pointer = pointer
-        self._finalizer = weakref.finalize(self, _release, pointer, self._common)
+        self._finalizer = weakref.finalize(self, _release, lib, pointer, self._common)
 
     def factor(self, A) -> "Numeric":
         """The numeric factorization of A (CSC, this pattern, symmetric positive definite).
@@ -206,9 +234,9 @@ class Symbolic:
         return Numeric(self, A)
 
 
-def _release(pointer: int, common) -> None:
-    _free_factor(pointer, common)
-    _finish([common])
+def _release(lib, pointer: int, common) -> None:
+    _free_factor(lib, pointer, common)
+    _finish(lib, [common])
 
 
 class Numeric:
@@ -218,14 +246,15 @@ class Numeric:
         n = symbolic.n
         matrix = _Matrix(A.indptr, A.indices, A.data, n)
         self.n = n
-        self._commons = [_common()]
-        pointer = _LIB.cholmod_copy_factor(symbolic._pointer, self._commons[0])
+        self._lib = lib = symbolic._lib
+        self._commons = [_common(lib)]
+        pointer = lib.cholmod_copy_factor(symbolic._pointer, self._commons[0])
         if not pointer:
-            _finish(self._commons)
+            _finish(lib, self._commons)
             raise CholmodError("cholmod_copy_factor failed (out of memory)")
-        self._finalizer = weakref.finalize(self, _release_numeric, pointer, self._commons)
+        self._finalizer = weakref.finalize(self, _release_numeric, lib, pointer, self._commons)
         self._pointer = pointer
-        ok = _LIB.cholmod_factorize(ctypes.byref(matrix.struct), pointer, self._commons[0])  # GIL released
+        ok = lib.cholmod_factorize(ctypes.byref(matrix.struct), pointer, self._commons[0])  # GIL released
         if not ok:
             raise CholmodError("cholmod_factorize failed (out of memory)")
         minor = _FactorHead.from_address(pointer).minor
@@ -243,10 +272,10 @@ class Numeric:
             xp = ctypes.pointer(xd)  # X of exactly the solve's shape and type: CHOLMOD writes into it
             Y, E = ctypes.c_void_p(), ctypes.c_void_p()
             common = self._commons[slot]
-            ok = _LIB.cholmod_solve2(_CHOLMOD_A, self._pointer, ctypes.byref(bd), None, ctypes.byref(xp), None,
+            ok = self._lib.cholmod_solve2(_CHOLMOD_A, self._pointer, ctypes.byref(bd), None, ctypes.byref(xp), None,
                                      ctypes.byref(Y), ctypes.byref(E), common)
-            _LIB.cholmod_free_dense(ctypes.byref(Y), common)
-            _LIB.cholmod_free_dense(ctypes.byref(E), common)
+            self._lib.cholmod_free_dense(ctypes.byref(Y), common)
+            self._lib.cholmod_free_dense(ctypes.byref(E), common)
             if not ok or ctypes.addressof(xp.contents) != ctypes.addressof(xd):
                 raise CholmodError("cholmod_solve2 failed (out of memory)")
             out[:, a:b] = X
@@ -268,7 +297,7 @@ class Numeric:
         failed: list = []
         with self._lock:
             while len(self._commons) < parts:
-                self._commons.append(_common())
+                self._commons.append(_common(self._lib))
             if parts == 1:
                 self._solve_block(F2, out, 0, k, 0, failed)
             else:
@@ -289,6 +318,6 @@ class Numeric:
     __call__ = solve
 
 
-def _release_numeric(pointer: int, commons) -> None:
-    _free_factor(pointer, commons[0])
-    _finish(commons)
+def _release_numeric(lib, pointer: int, commons) -> None:
+    _free_factor(lib, pointer, commons[0])
+    _finish(lib, commons)

@@ -15,7 +15,11 @@ calibration surrogate's basis) factorizes K - sigma M (or K + s M) through
     (``cache``).
 ``cholespy``
     CHOLMOD bundled in the cholespy wheel (Linux x86-64, macOS, Windows); its wheel
-    links the reference BLAS, so it is slower than scikit-sparse's.
+    links the reference BLAS, so it is slower than the system's.  Its extension
+    exports CHOLMOD's API, which :mod:`femodel._cholmod` calls through ctypes
+    where the structures check out (the analysis then kept in ``cache`` and
+    run ahead, the GIL released, wide solves split over the cores); else
+    cholespy's own interface.
 ``pardiso``
     Intel MKL PARDISO through pypardiso (pip wheels for Linux/x86-64 and
     Windows: ``pip install 'frfcal[pardiso]'``, ~1 GB with MKL); real symmetric positive definite
@@ -149,6 +153,11 @@ def _probe(name: str) -> BackendInfo:
             import cholespy  # noqa: F401
         except ImportError as exc:
             return BackendInfo("cholespy", False, f"cholespy not importable ({exc}): pip install 'frfcal[fast]'")
+        from femodel import _cholmod as direct
+
+        lib, detail = direct.bundled()
+        if lib is not None:
+            return BackendInfo("cholespy", True, f"cholespy {_version('cholespy')}: {detail}, reference BLAS", True)
         return BackendInfo("cholespy", True, f"cholespy {_version('cholespy')} (bundled CHOLMOD, reference BLAS)")
     raise FactorizationError(f"unknown sparse backend {name!r}; choose one of {', '.join(('auto',) + PREFERENCE)}")
 
@@ -206,7 +215,7 @@ def _cholmod(A: sp.csc_matrix, cache: dict | None):
 
     if direct.available():
         try:
-            return _cholmod_direct(A, cache, direct)
+            return _cholmod_direct(A, cache, direct, None, "cholmod")
         except direct.NotPositiveDefinite as exc:
             raise NotPositiveDefiniteError(f"CHOLMOD: {exc}") from None
         except direct.CholmodError as exc:
@@ -224,10 +233,12 @@ def _sksparse_importable() -> bool:
     return True
 
 
-def _cholmod_direct(A: sp.csc_matrix, cache: dict | None, direct):
-    """CHOLMOD through ctypes (:mod:`femodel._cholmod`): the GIL released, wide solves split over the cores."""
+def _cholmod_direct(A: sp.csc_matrix, cache: dict | None, direct, lib, key: str):
+    """CHOLMOD through ctypes (:mod:`femodel._cholmod`; ``lib`` None: the system's library): the GIL released,
+    wide solves split over the cores. ``cache[key]`` holds the analysis (one key per library: a factor
+    belongs to the library that made it)."""
     symbolic, reused = None, False
-    hit = None if cache is None else cache.get("cholmod")
+    hit = None if cache is None else cache.get(key)
     if hit is not None and np.array_equal(hit[0], A.indptr) and np.array_equal(hit[1], A.indices):
         symbolic = hit[2]
         if isinstance(symbolic, Future):  # analysed ahead (analyze_ahead): wait for it
@@ -236,14 +247,14 @@ def _cholmod_direct(A: sp.csc_matrix, cache: dict | None, direct):
             except direct.CholmodError:
                 symbolic = None
             if cache is not None and symbolic is not None:
-                cache["cholmod"] = (hit[0], hit[1], symbolic)
+                cache[key] = (hit[0], hit[1], symbolic)
         if not isinstance(symbolic, direct.Symbolic):
             symbolic = None
         reused = symbolic is not None
     if symbolic is None:
-        symbolic = direct.Symbolic(A.indptr, A.indices, A.shape[0])
+        symbolic = direct.Symbolic(A.indptr, A.indices, A.shape[0], lib)
         if cache is not None:
-            cache["cholmod"] = (A.indptr.copy(), A.indices.copy(), symbolic)
+            cache[key] = (A.indptr.copy(), A.indices.copy(), symbolic)
     return symbolic.factor(A).solve, reused
 
 
@@ -254,8 +265,10 @@ def analyze_ahead(A, cache: dict) -> bool:
     ``cache`` waits for it and does only the numeric factorization. The
     analysis (METIS, one core: about 2 s at 200k DOF) runs with the GIL
     released, so the caller's next work (e.g. the campaign's identification)
-    runs beside it. Only with the ctypes CHOLMOD path (:mod:`femodel._cholmod`)
-    and when ``backend="auto"`` means cholmod; otherwise nothing is started.
+    runs beside it. Only with a CHOLMOD called through ctypes
+    (:mod:`femodel._cholmod`: the system's when ``backend="auto"`` means
+    cholmod, cholespy's bundled one when it means cholespy); otherwise nothing
+    is started.
 
     Parameters
     ----------
@@ -272,19 +285,24 @@ def analyze_ahead(A, cache: dict) -> bool:
     from femodel import _cholmod as direct
 
     try:
-        if default_backend() != "cholmod" or not direct.available():
-            return False
+        name = default_backend()
     except FactorizationError:
         return False
+    if name == "cholmod" and direct.available():
+        lib = None
+    elif name == "cholespy" and direct.bundled()[0] is not None:
+        lib = direct.bundled()[0]
+    else:
+        return False
     A = _as_csc(A)
-    hit = cache.get("cholmod")
+    hit = cache.get(name)
     if hit is not None and np.array_equal(hit[0], A.indptr) and np.array_equal(hit[1], A.indices):
         return True
     indptr, indices, n = A.indptr.copy(), A.indices.copy(), A.shape[0]
     pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="frfcal-analyze")
-    future = pool.submit(direct.Symbolic, indptr, indices, n)
+    future = pool.submit(direct.Symbolic, indptr, indices, n, lib)
     pool.shutdown(wait=False)
-    cache["cholmod"] = (indptr, indices, future)
+    cache[name] = (indptr, indices, future)
     return True
 
 
@@ -331,7 +349,21 @@ def _pardiso(A: sp.csc_matrix):
     return solve
 
 
-def _cholespy(A: sp.csc_matrix):
+def _cholespy(A: sp.csc_matrix, cache: dict | None = None):
+    from femodel import _cholmod as direct
+
+    lib = direct.bundled()[0]
+    if lib is not None:  # its CHOLMOD through ctypes: the analysis kept in ``cache``, the GIL released
+        try:
+            return _cholmod_direct(A, cache, direct, lib, "cholespy")
+        except direct.NotPositiveDefinite as exc:
+            raise NotPositiveDefiniteError(f"cholespy's CHOLMOD: {exc}") from None
+        except direct.CholmodError:
+            pass  # cholespy's own interface, as before this path
+    return _cholespy_own(A), False
+
+
+def _cholespy_own(A: sp.csc_matrix):
     from cholespy import CholeskySolverD, MatrixType
 
     n = A.shape[0]
@@ -384,7 +416,8 @@ def factorize(A, *, backend: str = "auto", cache: dict | None = None) -> Factori
         Caller-owned store for the symbolic analysis (fill-reducing ordering,
         supernodes) of the last pattern seen; a later call on a matrix with
         the same pattern does only the numeric factorization.  Used by the
-        ``cholmod`` backend (the others ignore it).
+        ``cholmod`` backend and by ``cholespy`` through ctypes (the others
+        ignore it).
 
     Returns
     -------
@@ -411,7 +444,7 @@ def factorize(A, *, backend: str = "auto", cache: dict | None = None) -> Factori
         elif name == "pardiso":
             solve = _pardiso(A)
         elif name == "cholespy":
-            solve = _cholespy(A)
+            solve, reused = _cholespy(A, cache)
         else:
             solve = _superlu(A)
     except NotPositiveDefiniteError:

@@ -104,10 +104,12 @@ _SOLVER_LABEL = {
 
 def _solver_label(backend: str) -> str:
     """The factorization named in ``Modes.solver``: which CHOLMOD binding for ``cholmod``."""
-    if backend == "cholmod":
-        from femodel import _cholmod as direct
+    from femodel import _cholmod as direct
 
-        return "CHOLMOD Cholesky (system library through ctypes)" if direct.available() else _SOLVER_LABEL[backend]
+    if backend == "cholmod" and direct.available():
+        return "CHOLMOD Cholesky (system library through ctypes)"
+    if backend == "cholespy" and direct.bundled()[0] is not None:
+        return "CHOLMOD Cholesky (cholespy's bundled library through ctypes)"
     return _SOLVER_LABEL[backend]
 
 

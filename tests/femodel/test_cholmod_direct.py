@@ -14,7 +14,15 @@ from femodel import NotPositiveDefiniteError, analyze_ahead, factorize
 from femodel import _cholmod as direct
 from femodel._factor import ENV_VAR
 
-pytestmark = pytest.mark.skipif(not direct.available(), reason=f"ctypes CHOLMOD not usable: {direct.DETAIL}")
+SYSTEM = pytest.mark.skipif(not direct.available(), reason=f"the system's CHOLMOD not usable: {direct.DETAIL}")
+LIBRARIES = [pytest.param(None, marks=SYSTEM, id="system"),
+             pytest.param("bundled", marks=pytest.mark.skipif(direct.bundled()[0] is None,
+                                                              reason=f"cholespy's CHOLMOD: {direct.bundled()[1]}"),
+                          id="cholespy")]
+
+
+def _lib(which):
+    return None if which is None else direct.bundled()[0]
 
 
 def _plate(n=60, shift=1e-3):
@@ -24,13 +32,14 @@ def _plate(n=60, shift=1e-3):
     return (sp.kron(T, eye) + sp.kron(eye, T) + shift * sp.identity(n * n)).tocsc()
 
 
-def test_direct_solves_match_superlu_whole_and_split(monkeypatch):
+@pytest.mark.parametrize("which", LIBRARIES)
+def test_direct_solves_match_superlu_whole_and_split(which, monkeypatch):
     A = _plate()
     n = A.shape[0]
     rng = np.random.default_rng(5)
     X = rng.standard_normal((n, 40))
     B = np.ascontiguousarray(A @ X)
-    sym = direct.Symbolic(A.indptr, A.indices, n)
+    sym = direct.Symbolic(A.indptr, A.indices, n, _lib(which))
     num = sym.factor(A)
     ref = factorize(A, backend="superlu")(B)
     monkeypatch.setenv("FRFCAL_THREADS", "1")  # one block
@@ -46,31 +55,36 @@ def test_direct_solves_match_superlu_whole_and_split(monkeypatch):
     np.testing.assert_allclose(x0, whole[:, 0], rtol=0, atol=1e-12 * np.abs(whole).max())
 
 
-def test_a_non_positive_pivot_is_named_and_auto_falls_back_to_superlu():
+@pytest.mark.parametrize("which", LIBRARIES)
+def test_a_non_positive_pivot_is_named_and_auto_falls_back_to_superlu(which, monkeypatch):
+    monkeypatch.delenv(ENV_VAR, raising=False)
     A = _plate(20).tolil()
     A[7, 7] = -5.0  # indefinite
     A = A.tocsc()
     with pytest.raises(NotPositiveDefiniteError, match="not positive definite"):
-        factorize(A, backend="cholmod")
+        factorize(A, backend="cholmod" if which is None else "cholespy")
     fac = factorize(A)  # auto: LU instead
     assert fac.backend == "superlu"
 
 
-def test_the_analysis_run_ahead_is_reused_by_factorize(monkeypatch):
-    monkeypatch.delenv(ENV_VAR, raising=False)
+@pytest.mark.parametrize("which", LIBRARIES)
+def test_the_analysis_run_ahead_is_reused_by_factorize(which, monkeypatch):
+    backend = "cholmod" if which is None else "cholespy"
+    monkeypatch.setenv(ENV_VAR, backend)
     A = _plate(80)
     cache: dict = {}
     assert analyze_ahead(A, cache)
-    assert not isinstance(cache["cholmod"][2], direct.Symbolic)  # a future until factorize takes it
+    assert not isinstance(cache[backend][2], direct.Symbolic)  # a future until factorize takes it
     A2 = A.copy()
     A2.data = A2.data * 1.5  # other values, same pattern
     fac = factorize(A2, cache=cache)
-    assert fac.backend == "cholmod" and fac.symbolic_reused
-    assert isinstance(cache["cholmod"][2], direct.Symbolic)
+    assert fac.backend == backend and fac.symbolic_reused
+    assert isinstance(cache[backend][2], direct.Symbolic)
     b = np.ones(A.shape[0])
     np.testing.assert_allclose(A2 @ fac(b), b, rtol=0, atol=1e-9)
 
 
+@SYSTEM
 def test_nothing_runs_ahead_where_another_backend_is_chosen(monkeypatch):
     monkeypatch.setenv(ENV_VAR, "superlu")
     cache: dict = {}
@@ -78,6 +92,7 @@ def test_nothing_runs_ahead_where_another_backend_is_chosen(monkeypatch):
     assert cache == {}
 
 
+@SYSTEM
 def test_an_unknown_common_layout_disables_the_path(monkeypatch):
     """A library whose cholmod_start writes other defaults at the offsets set here is not used."""
     offset, ctype, value = direct._LAYOUT[6]  # supernodal: CHOLMOD_AUTO
@@ -86,12 +101,14 @@ def test_an_unknown_common_layout_disables_the_path(monkeypatch):
     assert lib is None and f"byte {offset}" in detail and "unknown layout" in detail
 
 
+@SYSTEM
 def test_the_path_can_be_switched_off(monkeypatch):
     monkeypatch.setenv(direct.ENV_VAR, "0")
     lib, detail = direct._load()
     assert lib is None and direct.ENV_VAR in detail
 
 
+@SYSTEM
 def test_concurrent_callers_of_one_factor_get_their_own_answers():
     A = _plate(50)
     n = A.shape[0]
@@ -112,6 +129,7 @@ def test_concurrent_callers_of_one_factor_get_their_own_answers():
         np.testing.assert_allclose(out[i], X[i], rtol=0, atol=1e-9)
 
 
+@SYSTEM
 def test_the_gil_is_released_while_cholmod_works():
     """A Python thread keeps counting while the main thread is inside CHOLMOD (through scikit-sparse, which
     holds the GIL, its longest stall was 65 % of the time inside)."""
