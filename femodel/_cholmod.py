@@ -272,8 +272,8 @@ class Numeric:
             xp = ctypes.pointer(xd)  # X of exactly the solve's shape and type: CHOLMOD writes into it
             Y, E = ctypes.c_void_p(), ctypes.c_void_p()
             common = self._commons[slot]
-            ok = self._lib.cholmod_solve2(_CHOLMOD_A, self._pointer, ctypes.byref(bd), None, ctypes.byref(xp), None,
-                                     ctypes.byref(Y), ctypes.byref(E), common)
+            ok = self._lib.cholmod_solve2(_CHOLMOD_A, self._pointer, ctypes.byref(bd), None, ctypes.byref(xp),
+                                          None, ctypes.byref(Y), ctypes.byref(E), common)
             self._lib.cholmod_free_dense(ctypes.byref(Y), common)
             self._lib.cholmod_free_dense(ctypes.byref(E), common)
             if not ok or ctypes.addressof(xp.contents) != ctypes.addressof(xd):
@@ -289,10 +289,14 @@ class Numeric:
         the process has cores (``FRFCAL_THREADS``; one in a worker process), one BLAS thread each.
         """
         F = np.asarray(F, dtype=float)
+        if F.ndim not in (1, 2) or F.shape[0] != self.n:
+            raise ValueError(f"right-hand side of shape {F.shape} for a factor of order {self.n}")
         vector = F.ndim == 1
         F2 = F.reshape(self.n, -1)
         k = F2.shape[1]
         out = np.empty((self.n, k))
+        if k == 0:
+            return out
         parts = max(1, min(data_threads(), k // SPLIT_MIN_COLUMNS))
         failed: list = []
         with self._lock:

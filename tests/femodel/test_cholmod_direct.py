@@ -53,6 +53,9 @@ def test_direct_solves_match_superlu_whole_and_split(which, monkeypatch):
     x0 = num.solve(B[:, 0])
     assert x0.shape == (n,)
     np.testing.assert_allclose(x0, whole[:, 0], rtol=0, atol=1e-12 * np.abs(whole).max())
+    assert num.solve(np.zeros((n, 0))).shape == (n, 0)
+    with pytest.raises(ValueError, match=f"order {n}"):
+        num.solve(np.ones(n - 1))
 
 
 @pytest.mark.parametrize("which", LIBRARIES)
