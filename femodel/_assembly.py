@@ -382,7 +382,11 @@ def assemble(model: FEModel) -> Assembly:
     col = _Collector(len(gset))
     cd_axes = _cd_transform(model)
     wt = float(model.wtmass)
-    add_elements(model, col, cd_axes, wt)
+    try:
+        add_elements(model, col, cd_axes, wt)
+    except ModelError as exc:
+        where = f" in {model.path}" if model.path and str(model.path) not in str(exc) else ""
+        raise ModelError(f"{exc}{where}") from None
     t1 = time.perf_counter()
     terms = col.terms()
     t2 = time.perf_counter()
@@ -434,7 +438,7 @@ def _add_bars(model, col, cd_axes, wt):
         if prop is None:
             raise ModelError(f"{card} elements reference properties but no PBAR/PBARL/PBEAM/PBEAML is defined")
         try:
-            pr = prop.rows(tab["pid"])
+            pr = prop.rows(tab["pid"], owners=tab.ids)
         except ModelError as exc:
             raise ModelError(f"{card}: {exc}") from None
         mids = prop["mid"][pr]
@@ -506,7 +510,7 @@ def _add_rods(model, col, cd_axes, wt):
             if prop is None:
                 raise ModelError(f"{card} elements but no {pcard} defined")
             try:
-                pr = prop.rows(tab["pid"])
+                pr = prop.rows(tab["pid"], owners=tab.ids)
             except ModelError as exc:
                 raise ModelError(f"{card}: {exc}") from None
             mids, A, J, nsm = prop["mid"][pr], prop["A"][pr], prop["J"][pr], prop["nsm"][pr]
@@ -618,7 +622,7 @@ def _add_bushes(model, col, cd_axes):
     if prop is None:
         raise ModelError("CBUSH elements but no PBUSH defined")
     try:
-        pr = prop.rows(tab["pid"])
+        pr = prop.rows(tab["pid"], owners=tab.ids)
     except ModelError as exc:
         raise ModelError(f"CBUSH: {exc}") from None
     raw = tab["nodes"]
@@ -697,7 +701,7 @@ def _add_shells(model, col, cd_axes, wt):
             # group elements by property so that each group is a contiguous slice (views, no copies)
             tab = Table(tab.card, tab.ids[perm], {key: v[perm] for key, v in tab.fields.items()})
         try:
-            pr = prop.rows(tab["pid"])
+            pr = prop.rows(tab["pid"], owners=tab.ids)
         except ModelError as exc:
             raise ModelError(f"{card}: {exc}") from None
         nodes = model.grid_index(tab["nodes"].ravel(), what=f"{card} grid").reshape(len(tab), -1)
@@ -836,7 +840,7 @@ def _add_pcomp(model, col, cd_axes, wt, card, tab, pcomp, shell_stiffness, shell
         raise ModelError(f"{card} {bad}: MCID material axes with PCOMP are not supported (use THETA)")
     if np.any(tab["zoffs"] != 0):
         raise ModelError(f"{card} {tab.ids[tab['zoffs'] != 0][:5].tolist()}: ZOFFS offsets are not supported")
-    r = pcomp.rows(tab["pid"])
+    r = pcomp.rows(tab["pid"], owners=tab.ids)
     dm, dmb, db, ds = _rotate_laminate(pcomp["dm"][r], pcomp["dmb"][r], pcomp["db"][r], pcomp["ds"][r], tab["theta"])
     # shear-rigid plies (MAT8 G1Z/G2Z blank): a stiff penalty, as for PSHELL without MID3
     pen = 1e3 * dm[:, 2, 2]
@@ -877,7 +881,7 @@ def _add_solids(model, col, cd_axes, wt):
     for name in names:
         tab = model.elements[name]
         try:
-            pr = prop.rows(tab["pid"])
+            pr = prop.rows(tab["pid"], owners=tab.ids)
         except ModelError as exc:
             raise ModelError(f"{tab.card}: {exc}") from None
         mids = prop["mid"][pr]

@@ -113,8 +113,9 @@ class Table:
         except KeyError:
             raise ModelError(f"{self.card} table has no field {name!r}") from None
 
-    def rows(self, ids) -> np.ndarray:
-        """Row indices of ``ids`` in this table; ModelError naming missing ids."""
+    def rows(self, ids, owners=None) -> np.ndarray:
+        """Row indices of ``ids`` in this table; ModelError naming missing ids (and, given ``owners``, the ids
+        of the cards aligned with ``ids`` that reference them, e.g. the elements of a property id)."""
         ids = np.asarray(ids, dtype=np.int64)
         order = np.argsort(self.ids, kind="stable")
         pos = np.searchsorted(self.ids, ids, sorter=order)
@@ -123,7 +124,11 @@ class Table:
         bad = (len(self) == 0) | (self.ids[idx] != ids) if len(self) else np.ones(ids.shape, bool)
         if np.any(bad):
             missing = sorted(set(ids[bad].tolist()))[:10]
-            raise ModelError(f"{self.card} id(s) {missing} referenced but not defined")
+            by = ""
+            if owners is not None:
+                who = np.asarray(owners)[bad]
+                by = f" by element(s) {who[:5].tolist()}{f' and {who.size - 5} more' if who.size > 5 else ''}"
+            raise ModelError(f"{self.card} id(s) {missing} referenced{by} but not defined")
         return idx
 
 

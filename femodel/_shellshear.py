@@ -277,7 +277,7 @@ def _shell_shear_elements(fe, params: ParameterSet, key_index: dict) -> list:
             tab = Table(tab.card, tab.ids[own], {key: v[own] for key, v in tab.fields.items()})
             if len(tab) == 0:
                 continue
-        pr = prop.rows(tab["pid"])
+        pr = prop.rows(tab["pid"], owners=tab.ids)
         m2, m3 = prop["mid2"][pr], prop["mid3"][pr]
         pids = tab["pid"]
 

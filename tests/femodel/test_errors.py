@@ -42,11 +42,13 @@ def test_neutral_cards_are_accepted(tmp_path):
     assert len(femodel.read_bdf(p).elements["CBAR"]) == 1
 
 
-def test_missing_property_names_card_and_id(tmp_path):
+def test_missing_property_names_card_id_element_and_file(tmp_path):
     p = _deck(tmp_path, "CBAR,7,99,1,2,0.,1.,0.\n")
     model = femodel.read_bdf(p)
-    with pytest.raises(femodel.ModelError, match=r"CBAR.*99"):
+    with pytest.raises(femodel.ModelError, match=r"CBAR.*99") as exc:
         femodel.assemble(model)
+    msg = str(exc.value)
+    assert "by element(s) [7]" in msg and msg.endswith(f"in {p}")
 
 
 def test_missing_grid_names_element(tmp_path):
