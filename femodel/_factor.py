@@ -210,10 +210,31 @@ def _contiguous(F) -> np.ndarray:
     return np.ascontiguousarray(np.asarray(F, dtype=float))
 
 
+def _pattern_hit(cache: dict | None, key: str, A: sp.csc_matrix):
+    """``cache[key]`` = (indptr, indices, analysis) when it was made for A's pattern, else None."""
+    hit = None if cache is None else cache.get(key)
+    if hit is not None and np.array_equal(hit[0], A.indptr) and np.array_equal(hit[1], A.indices):
+        return hit
+    return None
+
+
+def _direct_library(name: str):
+    """(True, library) when backend ``name`` runs through :mod:`femodel._cholmod` (library None: the
+    system's CHOLMOD; cholespy's bundled one for ``cholespy``), else (False, None)."""
+    from femodel import _cholmod as direct
+
+    if name == "cholmod":
+        return direct.available(), None
+    if name == "cholespy":
+        lib = direct.bundled()[0]
+        return lib is not None, lib
+    return False, None
+
+
 def _cholmod(A: sp.csc_matrix, cache: dict | None):
     from femodel import _cholmod as direct
 
-    if direct.available():
+    if _direct_library("cholmod")[0]:
         try:
             return _cholmod_direct(A, cache, direct, None, "cholmod")
         except direct.NotPositiveDefinite as exc:
@@ -238,8 +259,8 @@ def _cholmod_direct(A: sp.csc_matrix, cache: dict | None, direct, lib, key: str)
     wide solves split over the cores. ``cache[key]`` holds the analysis (one key per library: a factor
     belongs to the library that made it)."""
     symbolic, reused = None, False
-    hit = None if cache is None else cache.get(key)
-    if hit is not None and np.array_equal(hit[0], A.indptr) and np.array_equal(hit[1], A.indices):
+    hit = _pattern_hit(cache, key, A)
+    if hit is not None:
         symbolic = hit[2]
         if isinstance(symbolic, Future):  # analysed ahead (analyze_ahead): wait for it
             try:
@@ -288,15 +309,11 @@ def analyze_ahead(A, cache: dict) -> bool:
         name = default_backend()
     except FactorizationError:
         return False
-    if name == "cholmod" and direct.available():
-        lib = None
-    elif name == "cholespy" and direct.bundled()[0] is not None:
-        lib = direct.bundled()[0]
-    else:
+    usable, lib = _direct_library(name)
+    if not usable:
         return False
     A = _as_csc(A)
-    hit = cache.get(name)
-    if hit is not None and np.array_equal(hit[0], A.indptr) and np.array_equal(hit[1], A.indices):
+    if _pattern_hit(cache, name, A) is not None:
         return True
     indptr, indices, n = A.indptr.copy(), A.indices.copy(), A.shape[0]
     pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="frfcal-analyze")
@@ -310,9 +327,8 @@ def _cholmod_sksparse(A: sp.csc_matrix, cache: dict | None):
     from sksparse.cholmod import CholmodNotPositiveDefiniteError, analyze
 
     symbolic, reused = None, False
-    hit = None if cache is None else cache.get("cholmod")
-    if (hit is not None and hasattr(hit[2], "cholesky") and np.array_equal(hit[0], A.indptr)
-            and np.array_equal(hit[1], A.indices)):
+    hit = _pattern_hit(cache, "cholmod", A)
+    if hit is not None and hasattr(hit[2], "cholesky"):
         symbolic, reused = hit[2], True
     if symbolic is None:
         # supernodal LL^T always: CHOLMOD's "auto" mode takes a simplicial LDL^T for small
@@ -352,8 +368,8 @@ def _pardiso(A: sp.csc_matrix):
 def _cholespy(A: sp.csc_matrix, cache: dict | None = None):
     from femodel import _cholmod as direct
 
-    lib = direct.bundled()[0]
-    if lib is not None:  # its CHOLMOD through ctypes: the analysis kept in ``cache``, the GIL released
+    usable, lib = _direct_library("cholespy")
+    if usable:  # its CHOLMOD through ctypes: the analysis kept in ``cache``, the GIL released
         try:
             return _cholmod_direct(A, cache, direct, lib, "cholespy")
         except direct.NotPositiveDefinite as exc:

@@ -104,12 +104,11 @@ _SOLVER_LABEL = {
 
 def _solver_label(backend: str) -> str:
     """The factorization named in ``Modes.solver``: which CHOLMOD binding for ``cholmod``."""
-    from femodel import _cholmod as direct
+    from femodel._factor import _direct_library
 
-    if backend == "cholmod" and direct.available():
-        return "CHOLMOD Cholesky (system library through ctypes)"
-    if backend == "cholespy" and direct.bundled()[0] is not None:
-        return "CHOLMOD Cholesky (cholespy's bundled library through ctypes)"
+    if _direct_library(backend)[0]:
+        return {"cholmod": "CHOLMOD Cholesky (system library through ctypes)",
+                "cholespy": "CHOLMOD Cholesky (cholespy's bundled library through ctypes)"}[backend]
     return _SOLVER_LABEL[backend]
 
 
